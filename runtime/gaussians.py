@@ -1,0 +1,45 @@
+"""The activated Gaussian set every renderer consumes (SPEC section 7 output layout)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+# Standard 3DGS spherical-harmonics constants (SPEC section 3).
+SH_C0 = 0.28209479177387814
+
+
+@dataclass
+class GaussianCloud:
+    """N Gaussians in world space, parameters already activated.
+
+    means (N, 3) float32; scales (N, 3) float32, positive (exp of log-scales);
+    quats (N, 4) float32, unit, (w, x, y, z); opacities (N,) float32 in (0, 1);
+    sh (N, K, 3) float32 with K = (degree + 1)^2, coefficient-major then channel.
+    """
+
+    means: np.ndarray
+    scales: np.ndarray
+    quats: np.ndarray
+    opacities: np.ndarray
+    sh: np.ndarray
+
+    def __post_init__(self):
+        n = self.means.shape[0]
+        self.means = np.ascontiguousarray(self.means, dtype=np.float32).reshape(n, 3)
+        self.scales = np.ascontiguousarray(self.scales, dtype=np.float32).reshape(n, 3)
+        self.quats = np.ascontiguousarray(self.quats, dtype=np.float32).reshape(n, 4)
+        self.opacities = np.ascontiguousarray(self.opacities, dtype=np.float32).reshape(n)
+        self.sh = np.ascontiguousarray(self.sh, dtype=np.float32).reshape(n, -1, 3)
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def sh_degree(self) -> int:
+        k = self.sh.shape[1]
+        deg = int(round(np.sqrt(k))) - 1
+        if (deg + 1) ** 2 != k:
+            raise ValueError(f"sh: {k} coefficients per channel is not (degree+1)^2")
+        return deg
