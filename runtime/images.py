@@ -1,11 +1,13 @@
 """Image files through OpenImageIO (SPEC section 10): PNG 8/16-bit, JPEG, EXR float.
 
 Writes are atomic: a temporary file in the same folder is renamed over the target, so a crash
-never leaves a half-written image behind.
+never leaves a half-written image behind. :func:`atomic_path` is the helper the other writers of
+the runtime (PLY, cam.json) share.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 from pathlib import Path
@@ -17,33 +19,85 @@ class ImageError(IOError):
     """An image could not be read or written; the message names the file."""
 
 
+def _current_umask() -> int:
+    # Read once at import: os.umask() can only be queried by setting it, which is not thread-safe.
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _current_umask()
+
+
+@contextlib.contextmanager
+def atomic_path(path, error=OSError):
+    """Yield a temporary path in `path`'s folder; on success it is renamed over `path`.
+
+    The temporary file has the same extension as `path` (format detection by extension) and gets
+    the permissions an ordinary new file would have (mkstemp makes 0600 files). On any exception
+    the temporary file is removed and nothing is left at `path` (SPEC section 10).
+    """
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise error(f"{path}: folder {path.parent} does not exist")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    os.close(fd)
+    try:
+        yield tmp
+        os.chmod(tmp, 0o666 & ~_UMASK)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
 def read_image(path) -> np.ndarray:
-    """Read an image as float32 (H, W, C) in [0, 1] (EXR: values as stored)."""
+    """Read an image as float32 (H, W, C): PNG/JPEG scaled to [0, 1], EXR values as stored.
+
+    Alpha follows OpenImageIO's convention: in memory, colour is associated (premultiplied) with
+    alpha. A straight-alpha PNG (D-NeRF, Blender) therefore comes back as rgb * a, and the
+    composite over a background is ``rgb + bg * (1 - a)``.
+    """
     import OpenImageIO as oiio
 
     path = str(path)
     if not os.path.isfile(path):
         raise ImageError(f"{path}: no such image file")
-    inp = oiio.ImageInput.open(path)
+    # Ask for the stored (straight) colour and premultiply in float below: OpenImageIO's own
+    # premultiplication of an 8-bit PNG happens in 8 bits and rounds the colour a second time.
+    config = oiio.ImageSpec()
+    config.attribute("oiio:UnassociatedAlpha", 1)
+    inp = oiio.ImageInput.open(path, config)
     if inp is None:
         raise ImageError(f"{path}: cannot read image ({oiio.geterror()})")
     try:
+        spec = inp.spec()
+        straight = spec.get_int_attribute("oiio:UnassociatedAlpha", 0) == 1
+        alpha = spec.alpha_channel
         pixels = inp.read_image("float")
+        if pixels is None:
+            raise ImageError(f"{path}: cannot decode image ({inp.geterror()})")
     finally:
         inp.close()
-    if pixels is None:
-        raise ImageError(f"{path}: cannot decode image")
     pixels = np.asarray(pixels, dtype=np.float32)
     if pixels.ndim == 2:
         pixels = pixels[:, :, None]
+    if straight and 0 <= alpha < pixels.shape[2]:
+        colour = [i for i in range(pixels.shape[2]) if i != alpha]
+        pixels[:, :, colour] *= pixels[:, :, alpha:alpha + 1]
     return pixels
 
 
 def write_image(path, image: np.ndarray, bit_depth: int = 8) -> Path:
     """Write (H, W) or (H, W, C) data atomically; the extension picks the format.
 
-    PNG/JPEG values are clipped to [0, 1] and quantised to `bit_depth` (8 or 16, PNG only);
-    EXR keeps float32 values as they are (depth, linear colour).
+    PNG/JPEG values are clipped to [0, 1] (NaN -> 0) and quantised to `bit_depth` (8, or 16 for
+    PNG only); JPEG keeps at most 3 channels (OpenImageIO drops alpha). EXR keeps float32 values as
+    they are (depth, linear colour). RGBA (and gray+alpha) input is associated (premultiplied)
+    colour, as a render over a black background gives; a PNG stores straight alpha, so colour is
+    divided by alpha (in float, before quantisation) and :func:`read_image` multiplies it back.
+    Returns the path.
     """
     import OpenImageIO as oiio
 
@@ -53,33 +107,45 @@ def write_image(path, image: np.ndarray, bit_depth: int = 8) -> Path:
     image = np.asarray(image, dtype=np.float32)
     if image.ndim == 2:
         image = image[:, :, None]
+    if image.ndim != 3 or 0 in image.shape:
+        raise ImageError(f"{path}: expected an (H, W) or (H, W, C) image, got shape {image.shape}")
     h, w, c = image.shape
     ext = path.suffix.lower()
+    straight_alpha = False
     if ext == ".exr":
         fmt, data = "float", np.ascontiguousarray(image)
     else:
+        if c > 4:
+            raise ImageError(f"{path}: {c} channels cannot be stored as {ext or 'this format'}")
         if bit_depth not in (8, 16) or (bit_depth == 16 and ext != ".png"):
             raise ImageError(f"{path}: bit depth {bit_depth} is not supported for {ext or 'this format'}")
         scale = 255.0 if bit_depth == 8 else 65535.0
         dtype = np.uint8 if bit_depth == 8 else np.uint16
-        data = np.ascontiguousarray(np.round(np.clip(image, 0.0, 1.0) * scale).astype(dtype))
+        clean = np.clip(np.nan_to_num(image, nan=0.0), 0.0, 1.0)
+        if straight_alpha := (ext == ".png" and c in (2, 4)):
+            # PNG stores straight alpha: divide in float here (OpenImageIO would do it on the
+            # already quantised values); colour under alpha 0 is stored as 0.
+            a = clean[:, :, c - 1:]
+            clean = clean.copy()
+            with np.errstate(divide="ignore", invalid="ignore"):
+                clean[:, :, :c - 1] = np.where(a > 0, np.minimum(clean[:, :, :c - 1] / a, 1.0), 0.0)
+        data = np.ascontiguousarray(np.round(clean * scale).astype(dtype))
         fmt = "uint8" if bit_depth == 8 else "uint16"
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path, ImageError) as tmp:
         out = oiio.ImageOutput.create(tmp)
         if out is None:
             raise ImageError(f"{path}: no writer for {ext!r} ({oiio.geterror()})")
         spec = oiio.ImageSpec(w, h, c, fmt)
+        if straight_alpha:
+            spec.alpha_channel = c - 1
+            spec.attribute("oiio:UnassociatedAlpha", 1)
         if not out.open(tmp, spec):
-            raise ImageError(f"{path}: cannot open for writing ({out.geterror()})")
+            msg = out.geterror()
+            out.close()
+            raise ImageError(f"{path}: cannot open for writing ({msg})")
         ok = out.write_image(data)
-        out.close()
-        if not ok:
-            raise ImageError(f"{path}: write failed")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+        msg = "" if ok else out.geterror()
+        closed = out.close()
+        if not ok or not closed:
+            raise ImageError(f"{path}: write failed ({msg or out.geterror()})")
     return path

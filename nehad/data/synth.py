@@ -1,0 +1,378 @@
+"""A small synthetic dynamic scene in the D-NeRF layout, drawn by an analytic ray caster.
+
+The images come from exact ray-sphere and ray-box intersections with Lambertian shading, so they
+share nothing with a Gaussian rasteriser: a model that fits them has learnt the scene, not the
+renderer. The output is what a D-NeRF "blender" scene looks like on disk (SPEC section 5 readers,
+SPEC section 3 conventions):
+
+- ``train/``, ``val/``, ``test/``: 8-bit RGBA PNGs (straight colour in the file, like D-NeRF's),
+  alpha = pixel coverage from supersampling, transparent background;
+- ``transforms_{train,val,test}.json``: ``camera_angle_x`` and frames
+  ``{"file_path": "./train/r_000", "time": t, "transform_matrix": c2w}`` where ``c2w`` is
+  camera-to-world in Blender/OpenGL axes (y up, z back) and ``file_path`` has no extension;
+- ``points3d.ply`` (optional): points on the object surfaces at mid time, ``x y z red green blue``.
+
+The world is z-up like the Blender scenes; every object stays inside [-1.3, 1.3]^3, the cube
+D-NeRF's random initialisation fills (SPEC section 5). Cameras sit on a sphere of radius 4 and look
+at the origin. Train frame k has time k/(frames-1) and its own camera (monocular per timestamp, like
+D-NeRF); val and test hold about 10% as many frames each at other cameras and times.
+
+Everything is numpy, vectorised over pixels, and deterministic for a seed. Files are written
+atomically (SPEC section 10).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from nehad.runtime.cameras import Camera
+from nehad.runtime.images import write_image
+
+__all__ = [
+    "SCENES", "BOUND", "Sphere", "Box", "scene_objects", "orbit_camera_to_world",
+    "render_view", "synthesize_scene",
+]
+
+#: Names accepted by :func:`synthesize_scene` and :func:`scene_objects`.
+SCENES = ("spheres", "boxes")
+
+#: Objects stay inside [-BOUND, BOUND]^3 at every time (D-NeRF's init cube).
+BOUND = 1.3
+
+# Lighting: one directional light from above plus ambient (world is z-up).
+_LIGHT = np.array([0.35, 0.45, 0.82]) / np.linalg.norm([0.35, 0.45, 0.82])
+_AMBIENT = 0.3
+_NEAR = 1e-3
+
+
+@dataclass(frozen=True)
+class Sphere:
+    """A sphere with a flat (Lambertian) colour."""
+
+    name: str
+    centre: np.ndarray  # (3,)
+    radius: float
+    colour: tuple[float, float, float]
+
+    @property
+    def bounding_radius(self) -> float:
+        return float(self.radius)
+
+
+@dataclass(frozen=True)
+class Box:
+    """An oriented box: ``x_world = centre + rotation @ x_local`` with ``|x_local| <= half_size``."""
+
+    name: str
+    centre: np.ndarray  # (3,)
+    half_size: np.ndarray  # (3,)
+    rotation: np.ndarray  # (3, 3), columns are the box axes in world coordinates
+    colour: tuple[float, float, float]
+
+    @property
+    def bounding_radius(self) -> float:
+        return float(np.linalg.norm(self.half_size))
+
+
+def _axis_angle(axis, angle: float) -> np.ndarray:
+    """Rotation matrix about `axis` (normalised here) by `angle` radians (Rodrigues)."""
+    k = np.asarray(axis, dtype=np.float64)
+    k = k / np.linalg.norm(k)
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(angle) * kx + (1.0 - math.cos(angle)) * (kx @ kx)
+
+
+def _lerp(a, b, t: float) -> np.ndarray:
+    return (1.0 - t) * np.asarray(a, dtype=np.float64) + t * np.asarray(b, dtype=np.float64)
+
+
+def scene_objects(scene: str, t: float) -> list[Sphere | Box]:
+    """The objects of `scene` at time `t` in [0, 1].
+
+    Each scene has an object named ``"still"`` (never moves), ``"mover"`` (translates) and
+    ``"spinner"`` (a box rotating about a fixed axis through its centre), plus one more moving
+    object. Colours are distinct hues so tests can tell the objects apart in an image.
+    """
+    t = float(t)
+    if scene == "spheres":
+        return [
+            Sphere("still", np.array([-0.5, -0.45, -0.4]), 0.42, (0.2, 0.75, 0.25)),
+            Sphere("mover", _lerp([-0.8, 0.7, 0.05], [0.8, 0.45, 0.55], t), 0.3, (0.9, 0.15, 0.15)),
+            Box("spinner", np.array([0.45, -0.35, -0.35]), np.array([0.5, 0.16, 0.3]),
+                _axis_angle([0.0, 0.0, 1.0], math.pi * t), (0.2, 0.35, 0.95)),
+            Sphere("bouncer", np.array([0.0, 0.15, -0.45 + 1.1 * abs(math.sin(2.0 * math.pi * t))]),
+                   0.2, (0.95, 0.8, 0.15)),
+        ]
+    if scene == "boxes":
+        return [
+            Box("still", np.array([-0.55, -0.5, -0.45]), np.array([0.35, 0.3, 0.3]),
+                _axis_angle([0.0, 0.0, 1.0], 0.4), (0.2, 0.75, 0.25)),
+            Box("mover", _lerp([0.6, -0.8, -0.6], [0.3, 0.8, 0.2], t), np.array([0.22, 0.22, 0.22]),
+                _axis_angle([1.0, 0.0, 0.0], 0.3), (0.9, 0.15, 0.15)),
+            Box("spinner", np.array([0.35, 0.35, 0.1]), np.array([0.45, 0.25, 0.12]),
+                _axis_angle([1.0, 1.0, 1.0], 2.0 * math.pi * t), (0.2, 0.35, 0.95)),
+            Sphere("ball", np.array([-0.6 + 0.35 * math.cos(2.0 * math.pi * t),
+                                     0.55 + 0.35 * math.sin(2.0 * math.pi * t), 0.6]),
+                   0.22, (0.75, 0.3, 0.85)),
+        ]
+    raise ValueError(f"scene: unknown synthetic scene {scene!r}; expected one of {', '.join(SCENES)}")
+
+
+def orbit_camera_to_world(azimuth: float, elevation: float, radius: float = 4.0,
+                          target=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Camera-to-world (Blender/OpenGL axes) of a camera on a sphere looking at `target`.
+
+    Angles in radians; the world is z-up, elevation is measured from the xy plane.
+    """
+    target = np.asarray(target, dtype=np.float64)
+    pos = target + radius * np.array([math.cos(elevation) * math.cos(azimuth),
+                                      math.cos(elevation) * math.sin(azimuth),
+                                      math.sin(elevation)])
+    back = pos - target
+    back /= np.linalg.norm(back)
+    right = np.cross([0.0, 0.0, 1.0], back)
+    right /= np.linalg.norm(right)
+    up = np.cross(back, right)
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, up, back, pos
+    return c2w
+
+
+def _screen_window(obj, camera: Camera, w2c: np.ndarray):
+    """Pixel rectangle [v0, v1) x [u0, u1) that contains the object's image (conservative)."""
+    r = obj.bounding_radius
+    pc = w2c[:3, :3] @ obj.centre + w2c[:3, 3]
+    if pc[2] - r <= _NEAR:  # object reaches behind the camera: test every pixel
+        return 0, camera.height, 0, camera.width
+    # The image of the sphere lies in the image of its camera-aligned bounding cube, whose
+    # projection is the convex hull of its 8 projected corners (all in front of the camera).
+    corners = pc + r * np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)])
+    u = camera.fx * corners[:, 0] / corners[:, 2] + camera.cx
+    v = camera.fy * corners[:, 1] / corners[:, 2] + camera.cy
+    u0 = int(np.clip(math.floor(u.min()) - 1, 0, camera.width))
+    u1 = int(np.clip(math.ceil(u.max()) + 1, 0, camera.width))
+    v0 = int(np.clip(math.floor(v.min()) - 1, 0, camera.height))
+    v1 = int(np.clip(math.ceil(v.max()) + 1, 0, camera.height))
+    return v0, v1, u0, u1
+
+
+def _intersect(obj, origin: np.ndarray, d: np.ndarray):
+    """Ray parameter (inf on a miss) and world normal for rays ``origin + s d``; d: (h, w, 3)."""
+    if isinstance(obj, Sphere):
+        oc = origin - obj.centre
+        a = np.einsum("hwc,hwc->hw", d, d)
+        b = d @ oc
+        disc = b * b - a * (oc @ oc - obj.radius ** 2)
+        hit = disc >= 0.0
+        s = np.where(hit, (-b - np.sqrt(np.where(hit, disc, 0.0))) / a, np.inf)
+        s = np.where(s > _NEAR, s, np.inf)
+        s_hit = np.where(np.isfinite(s), s, 0.0)
+        normal = (origin + s_hit[..., None] * d - obj.centre) / obj.radius
+        return s, normal
+    # Oriented box: slab test in the box frame.
+    rot = obj.rotation
+    o_l = rot.T @ (origin - obj.centre)
+    d_l = d @ rot
+    d_l = np.where(np.abs(d_l) < 1e-12, 1e-12, d_l)
+    inv = 1.0 / d_l
+    t1 = (-obj.half_size - o_l) * inv
+    t2 = (obj.half_size - o_l) * inv
+    tn = np.minimum(t1, t2)
+    tmin = tn.max(axis=-1)
+    tmax = np.maximum(t1, t2).min(axis=-1)
+    hit = (tmax >= tmin) & (tmin > _NEAR)
+    s = np.where(hit, tmin, np.inf)
+    axis = tn.argmax(axis=-1)
+    sign = -np.sign(np.take_along_axis(d_l, axis[..., None], axis=-1))  # (h, w, 1)
+    normal = rot.T[axis] * sign  # rot.T[axis] = world direction of the entered face's axis
+    return s, normal
+
+
+def render_view(objects, camera: Camera, supersample: int = 3, return_coverage: bool = False):
+    """Ray-cast `objects` from `camera` (a :class:`~nehad.runtime.cameras.Camera`, OpenCV axes).
+
+    Each pixel is sampled on a ``supersample x supersample`` grid (pixel (i, j) spans
+    [i, i+1) x [j, j+1), SPEC section 3). Returns float32 (H, W, 4) with *premultiplied* colour
+    (the mean over all samples, background samples counting as 0) and alpha = fraction of samples
+    that hit an object; uncovered pixels are (0, 0, 0, 0). Premultiplied is the in-memory RGBA
+    convention of ``nehad.runtime.images`` (OpenImageIO's associated alpha): ``write_image``
+    stores straight colour in the PNG, as D-NeRF files hold it, and over a background ``bg`` the
+    image is ``rgb + bg (1 - alpha)``. With ``return_coverage`` also returns float32
+    (H, W, n_objects), the fraction of each pixel's samples in which object k is the front one.
+    """
+    s_ = int(supersample)
+    if s_ < 1:
+        raise ValueError(f"supersample: expected an integer >= 1, got {supersample!r}")
+    h, w = camera.height, camera.width
+    w2c = np.asarray(camera.world_to_camera, dtype=np.float64)
+    c2w_rot = w2c[:3, :3].T
+    origin = camera.centre
+    depth = np.full((h * s_, w * s_), np.inf)
+    colour = np.zeros((h * s_, w * s_, 3), dtype=np.float32)
+    ids = np.full((h * s_, w * s_), -1, dtype=np.int16)
+    box = [h, 0, w, 0]  # pixel rectangle touched by some object
+    for k, obj in enumerate(objects):
+        v0, v1, u0, u1 = _screen_window(obj, camera, w2c)
+        if v0 >= v1 or u0 >= u1:
+            continue
+        us = u0 + (np.arange((u1 - u0) * s_) + 0.5) / s_
+        vs = v0 + (np.arange((v1 - v0) * s_) + 0.5) / s_
+        dx = (us - camera.cx) / camera.fx
+        dy = (vs - camera.cy) / camera.fy
+        # Camera-space direction (dx, dy, 1): the ray parameter equals the view depth z.
+        d = (dx[None, :, None] * c2w_rot[:, 0] + dy[:, None, None] * c2w_rot[:, 1]
+             + c2w_rot[:, 2])
+        s, normal = _intersect(obj, origin, d)
+        win = (slice(v0 * s_, v1 * s_), slice(u0 * s_, u1 * s_))
+        closer = s < depth[win]
+        if not closer.any():
+            continue
+        lambert = np.clip(normal @ _LIGHT, 0.0, None)
+        shade = _AMBIENT + (1.0 - _AMBIENT) * lambert
+        rgb = shade[..., None] * np.asarray(obj.colour)
+        depth[win] = np.where(closer, s, depth[win])
+        colour[win] = np.where(closer[..., None], rgb, colour[win])
+        ids[win] = np.where(closer, k, ids[win])
+        box = [min(box[0], v0), max(box[1], v1), min(box[2], u0), max(box[3], u1)]
+    rgba = np.zeros((h, w, 4), dtype=np.float32)
+    v0, v1, u0, u1 = box
+    if v0 < v1 and u0 < u1:  # average the supersamples, only where something was drawn
+        hh, ww = v1 - v0, u1 - u0
+        win = (slice(v0 * s_, v1 * s_), slice(u0 * s_, u1 * s_))
+        hit = (ids[win] >= 0).astype(np.float32)[..., None]
+        both = np.concatenate([colour[win], hit], axis=-1)  # uncovered samples count as 0
+        rgba[v0:v1, u0:u1] = both.reshape(hh, s_, ww * s_, 4).sum(axis=1, dtype=np.float64).reshape(
+            hh, ww, s_, 4).sum(axis=2) / (s_ * s_)
+    if not return_coverage:
+        return rgba
+    ids4 = ids.reshape(h, s_, w, s_)
+    coverage = np.stack([(ids4 == k).mean(axis=(1, 3)) for k in range(len(objects))], axis=-1)
+    if not objects:
+        coverage = np.zeros((h, w, 0))
+    return rgba, coverage.astype(np.float32)
+
+
+def _surface_points(objects, n: int, rng: np.random.Generator):
+    """`n` points spread over the objects' surfaces (area-weighted) and their uint8 colours."""
+    areas = []
+    for obj in objects:
+        if isinstance(obj, Sphere):
+            areas.append(4.0 * math.pi * obj.radius ** 2)
+        else:
+            hx, hy, hz = obj.half_size
+            areas.append(8.0 * (hx * hy + hy * hz + hx * hz))
+    counts = rng.multinomial(n, np.asarray(areas) / sum(areas))
+    pts, cols = [], []
+    for obj, m in zip(objects, counts):
+        if isinstance(obj, Sphere):
+            v = rng.normal(size=(m, 3))
+            p = obj.centre + obj.radius * v / np.linalg.norm(v, axis=1, keepdims=True)
+        else:
+            hs = obj.half_size
+            face_area = np.array([hs[1] * hs[2], hs[0] * hs[2], hs[0] * hs[1]])
+            axis = rng.choice(3, size=m, p=face_area / face_area.sum())
+            local = rng.uniform(-1.0, 1.0, size=(m, 3))
+            local[np.arange(m), axis] = rng.choice([-1.0, 1.0], size=m)
+            p = obj.centre + (local * hs) @ obj.rotation.T
+        pts.append(p)
+        cols.append(np.tile(np.round(np.asarray(obj.colour) * 255), (m, 1)))
+    return np.concatenate(pts).astype(np.float32), np.concatenate(cols).astype(np.uint8)
+
+
+def _atomic_write_bytes(path: Path, data: bytes) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def _ply_bytes(points: np.ndarray, colours: np.ndarray) -> bytes:
+    header = ("ply\nformat binary_little_endian 1.0\n"
+              f"element vertex {len(points)}\n"
+              "property float x\nproperty float y\nproperty float z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+    rec = np.empty(len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                       ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    rec["x"], rec["y"], rec["z"] = points[:, 0], points[:, 1], points[:, 2]
+    rec["red"], rec["green"], rec["blue"] = colours[:, 0], colours[:, 1], colours[:, 2]
+    return header.encode("ascii") + rec.tobytes()
+
+
+def synthesize_scene(out_dir, scene: str = "spheres", resolution: int = 64, frames: int = 50,
+                     seed: int = 0, fixed_time: float | None = None, fov_deg: float = 45.0,
+                     supersample: int = 3, points: int = 2000) -> Path:
+    """Write a synthetic dynamic scene in the D-NeRF layout to `out_dir` and return its path.
+
+    `resolution` is the square image size, `frames` the number of train frames (val and test get
+    ``max(1, round(0.1 * frames))`` each). Train frame k has time ``k / (frames - 1)``; val and test
+    times are drawn uniformly in [0, 1]. With `fixed_time` every frame of every split has that time
+    (a static scene). Cameras: radius 4 around the origin, random azimuth, elevation 10-60 degrees,
+    horizontal field of view `fov_deg`. `points` > 0 also writes ``points3d.ply`` with that many
+    surface points at time 0.5 (or `fixed_time`). Same arguments give the same bytes.
+    """
+    if scene not in SCENES:
+        raise ValueError(f"scene: unknown synthetic scene {scene!r}; expected one of {', '.join(SCENES)}")
+    resolution, frames = int(resolution), int(frames)
+    if resolution < 4:
+        raise ValueError(f"resolution: expected an integer >= 4, got {resolution}")
+    if frames < 1:
+        raise ValueError(f"frames: expected an integer >= 1, got {frames}")
+    if fixed_time is not None:
+        fixed_time = float(fixed_time)
+        if not 0.0 <= fixed_time <= 1.0:
+            raise ValueError(f"fixed_time: expected a time in [0, 1], got {fixed_time}")
+    if not 1.0 <= fov_deg <= 170.0:
+        raise ValueError(f"fov_deg: expected 1..170 degrees, got {fov_deg}")
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    angle_x = math.radians(fov_deg)
+    focal = 0.5 * resolution / math.tan(0.5 * angle_x)
+    rng_train, rng_val, rng_test, rng_pts = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(4))
+    n_held = max(1, int(round(0.1 * frames)))
+    plan = {
+        "train": (rng_train, [k / (frames - 1) if frames > 1 else 0.0 for k in range(frames)]),
+        "val": (rng_val, None),
+        "test": (rng_test, None),
+    }
+    digits = max(3, len(str(frames - 1)))
+    for split, (rng, times) in plan.items():
+        n = len(times) if times is not None else n_held
+        azimuth = rng.uniform(0.0, 2.0 * math.pi, size=n)
+        elevation = np.radians(rng.uniform(10.0, 60.0, size=n))
+        if times is None:
+            times = np.sort(rng.uniform(0.0, 1.0, size=n)).tolist()
+        if fixed_time is not None:
+            times = [fixed_time] * n
+        (out / split).mkdir(exist_ok=True)
+        records = []
+        for k in range(n):
+            c2w = orbit_camera_to_world(float(azimuth[k]), float(elevation[k]))
+            t = float(times[k])
+            cam = Camera.from_camera_to_world(c2w, resolution, resolution, focal, focal, time=t)
+            rgba = render_view(scene_objects(scene, t), cam, supersample=supersample)
+            name = f"r_{k:0{digits}d}"
+            write_image(out / split / f"{name}.png", rgba, bit_depth=8)
+            records.append({"file_path": f"./{split}/{name}", "time": t,
+                            "transform_matrix": [[float(x) for x in row] for row in c2w]})
+        doc = {"camera_angle_x": angle_x, "frames": records}
+        _atomic_write_bytes(out / f"transforms_{split}.json",
+                            (json.dumps(doc, indent=2) + "\n").encode("utf-8"))
+    if points > 0:
+        t_pts = 0.5 if fixed_time is None else fixed_time
+        pts, cols = _surface_points(scene_objects(scene, t_pts), int(points), rng_pts)
+        _atomic_write_bytes(out / "points3d.ply", _ply_bytes(pts, cols))
+    return out
