@@ -151,6 +151,28 @@ def _fill_bins(order, rects, ntx, n_tiles, n_chunks):
     return offsets, ids
 
 
+@numba.njit(cache=True)
+def _radix_argsort_depth(ids, depths):
+    """`ids` ordered by depths[ids] (all > 0), stable: two LSD passes over the 16-bit halves of
+    the float32 bit patterns, which order like the floats for positive values."""
+    n = ids.shape[0]
+    keys = depths.view(np.uint32)
+    src = ids.copy()
+    dst = np.empty_like(ids)
+    for shift in (0, 16):
+        counts = np.zeros(65537, np.int64)
+        for i in range(n):
+            counts[((keys[src[i]] >> shift) & 0xFFFF) + 1] += 1
+        for b in range(65536):
+            counts[b + 1] += counts[b]
+        for i in range(n):
+            d = (keys[src[i]] >> shift) & 0xFFFF
+            dst[counts[d]] = src[i]
+            counts[d] += 1
+        src, dst = dst, src
+    return src
+
+
 def bin_gaussians(means2d, conics, colors, opacities, depths, radii, width, height) -> TileBins:
     """Bin projected Gaussians into 16x16 tiles, each tile's list sorted front to back.
 
@@ -161,7 +183,7 @@ def bin_gaussians(means2d, conics, colors, opacities, depths, radii, width, heig
     _tile_rects(means2d, conics, colors, opacities, depths, radii, int(width), int(height),
                 rects, packed)
     visible = np.flatnonzero((rects[:, 1] > rects[:, 0]) & (rects[:, 3] > rects[:, 2]))
-    order = visible[np.argsort(depths[visible])].astype(np.int32)
+    order = _radix_argsort_depth(visible.astype(np.int32), np.ascontiguousarray(depths, np.float32))
     ntx = (int(width) + TILE - 1) // TILE
     nty = (int(height) + TILE - 1) // TILE
     n_chunks = max(1, min(numba.get_num_threads(), order.shape[0] // 4096 + 1))

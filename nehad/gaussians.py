@@ -1,0 +1,84 @@
+"""Learnable canonical Gaussians in torch, stored as 3DGS stores them (SPEC section 3): means,
+log-scales, quaternions (w, x, y, z, unnormalised), opacity logits, SH coefficients split into the
+DC term and the rest (they get different learning rates)."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import nn
+
+from nehad.runtime.gaussians import SH_C0, GaussianCloud
+
+
+def rgb_to_sh_dc(rgb):
+    """SH DC coefficient that renders as `rgb` (rgb = C0 * dc + 0.5)."""
+    return (rgb - 0.5) / SH_C0
+
+
+def _nearest_neighbour_distance(points: np.ndarray, k: int = 3) -> np.ndarray:
+    """Mean distance to the k nearest other points (3DGS scale initialisation)."""
+    pts = torch.as_tensor(points, dtype=torch.float32)
+    out = torch.empty(len(pts))
+    for start in range(0, len(pts), 2048):
+        d = torch.cdist(pts[start:start + 2048], pts)
+        d[torch.arange(d.shape[0]), torch.arange(start, start + d.shape[0])] = float("inf")
+        out[start:start + 2048] = d.topk(k, largest=False).values.mean(1)
+    return out.numpy()
+
+
+class GaussianParameters(nn.Module):
+    """N Gaussians' raw parameters; `activated()` gives what the renderer consumes."""
+
+    def __init__(self, means, log_scales, quats, opacity_logits, sh_dc, sh_rest):
+        super().__init__()
+        self.means = nn.Parameter(torch.as_tensor(means, dtype=torch.float32))
+        self.log_scales = nn.Parameter(torch.as_tensor(log_scales, dtype=torch.float32))
+        self.quats = nn.Parameter(torch.as_tensor(quats, dtype=torch.float32))
+        self.opacity_logits = nn.Parameter(torch.as_tensor(opacity_logits, dtype=torch.float32))
+        self.sh_dc = nn.Parameter(torch.as_tensor(sh_dc, dtype=torch.float32))
+        self.sh_rest = nn.Parameter(torch.as_tensor(sh_rest, dtype=torch.float32))
+
+    @classmethod
+    def from_points(cls, points, colors=None, sh_degree: int = 3, opacity: float = 0.1,
+                    seed: int = 0) -> "GaussianParameters":
+        """3DGS initialisation: isotropic scales from the mean distance to 3 neighbours,
+        identity rotations, opacity 0.1, colour from the points (grey if none)."""
+        points = np.asarray(points, np.float32)
+        n = len(points)
+        if colors is None:
+            colors = np.full((n, 3), 0.5, np.float32)
+        dist = np.clip(_nearest_neighbour_distance(points), 1e-7, None)
+        log_scales = np.repeat(np.log(dist)[:, None], 3, 1)
+        quats = np.zeros((n, 4), np.float32)
+        quats[:, 0] = 1
+        logit = np.log(opacity / (1 - opacity))
+        k = (sh_degree + 1) ** 2
+        sh_dc = rgb_to_sh_dc(np.asarray(colors, np.float32))[:, None, :]
+        return cls(points, log_scales, quats, np.full(n, logit, np.float32), sh_dc,
+                   np.zeros((n, k - 1, 3), np.float32))
+
+    @classmethod
+    def random_in_box(cls, n: int, low=-1.3, high=1.3, sh_degree: int = 3, seed: int = 0):
+        """D-NeRF initialisation: `n` random points in the cube [low, high]^3 (SPEC section 5)."""
+        rng = np.random.default_rng(seed)
+        pts = rng.uniform(low, high, (n, 3)).astype(np.float32)
+        return cls.from_points(pts, rng.uniform(0, 1, (n, 3)).astype(np.float32), sh_degree)
+
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def sh_degree(self) -> int:
+        return int(round((self.sh_rest.shape[1] + 1) ** 0.5)) - 1
+
+    def activated(self):
+        """(means, scales, unit quats, opacities, sh (N, K, 3))."""
+        quats = self.quats / self.quats.norm(dim=-1, keepdim=True)
+        return (self.means, torch.exp(self.log_scales), quats, torch.sigmoid(self.opacity_logits),
+                torch.cat([self.sh_dc, self.sh_rest], 1))
+
+    def to_cloud(self) -> GaussianCloud:
+        with torch.no_grad():
+            means, scales, quats, opac, sh = (t.detach().cpu().numpy() for t in self.activated())
+        return GaussianCloud(means, scales, quats, opac, sh)
