@@ -167,3 +167,120 @@ def random_screen_scene(rng, n, width, height, *, min_sigma=0.3, max_sigma=12.0,
     depths = rng.uniform(0.5, 10.0, n)
     f32 = lambda a: a.astype(np.float32)
     return f32(means2d), f32(conics), f32(colors), f32(opacities), f32(depths), radii
+
+
+# ---------------------------------------------------------------------------------------------
+# projection (3D Gaussians + camera -> the screen-space inputs of reference_forward)
+
+# Standard 3DGS SH constants (computeColorFromSH), written out again here so that the reference
+# shares nothing with nehad.runtime.raster.sh.
+_REF_C0 = 0.28209479177387814
+_REF_C1 = 0.4886025119029199
+_REF_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
+           0.5462742152960396)
+_REF_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+           -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+
+
+def _reference_sh_basis(dirs, degree):
+    """(N, (degree+1)^2) real SH basis of the 3DGS code for unit directions (N, 3)."""
+    x, y, z = dirs[:, 0], dirs[:, 1], dirs[:, 2]
+    cols = [np.full_like(x, _REF_C0)]
+    if degree >= 1:
+        cols += [-_REF_C1 * y, _REF_C1 * z, -_REF_C1 * x]
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        cols += [_REF_C2[0] * x * y, _REF_C2[1] * y * z, _REF_C2[2] * (2 * zz - xx - yy),
+                 _REF_C2[3] * x * z, _REF_C2[4] * (xx - yy)]
+    if degree >= 3:
+        cols += [_REF_C3[0] * y * (3 * xx - yy), _REF_C3[1] * x * y * z,
+                 _REF_C3[2] * y * (4 * zz - xx - yy), _REF_C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
+                 _REF_C3[4] * x * (4 * zz - xx - yy), _REF_C3[5] * z * (xx - yy),
+                 _REF_C3[6] * x * (xx - 3 * yy)]
+    return np.stack(cols, axis=1)
+
+
+def _reference_rotation(q):
+    """Rotation matrix of a quaternion (w, x, y, z), normalised here."""
+    w, x, y, z = np.asarray(q, np.float64) / np.linalg.norm(q)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
+def reference_project(means, scales, quats, opacities, sh, camera, sh_degree=None,
+                      near=0.2, dilation=0.3, clamp=1.3):
+    """float64 matrix-form EWA projection of activated 3D Gaussians through a `Camera`
+    (SPEC sections 3 and 6), one Gaussian at a time.
+
+    Sigma = R S S^T R^T; p = W mu + t (world_to_camera, OpenCV axes); cull z <= `near`;
+    J = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]] with x/z, y/z clamped to
+    `clamp` tan(fov/2), tan(fov_x/2) = width / (2 fx); Sigma2D = J W Sigma W^T J^T + `dilation` I;
+    conic = Sigma2D^-1 as (a, b, c); radius = ceil(3 sqrt(lambda_max)) with
+    lambda_max = mid + sqrt(max(0.1, mid^2 - det)); means2d = (fx X/Z + cx, fy Y/Z + cy);
+    rgb = max(sh . basis(dir) + 0.5, 0) with dir = normalize(mu - camera centre). A Gaussian whose
+    3DGS tile rectangle (as in `tile_lists`) is empty gets radius 0.
+
+    Returns means2d, conics, colors, opacities, depths, radii for `reference_forward`.
+    """
+    means = np.asarray(means, np.float64).reshape(-1, 3)
+    scales = np.asarray(scales, np.float64).reshape(-1, 3)
+    quats = np.asarray(quats, np.float64).reshape(-1, 4)
+    opacities = np.asarray(opacities, np.float64).reshape(-1)
+    sh = np.asarray(sh, np.float64)
+    n = means.shape[0]
+    sh = sh.reshape(n, -1, 3)
+    stored = int(round(math.sqrt(sh.shape[1]))) - 1
+    degree = stored if sh_degree is None else min(int(sh_degree), stored)
+    k = (degree + 1) ** 2
+    width, height = int(camera.width), int(camera.height)
+    fx, fy, cx, cy = float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy)
+    w2c = np.asarray(camera.world_to_camera, np.float64)
+    Wr, t = w2c[:3, :3], w2c[:3, 3]
+    centre = -Wr.T @ t
+    lim_x = clamp * width / (2.0 * fx)
+    lim_y = clamp * height / (2.0 * fy)
+    ntx = (width + TILE - 1) // TILE
+    nty = (height + TILE - 1) // TILE
+
+    means2d = np.zeros((n, 2))
+    conics = np.zeros((n, 3))
+    depths = np.zeros(n)
+    radii = np.zeros(n, np.int64)
+    dirs = means - centre
+    dirs /= np.maximum(np.linalg.norm(dirs, axis=1, keepdims=True), 1e-12)
+    basis = _reference_sh_basis(dirs, degree)
+    colors = np.maximum(np.einsum("nk,nkc->nc", basis, sh[:, :k]) + 0.5, 0.0)
+    for i in range(n):
+        p = Wr @ means[i] + t
+        z = p[2]
+        depths[i] = z
+        if z <= near:
+            continue
+        R = _reference_rotation(quats[i])
+        S = np.diag(scales[i])
+        sigma = R @ S @ S.T @ R.T
+        tx = np.clip(p[0] / z, -lim_x, lim_x) * z
+        ty = np.clip(p[1] / z, -lim_y, lim_y) * z
+        J = np.array([[fx / z, 0.0, -fx * tx / (z * z)],
+                      [0.0, fy / z, -fy * ty / (z * z)]])
+        cov = J @ Wr @ sigma @ Wr.T @ J.T + dilation * np.eye(2)
+        det = cov[0, 0] * cov[1, 1] - cov[0, 1] * cov[1, 0]
+        if det <= 0:
+            continue
+        mid = 0.5 * (cov[0, 0] + cov[1, 1])
+        lam = mid + math.sqrt(max(0.1, mid * mid - det))
+        r = int(math.ceil(3.0 * math.sqrt(lam)))
+        u, v = fx * p[0] / z + cx, fy * p[1] / z + cy
+        px, py = u - 0.5, v - 0.5
+        x0 = min(ntx, max(0, math.floor((px - r) / TILE)))
+        x1 = min(ntx, max(0, math.floor((px + r + TILE - 1) / TILE)))
+        y0 = min(nty, max(0, math.floor((py - r) / TILE)))
+        y1 = min(nty, max(0, math.floor((py + r + TILE - 1) / TILE)))
+        if x1 <= x0 or y1 <= y0:
+            continue
+        inv = np.linalg.inv(cov)
+        radii[i] = r
+        means2d[i] = (u, v)
+        conics[i] = (inv[0, 0], inv[0, 1], inv[1, 1])
+    return means2d, conics, colors, opacities.copy(), depths, radii

@@ -1,0 +1,260 @@
+"""The `nehad` command line (SPEC section 2: thin commands that parse, validate, call the library).
+
+Import cost matters: ``nehad --help`` must not load numpy/numba, and nothing here may import
+torch (the runtime works without it). Library modules are imported inside the commands.
+
+Bad inputs end with a one-line ``Error: ...`` naming the input and a non-zero exit, never a
+traceback, and leave no output file behind (see :mod:`nehad.cli.errors`).
+"""
+
+from __future__ import annotations
+
+import shlex
+import sys
+import threading
+import time
+from pathlib import Path
+
+import click
+
+from nehad import __version__
+
+from .errors import InputError, user_errors
+from .params import BACKGROUND, SIZE
+
+# Formats `-o` can write (OpenImageIO picks the writer from the extension).
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff")
+ALPHA_SUFFIXES = (".png", ".exr", ".tif", ".tiff")  # JPEG has no alpha channel
+
+
+@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, "-V", "--version", prog_name="nehad")
+def main():
+    """NeHaD: dynamic 3D Gaussian splatting, trained and rendered on the CPU.
+
+    \b
+    Quickstart:
+      nehad synth demo_scene
+      nehad render demo_scene/gaussians.ply --view demo_scene/transforms_test.json:0 \\
+          -o render.png --background 1,1,1
+    """
+
+
+# ---------------------------------------------------------------------------------------------
+# nehad synth
+
+
+class _FolderProgress:
+    """A progress bar for a library call without a progress hook: a daemon thread counts the
+    frame images that appear (or are rewritten) under `root` while the call runs in the main
+    thread. tqdm shows it only on a terminal and only after `delay` seconds."""
+
+    def __init__(self, root: Path, pattern: str, total: int, desc: str, delay: float = 1.0):
+        self.root, self.pattern, self.total = root, pattern, total
+        self.before = self._snapshot()
+        self._stop = threading.Event()
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=total, desc=desc, unit="frame", delay=delay, disable=None,
+                        leave=False, file=sys.stderr)
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def _snapshot(self) -> dict:
+        out = {}
+        if self.root.is_dir():
+            for p in self.root.glob(self.pattern):
+                try:
+                    out[p] = p.stat().st_mtime_ns
+                except OSError:
+                    pass
+        return out
+
+    def _count(self) -> int:
+        now = self._snapshot()
+        return sum(1 for p, m in now.items() if self.before.get(p) != m)
+
+    def _run(self):
+        while not self._stop.wait(0.25):
+            n = min(self._count(), self.total)
+            self.bar.update(n - self.bar.n)
+
+    def __enter__(self):
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc):
+        self._stop.set()
+        self.thread.join()
+        if exc[0] is None:
+            self.bar.update(self.total - self.bar.n)
+        self.bar.close()
+        return False
+
+
+@main.command()
+@click.argument("out", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--scene", default="spheres", show_default=True,
+              help="Which synthetic scene: spheres or boxes.")
+@click.option("--resolution", type=click.IntRange(min=4), default=64, show_default=True,
+              help="Image width and height in pixels.")
+@click.option("--frames", type=click.IntRange(min=1), default=50, show_default=True,
+              help="Number of train frames (val and test get about 10% as many each).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the cameras and times.")
+@click.option("--fixed-time", type=click.FloatRange(0.0, 1.0), default=None,
+              help="Give every frame this time in [0, 1]: a static scene.")
+@click.option("--gaussians", "num_gaussians", type=click.IntRange(min=0), default=5000,
+              show_default=True,
+              help="Number of Gaussians in gaussians.ply, a 3DGS PLY approximating the scene at "
+                   "t = 0.5 (or --fixed-time); 0 writes none.")
+def synth(out, scene, resolution, frames, seed, fixed_time, num_gaussians):
+    """Write a synthetic dynamic scene in the D-NeRF layout to the folder OUT.
+
+    OUT gets train/, val/, test/ (RGBA PNGs), transforms_{train,val,test}.json, points3d.ply
+    (initial points) and gaussians.ply (a ready-made 3DGS PLY of the scene, to render).
+    """
+    from nehad.data.synth import SCENES, synthesize_scene
+
+    if scene not in SCENES:
+        raise click.BadParameter(f"unknown scene {scene!r}; expected one of {', '.join(SCENES)}",
+                                 param_hint="'--scene'")
+    if out.exists() and not out.is_dir():
+        raise click.BadParameter(f"{out} exists and is not a folder", param_hint="'OUT'")
+    held = max(1, int(round(0.1 * frames)))  # val/test frame count of synthesize_scene
+    start = time.perf_counter()
+    with user_errors():
+        with _FolderProgress(out, "*/r_*.png", frames + 2 * held, desc="synth"):
+            synthesize_scene(out, scene=scene, resolution=resolution, frames=frames, seed=seed,
+                             fixed_time=fixed_time)
+        t_ply = 0.5 if fixed_time is None else fixed_time
+        if num_gaussians > 0:
+            from nehad.data.synth_gaussians import scene_gaussians
+            from nehad.runtime.ply import write_gaussian_ply
+
+            cloud = scene_gaussians(scene, t_ply, num_gaussians)
+            write_gaussian_ply(out / "gaussians.ply", cloud)
+    elapsed = time.perf_counter() - start
+    click.echo(f"wrote {out}/ (scene {scene!r}, seed {seed}, {elapsed:.1f} s):")
+    click.echo(f"  train/ {frames} frames, val/ {held}, test/ {held}: {resolution}x{resolution} RGBA "
+               f"PNGs, cameras in transforms_{{train,val,test}}.json")
+    click.echo(f"  points3d.ply: initial points on the surfaces at t = {t_ply:g}")
+    if num_gaussians > 0:
+        click.echo(f"  gaussians.ply: {len(cloud)} Gaussians approximating the scene at t = {t_ply:g}")
+        q = shlex.quote(str(out))
+        click.echo(f"try: nehad render {q}/gaussians.ply --view {q}/transforms_test.json:0 "
+                   f"-o render.png --background 1,1,1")
+
+
+# ---------------------------------------------------------------------------------------------
+# nehad render
+
+
+def _check_output(path: Path, option: str, suffixes, what: str) -> None:
+    """Refuse an output path before any work: unknown format or a folder that does not exist."""
+    if path.suffix.lower() not in suffixes:
+        raise InputError(f"{option} {path}: {what} must end in {', '.join(suffixes)}")
+    folder = path.parent
+    if not folder.is_dir():
+        raise InputError(f"{option} {path}: output folder {folder} does not exist")
+    if path.is_dir():
+        raise InputError(f"{option} {path}: is a folder")
+
+
+def _single_camera(view: str):
+    from nehad.runtime.cameras import load_view
+
+    cam = load_view(view)
+    if isinstance(cam, list):
+        if len(cam) != 1:
+            raise InputError(f"--view {view}: the file holds {len(cam)} cameras; pick one with "
+                             f"a frame index, e.g. --view {view}:0")
+        cam = cam[0]
+    return cam
+
+
+def _write_all(outputs) -> None:
+    """Write each (path, array) atomically; if one fails, remove those already written
+    by this call, so a failed run leaves no partial set of outputs."""
+    from nehad.runtime.images import write_image
+
+    done = []
+    try:
+        for path, array in outputs:
+            write_image(path, array)
+            done.append(path)
+    except BaseException:
+        for p in done:
+            Path(p).unlink(missing_ok=True)
+        raise
+
+
+@main.command()
+@click.argument("scene", type=click.Path(path_type=Path))
+@click.option("--view", "view", required=True, metavar="CAMERA",
+              help="Camera: a cam.json, a 3DGS cameras.json entry, or a D-NeRF transforms file "
+                   "with a frame index (transforms_test.json:3).")
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="Image to write (.png, .jpg, .exr, .tif); written atomically.")
+@click.option("--depth", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Also write the expected view depth as a float32 .exr (0 where nothing is drawn).")
+@click.option("--alpha", is_flag=True,
+              help="Write RGBA (PNG/EXR/TIFF): colour over a transparent background.")
+@click.option("--background", type=BACKGROUND, default=None, metavar="R,G,B",
+              help="Background colour, values in [0, 1]. Default: 0,0,0 for a PLY.")
+@click.option("--size", type=SIZE, default=None, metavar="WxH",
+              help="Render at this size instead of the camera's, same field of view.")
+@click.option("--sh-degree", type=click.IntRange(0, 3), default=None,
+              help="Use SH up to this degree (default: all the scene has).")
+def render(scene, view, output, depth, alpha, background, size, sh_degree):
+    """Render SCENE through one camera to an image.
+
+    SCENE is a standard 3DGS Gaussian PLY (exported ONNX models and training run directories
+    will follow).
+    """
+    from .sources import open_source
+
+    if alpha and background is not None:
+        raise click.UsageError("--alpha and --background exclude each other: an RGBA image "
+                               "has a transparent background")
+    with user_errors():
+        _check_output(output, "-o", IMAGE_SUFFIXES, "the image")
+        if alpha and output.suffix.lower() not in ALPHA_SUFFIXES:
+            raise InputError(f"-o {output}: --alpha needs a format with an alpha channel "
+                             f"({', '.join(ALPHA_SUFFIXES)})")
+        if depth is not None:
+            _check_output(depth, "--depth", (".exr",), "the depth map")
+            if depth.resolve() == output.resolve():
+                raise InputError(f"--depth {depth}: same file as -o")
+        source = open_source(scene)
+        cloud = source.gaussians()
+        camera = _single_camera(view)
+        if size is not None:
+            camera = camera.with_size(*size)
+        bg = (0.0, 0.0, 0.0) if alpha else (background or source.default_background)
+
+        from nehad.runtime.raster import render as rasterize_cloud
+
+        start = time.perf_counter()
+        out = rasterize_cloud(cloud, camera, background=bg, sh_degree=sh_degree)
+        elapsed = time.perf_counter() - start
+        import numpy as np
+
+        if alpha:
+            image = np.concatenate([out.rgb, out.alpha[:, :, None]], axis=2)
+        else:
+            image = out.rgb
+        outputs = [(output, image)]
+        if depth is not None:
+            outputs.append((depth, np.where(out.alpha > 0, out.depth, 0.0).astype(np.float32)))
+        _write_all(outputs)
+    channels = "RGBA" if alpha else "RGB"
+    click.echo(f"{output}: {camera.width}x{camera.height} {channels}, {source.describe()}, "
+               f"rendered in {elapsed:.2f} s")
+    if depth is not None:
+        click.echo(f"{depth}: depth (float32 EXR)")
+    if not (out.alpha > 0).any():
+        click.echo("warning: no Gaussian is in front of the camera; the image is the background",
+                   err=True)
+
+
+if __name__ == "__main__":  # python -m nehad.cli.main
+    main(prog_name="nehad")

@@ -1,0 +1,67 @@
+"""What `nehad render` can draw: a scene source chosen from the SCENE path.
+
+A source gives the activated Gaussians at a time and the background its format implies:
+
+==============================  ==============================  ===========================
+SCENE                           source                          status
+==============================  ==============================  ===========================
+``*.ply``                       a standard 3DGS PLY (static)    supported
+``*.onnx``                      an exported ``nehad-onnx/1``    not supported yet
+a directory                     a training run (needs torch)    not supported yet
+==============================  ==============================  ===========================
+
+Adding a source: a class with ``describe()``, ``default_background`` and ``gaussians(time)``, and
+a branch in :func:`open_source`. Heavy imports (onnxruntime, torch) belong inside the class, never
+at the top of this module: the CLI imports it for every render.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from .errors import InputError
+
+
+class PlySource:
+    """A static 3DGS PLY: the same Gaussians at every time; black background by default."""
+
+    kind = "ply"
+    default_background = (0.0, 0.0, 0.0)
+
+    def __init__(self, path: Path):
+        self.path = Path(path)
+        self._cloud = None
+
+    def load(self):
+        """Read the file now (raises PlyError for a missing or malformed file)."""
+        if self._cloud is None:
+            from nehad.runtime.ply import read_gaussian_ply
+
+            self._cloud = read_gaussian_ply(self.path)
+        return self._cloud
+
+    def gaussians(self, time: float | None = None):
+        """The Gaussians at `time` (ignored: a PLY is static)."""
+        return self.load()
+
+    def describe(self) -> str:
+        cloud = self.load()
+        return f"{len(cloud)} Gaussians, SH degree {cloud.sh_degree}"
+
+
+def open_source(path) -> PlySource:
+    """The scene source for a SCENE argument, dispatched on the path (see the module doc)."""
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if p.is_dir():
+        raise InputError(f"{p}: rendering a training run directory is not supported yet "
+                         f"(give a 3DGS .ply file)")
+    if suffix == ".ply":
+        return PlySource(p)  # a missing file is reported by the PLY reader
+    if suffix == ".onnx":
+        raise InputError(f"{p}: rendering an exported .onnx model is not supported yet "
+                         f"(give a 3DGS .ply file)")
+    if not p.exists():
+        raise InputError(f"{p}: no such file or directory")
+    raise InputError(f"{p}: unknown scene type {suffix or '(no extension)'!r} "
+                     f"(expected a 3DGS .ply file)")
