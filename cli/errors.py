@@ -26,6 +26,8 @@ USER_ERROR_CLASSES = (
     ("nehad.runtime.images", "ImageError"),
     ("nehad.data.dnerf", "DatasetError"),
     ("nehad.cli.errors", "InputError"),
+    ("nehad.configtools", "ConfigError"),
+    ("nehad.trainer", "RunError"),
 )
 
 

@@ -1,6 +1,10 @@
 """Learnable canonical Gaussians in torch, stored as 3DGS stores them (SPEC section 3): means,
 log-scales, quaternions (w, x, y, z, unnormalised), opacity logits, SH coefficients split into the
-DC term and the rest (they get different learning rates)."""
+DC term and the rest (they get different learning rates), and the Boltzmann equilibrium
+parameters of SPEC section 4.7 (mu_eq, t_eq), set when the fine stage starts.
+
+Every parameter's first dimension is the Gaussian index, so densification (nehad.densify) treats
+them all alike: clone, split and prune apply to each one, and children inherit mu_eq and t_eq."""
 
 from __future__ import annotations
 
@@ -30,14 +34,33 @@ def _nearest_neighbour_distance(points: np.ndarray, k: int = 3) -> np.ndarray:
 class GaussianParameters(nn.Module):
     """N Gaussians' raw parameters; `activated()` gives what the renderer consumes."""
 
-    def __init__(self, means, log_scales, quats, opacity_logits, sh_dc, sh_rest):
+    NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest", "mu_eq", "t_eq")
+
+    def __init__(self, means, log_scales, quats, opacity_logits, sh_dc, sh_rest, mu_eq=None,
+                 t_eq=None):
         super().__init__()
-        self.means = nn.Parameter(torch.as_tensor(means, dtype=torch.float32))
-        self.log_scales = nn.Parameter(torch.as_tensor(log_scales, dtype=torch.float32))
-        self.quats = nn.Parameter(torch.as_tensor(quats, dtype=torch.float32))
-        self.opacity_logits = nn.Parameter(torch.as_tensor(opacity_logits, dtype=torch.float32))
-        self.sh_dc = nn.Parameter(torch.as_tensor(sh_dc, dtype=torch.float32))
-        self.sh_rest = nn.Parameter(torch.as_tensor(sh_rest, dtype=torch.float32))
+        f32 = lambda a: torch.as_tensor(np.asarray(a) if not torch.is_tensor(a) else a,
+                                        dtype=torch.float32).clone()
+        self.means = nn.Parameter(f32(means))
+        self.log_scales = nn.Parameter(f32(log_scales))
+        self.quats = nn.Parameter(f32(quats))
+        self.opacity_logits = nn.Parameter(f32(opacity_logits))
+        self.sh_dc = nn.Parameter(f32(sh_dc))
+        self.sh_rest = nn.Parameter(f32(sh_rest))
+        n = self.means.shape[0]
+        self.mu_eq = nn.Parameter(self.means.detach().clone() if mu_eq is None else f32(mu_eq))
+        self.t_eq = nn.Parameter(torch.full((n, 1), 0.5) if t_eq is None else f32(t_eq))
+
+    @classmethod
+    def empty_like_state(cls, state: dict) -> "GaussianParameters":
+        """Parameters shaped like a saved state dict (to load a checkpoint into)."""
+        return cls(*(torch.zeros_like(state[name]) for name in cls.NAMES))
+
+    def reset_equilibrium(self) -> None:
+        """SPEC 4.7: mu_eq starts as mu and t_eq at 0.5 when the fine stage begins."""
+        with torch.no_grad():
+            self.mu_eq.copy_(self.means)
+            self.t_eq.fill_(0.5)
 
     @classmethod
     def from_points(cls, points, colors=None, sh_degree: int = 3, opacity: float = 0.1,

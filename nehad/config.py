@@ -1,0 +1,168 @@
+"""Every training knob of nehad as typed dataclasses with documented defaults (SPEC section 5),
+and the presets `paper`, `cpu` (default) and `test`.
+
+A run's config is: preset -> YAML file (`--config`) -> dotted overrides (`--set a.b=v`), each
+applied on top of the previous one; the resolved config is saved in the run directory.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from dataclasses import field as dc_field
+from typing import Literal
+
+from nehad.configtools import ConfigError, from_dict, load_yaml, merge, parse_override
+from nehad.field.config import FieldConfig
+
+
+@dataclass
+class DataConfig:
+    background: tuple[float, float, float] | None = None  # None: white for RGBA D-NeRF data, black for RGB
+    downscale: int = 1  # integer image downscale factor (2 = half resolution)
+    train_split: str = "train"
+    eval_split: str = "test"
+
+
+@dataclass
+class StageConfig:
+    iterations: int = 3000  # optimisation steps of this stage
+    batch_size: int = 1  # views per step; their losses are averaged
+
+
+@dataclass
+class OptimConfig:
+    position_lr_init: float = 1.6e-4  # times the scene extent, decays exponentially ...
+    position_lr_final: float = 1.6e-6  # ... to this (times extent) at the end of training
+    sh_dc_lr: float = 2.5e-3
+    sh_rest_lr_divisor: float = 20.0  # higher SH bands learn at sh_dc_lr / this
+    opacity_lr: float = 0.05
+    scaling_lr: float = 5e-3
+    rotation_lr: float = 1e-3
+    grid_lr_init: float = 1.6e-3  # hex-plane planes, exponential decay ...
+    grid_lr_final: float = 1.6e-4  # ... to this
+    decoder_lr: float = 1e-3  # trunk, HNN scalar networks and adapters
+    t_eq_lr: float = 1e-3  # BED equilibrium times (mu_eq learns like positions)
+
+
+@dataclass
+class DensifyConfig:
+    start: int = 500  # first fine... first iteration (of each stage) that densifies
+    stop: int = 15000  # no densification after this iteration (per stage)
+    interval: int = 100  # densify and prune every this many iterations
+    grad_threshold: float = 2e-4  # mean view-space (NDC) gradient norm above which to densify
+    min_opacity: float = 0.005  # prune below this opacity
+    percent_dense: float = 0.01  # clone below / split above this fraction of the scene extent
+    opacity_reset_interval: int = 3000  # reset opacities to 0.01 every this many iterations
+    prune_interval: int = 8000  # D-NeRF: large-Gaussian pruning only every this many iterations
+    max_screen_size: int = 20  # prune Gaussians larger than this (pixels) at prune_interval
+    max_gaussians: int = 0  # 0 = no cap; otherwise densification stops adding past this count
+
+
+@dataclass
+class LossConfig:
+    ssim_weight: float = 0.2  # loss = (1 - w) L1 + w D-SSIM; the hex-plane regulariser weights
+    # are field knobs (field.reg_plane_weight, field.reg_time_smoothness_weight, ...)
+
+
+@dataclass
+class TrainConfig:
+    seed: int = 0
+    sh_degree: int = 3  # maximum SH degree; it grows by one every sh_degree_interval
+    sh_degree_interval: int = 1000
+    init: Literal["auto", "points", "random"] = "auto"  # auto: the dataset's points if any
+    init_random_points: int = 2000  # D-NeRF: random points in [-1.3, 1.3]^3
+    checkpoint_interval: int = 1000  # iterations between checkpoints (and at each stage end)
+    log_interval: int = 50  # iterations between metric log lines
+    keep_checkpoints: int = 2  # how many recent checkpoints stay on disk
+
+
+@dataclass
+class Config:
+    preset: str = "cpu"
+    data: DataConfig = dc_field(default_factory=DataConfig)
+    field: FieldConfig = dc_field(default_factory=FieldConfig)
+    coarse: StageConfig = dc_field(default_factory=lambda: StageConfig(iterations=3000))
+    fine: StageConfig = dc_field(default_factory=lambda: StageConfig(iterations=20000))
+    optim: OptimConfig = dc_field(default_factory=OptimConfig)
+    densify: DensifyConfig = dc_field(default_factory=DensifyConfig)
+    loss: LossConfig = dc_field(default_factory=LossConfig)
+    train: TrainConfig = dc_field(default_factory=TrainConfig)
+
+    def validate(self) -> "Config":
+        try:
+            self.field.validate()
+        except ConfigError:
+            raise
+        except ValueError as e:
+            raise ConfigError(f"field.{e}") from None
+        for name in ("coarse", "fine"):
+            stage = getattr(self, name)
+            if stage.iterations < 0:
+                raise ConfigError(f"{name}.iterations: must be >= 0")
+            if stage.batch_size < 1:
+                raise ConfigError(f"{name}.batch_size: must be >= 1")
+        if self.data.downscale < 1:
+            raise ConfigError("data.downscale: must be >= 1")
+        if not 0 <= self.train.sh_degree <= 3:
+            raise ConfigError("train.sh_degree: must be in 0..3")
+        if self.densify.interval < 1:
+            raise ConfigError("densify.interval: must be >= 1")
+        return self
+
+
+def _paper() -> Config:
+    """The paper's settings (SPEC section 5): full resolution, 3000 + 20000 iterations."""
+    return Config(preset="paper")
+
+
+def _cpu() -> Config:
+    """Sized for a 2-core CPU: half resolution, fewer iterations, a Gaussian cap, a coarser
+    time axis. The deformation field is the paper's (D-NeRF hex-plane, W=64, D=1)."""
+    return Config(
+        preset="cpu",
+        data=DataConfig(downscale=2),
+        coarse=StageConfig(iterations=1000),
+        fine=StageConfig(iterations=6000),
+        densify=DensifyConfig(start=300, stop=4000, interval=100, opacity_reset_interval=3000,
+                              prune_interval=3000, max_gaussians=40000),
+        train=TrainConfig(sh_degree=3, sh_degree_interval=1000, checkpoint_interval=500),
+    )
+
+
+def _test() -> Config:
+    """Seconds, for tests: tiny images, a small hex-plane, a handful of iterations."""
+    return Config(
+        preset="test",
+        data=DataConfig(downscale=1),
+        field=dataclasses.replace(FieldConfig(), resolution=(8, 8, 8, 4), out_dim=8,
+                                  multires=(1,), width=16, hnn_hidden=16),
+        coarse=StageConfig(iterations=30),
+        fine=StageConfig(iterations=40),
+        densify=DensifyConfig(start=10, stop=60, interval=10, opacity_reset_interval=1000,
+                              prune_interval=1000, max_gaussians=1500),
+        train=TrainConfig(sh_degree=1, sh_degree_interval=20, init_random_points=500,
+                          checkpoint_interval=20, log_interval=10),
+    )
+
+
+PRESETS = {"paper": _paper, "cpu": _cpu, "test": _test}
+
+
+def build_config(preset: str = "cpu", config_file=None, overrides=()) -> Config:
+    """preset -> YAML file -> `a.b=v` overrides; validated."""
+    if preset not in PRESETS:
+        raise ConfigError(f"preset: unknown preset {preset!r} (choose from {', '.join(PRESETS)})")
+    cfg = PRESETS[preset]()
+    if config_file is not None:
+        data = load_yaml(config_file)
+        data.pop("preset", None)
+        cfg = merge(cfg, data)
+    for text in overrides:
+        cfg = merge(cfg, parse_override(text))
+    return cfg.validate()
+
+
+def config_from_dict(data: dict) -> Config:
+    """Rebuild a resolved config (as saved in a run directory)."""
+    return from_dict(Config, data).validate()

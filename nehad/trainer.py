@@ -1,0 +1,310 @@
+"""The NeHaD trainer (SPEC section 5): a coarse stage of static 3DGS, then a fine stage with the
+deformation field on; Adam with per-parameter learning rates and exponential schedules; the 3DGS
+densification strategy; 0.8 L1 + 0.2 D-SSIM plus the hex-plane regularisers; SH degree schedule;
+atomic checkpoints and exact resume.
+
+Determinism: the views of step s are drawn from a generator seeded by (seed, s) and the split
+noise of step s likewise, so a run resumed from a checkpoint takes the same steps as one that
+never stopped.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from nehad.checkpoint import (append_metrics, atomic_torch_save, list_checkpoints, load_state,
+                              save_checkpoint)
+from nehad.config import Config, config_from_dict
+from nehad.configtools import ConfigError, diff, dump_yaml, to_dict
+from nehad.data.dnerf import DNeRFScene, load_dnerf
+from nehad.densify import DensifyStrategy
+from nehad.field.deformation import DeformationField
+from nehad.gaussians import GaussianParameters
+from nehad.losses import photometric_loss, psnr
+from nehad.splat.rasterize import render_torch
+
+
+class RunError(RuntimeError):
+    """A run directory cannot be used as asked (e.g. resume with another config)."""
+
+
+def resolve_background(cfg: Config, scene_has_alpha: bool) -> tuple[float, float, float]:
+    if cfg.data.background is not None:
+        return tuple(float(v) for v in cfg.data.background)
+    return (1.0, 1.0, 1.0) if scene_has_alpha else (0.0, 0.0, 0.0)
+
+
+def exp_lr(step: int, total: int, lr_init: float, lr_final: float) -> float:
+    """Log-linear interpolation from lr_init to lr_final over `total` steps (3DGS schedule)."""
+    if total <= 0 or lr_init <= 0:
+        return lr_init
+    t = min(max(step / total, 0.0), 1.0)
+    return math.exp(math.log(lr_init) * (1 - t) + math.log(max(lr_final, 1e-30)) * t)
+
+
+@dataclass
+class Views:
+    cameras: list
+    images: list  # (H, W, 3) float32 tensors
+    times: list
+
+
+def _views(scene: DNeRFScene, split: str) -> Views:
+    frames = scene.frames[split]
+    return Views([f.camera for f in frames], [torch.from_numpy(np.ascontiguousarray(f.image))
+                                              for f in frames],
+                 [float(f.camera.time or 0.0) for f in frames])
+
+
+class NeHaDModel(torch.nn.Module):
+    """Canonical Gaussians + deformation field: renders the scene at any time."""
+
+    def __init__(self, gaussians: GaussianParameters, field: DeformationField):
+        super().__init__()
+        self.gaussians = gaussians
+        self.field = field
+
+    def gaussians_at(self, t: float | None, deform: bool = True):
+        """Activated (means, scales, quats, opacities, sh) at time t (canonical if not deform)."""
+        g = self.gaussians
+        if not deform or t is None:
+            return g.activated()
+        sh = torch.cat([g.sh_dc, g.sh_rest], 1)
+        out = self.field(g.means, g.log_scales, g.quats, float(t), g.mu_eq, g.t_eq,
+                         opacity_logits=g.opacity_logits, sh=sh)
+        quats = out.quats / out.quats.norm(dim=-1, keepdim=True)
+        return (out.means, torch.exp(out.log_scales), quats, torch.sigmoid(out.opacity_logits),
+                out.sh)
+
+
+def scene_bounds(points: np.ndarray | None) -> np.ndarray:
+    """The hex-plane's aabb (2, 3): the initial points' bounds (4DGS), else [-1.3, 1.3]^3."""
+    if points is None or len(points) == 0:
+        return np.array([[-1.3] * 3, [1.3] * 3], np.float32)
+    lo, hi = points.min(0), points.max(0)
+    pad = 0.05 * (hi - lo).max()
+    return np.stack([lo - pad, hi + pad]).astype(np.float32)
+
+
+class Trainer:
+    def __init__(self, cfg: Config, data_dir, run_dir, resume: bool = False,
+                 progress: bool = True, log=print):
+        self.cfg = cfg
+        self.run = Path(run_dir)
+        self.data_dir = Path(data_dir)
+        self.progress = progress
+        self.log = log
+        self._check_run_dir(resume)
+        torch.manual_seed(cfg.train.seed)
+        self.scene = load_dnerf(self.data_dir, splits=(cfg.data.train_split,),
+                                background=(0.0, 0.0, 0.0), downscale=cfg.data.downscale)
+        has_alpha = any(f.alpha is not None for f in self.scene.frames[cfg.data.train_split])
+        self.background = resolve_background(cfg, has_alpha)
+        if self.background != (0.0, 0.0, 0.0):
+            self.scene = load_dnerf(self.data_dir, splits=(cfg.data.train_split,),
+                                    background=self.background, downscale=cfg.data.downscale)
+        self.train_views = _views(self.scene, cfg.data.train_split)
+        self.extent = float(self.scene.extent)
+        self.aabb = scene_bounds(self.scene.initial_points)
+        self.total_steps = cfg.coarse.iterations + cfg.fine.iterations
+        self.step = 0
+        state = self._latest_checkpoint() if resume else None
+        self._build(state)
+
+    # -- setup ---------------------------------------------------------------------------
+    def _check_run_dir(self, resume: bool) -> None:
+        cfg_path = self.run / "config.yaml"
+        if cfg_path.exists():
+            import yaml
+            saved = yaml.safe_load(cfg_path.read_text())
+            if not resume:
+                raise RunError(f"{self.run}: already holds a run; pass --resume to continue it "
+                               f"or choose another output folder")
+            changes = diff(saved, to_dict(self.cfg))
+            if changes:
+                raise RunError(f"{self.run}: --resume with a different config than the run's "
+                               f"({'; '.join(changes[:6])}); use the same preset/--set values "
+                               f"or another output folder")
+        self.run.mkdir(parents=True, exist_ok=True)
+        if not cfg_path.exists():
+            tmp = cfg_path.with_suffix(".yaml.tmp")
+            tmp.write_text(dump_yaml(self.cfg))
+            tmp.replace(cfg_path)
+
+    def _latest_checkpoint(self):
+        ckpts = list_checkpoints(self.run)
+        return load_state(ckpts[-1]) if ckpts else None
+
+    def _init_gaussians(self) -> GaussianParameters:
+        cfg = self.cfg.train
+        pts = self.scene.initial_points
+        use_points = cfg.init == "points" or (cfg.init == "auto" and pts is not None)
+        if use_points:
+            if pts is None:
+                raise ConfigError("train.init: 'points' but the dataset has no point cloud")
+            return GaussianParameters.from_points(pts, self.scene.initial_colors,
+                                                  sh_degree=cfg.sh_degree, seed=cfg.seed)
+        return GaussianParameters.random_in_box(cfg.init_random_points, sh_degree=cfg.sh_degree,
+                                                seed=cfg.seed)
+
+    def _build(self, state) -> None:
+        cfg = self.cfg
+        if state is None:
+            gaussians = self._init_gaussians()
+        else:
+            gaussians = GaussianParameters.empty_like_state(state["gaussians"])
+            gaussians.load_state_dict(state["gaussians"])
+        field = DeformationField(cfg.field, torch.as_tensor(self.aabb), self.extent)
+        if state is not None:
+            field.load_state_dict(state["field"])
+        self.model = NeHaDModel(gaussians, field)
+        self.optimizer = self._make_optimizer()
+        self.strategy = DensifyStrategy(cfg.densify, self.extent)
+        if state is not None:
+            self.optimizer.load_state_dict(state["optimizer"])
+            self.strategy.load_state_dict(state["strategy"])
+            self.step = int(state["step"])
+
+    def _make_optimizer(self) -> torch.optim.Optimizer:
+        o, g = self.cfg.optim, self.model.gaussians
+        groups = [
+            {"name": "means", "params": [g.means], "lr": o.position_lr_init * self.extent},
+            {"name": "sh_dc", "params": [g.sh_dc], "lr": o.sh_dc_lr},
+            {"name": "sh_rest", "params": [g.sh_rest], "lr": o.sh_dc_lr / o.sh_rest_lr_divisor},
+            {"name": "opacity_logits", "params": [g.opacity_logits], "lr": o.opacity_lr},
+            {"name": "log_scales", "params": [g.log_scales], "lr": o.scaling_lr},
+            {"name": "quats", "params": [g.quats], "lr": o.rotation_lr},
+            {"name": "mu_eq", "params": [g.mu_eq], "lr": 0.0},
+            {"name": "t_eq", "params": [g.t_eq], "lr": 0.0},
+        ]
+        field_groups = self.model.field.param_groups()
+        groups.append({"name": "grid", "params": list(field_groups["grid"]), "lr": 0.0})
+        groups.append({"name": "decoder", "params": list(field_groups["decoder"]), "lr": 0.0})
+        return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+
+    # -- schedule ------------------------------------------------------------------------
+    def stage_of(self, step: int) -> tuple[str, int, int]:
+        """(stage name, iteration within the stage, stage length)."""
+        c = self.cfg.coarse.iterations
+        if step < c:
+            return "coarse", step, c
+        return "fine", step - c, self.cfg.fine.iterations
+
+    def _set_learning_rates(self, stage: str, it: int, length: int) -> None:
+        o = self.cfg.optim
+        fine = stage == "fine"
+        for group in self.optimizer.param_groups:
+            name = group["name"]
+            if name in ("means", "mu_eq"):
+                lr = exp_lr(it, length, o.position_lr_init, o.position_lr_final) * self.extent
+                group["lr"] = lr if (name == "means" or fine) else 0.0
+            elif name == "t_eq":
+                group["lr"] = o.t_eq_lr if fine else 0.0
+            elif name == "grid":
+                group["lr"] = exp_lr(it, length, o.grid_lr_init, o.grid_lr_final) if fine else 0.0
+            elif name == "decoder":
+                group["lr"] = o.decoder_lr if fine else 0.0
+
+    def active_sh_degree(self, step: int) -> int:
+        return min(self.cfg.train.sh_degree, step // max(self.cfg.train.sh_degree_interval, 1))
+
+    # -- one step --------------------------------------------------------------------------
+    def train_step(self, step: int) -> dict:
+        cfg = self.cfg
+        stage, it, length = self.stage_of(step)
+        if stage == "fine" and it == 0:
+            self.model.gaussians.reset_equilibrium()
+            self.strategy.reset(len(self.model.gaussians))
+        self._set_learning_rates(stage, it, length)
+        batch = (cfg.coarse if stage == "coarse" else cfg.fine).batch_size
+        rng = np.random.default_rng([cfg.train.seed, step])
+        views = rng.choice(len(self.train_views.cameras), size=batch,
+                           replace=batch > len(self.train_views.cameras))
+        degree = self.active_sh_degree(step)
+        total = 0.0
+        psnrs = []
+        renders = []
+        for k in views:
+            cam = self.train_views.cameras[k]
+            params = self.model.gaussians_at(self.train_views.times[k], deform=stage == "fine")
+            res = render_torch(*params, cam, background=self.background, sh_degree=degree)
+            target = self.train_views.images[k]
+            loss = photometric_loss(res.rgb, target, cfg.loss.ssim_weight) / batch
+            total = total + loss
+            psnrs.append(psnr(res.rgb, target))
+            renders.append((res, cam))
+        if stage == "fine":
+            total = total + self.model.field.regularization_loss()
+        self.optimizer.zero_grad(set_to_none=True)
+        total.backward()
+        for res, cam in renders:
+            self.strategy.record_view(res.means2d.grad, res.radii, cam.width, cam.height)
+        self.optimizer.step()
+        gen = torch.Generator().manual_seed(int(cfg.train.seed) * 1_000_003 + step)
+        did = self.strategy.step_post_backward(self.model.gaussians, self.optimizer, it + 1, gen)
+        return {"step": step + 1, "stage": stage, "loss": float(total.item()),
+                "psnr": float(np.mean(psnrs)), "gaussians": len(self.model.gaussians),
+                "sh_degree": degree, **{k: v for k, v in did.items() if k != "gaussians"}}
+
+    # -- loop ----------------------------------------------------------------------------
+    def checkpoint_state(self) -> dict:
+        return {"step": self.step, "gaussians": self.model.gaussians.state_dict(),
+                "field": self.model.field.state_dict(),
+                "optimizer": self.optimizer.state_dict(),
+                "strategy": self.strategy.state_dict(), "config": to_dict(self.cfg)}
+
+    def model_state(self) -> dict:
+        return {"format": "nehad-run/1", "gaussians": self.model.gaussians.state_dict(),
+                "field": self.model.field.state_dict(), "config": to_dict(self.cfg),
+                "aabb": torch.as_tensor(self.aabb), "extent": self.extent,
+                "background": list(self.background),
+                "sh_degree": self.active_sh_degree(self.total_steps),
+                "time_range": list(self.scene.time_range), "steps": self.step}
+
+    def train(self) -> dict:
+        from tqdm import tqdm
+
+        cfg = self.cfg
+        start_time = time.perf_counter()
+        bar = tqdm(total=self.total_steps, initial=self.step, disable=not self.progress,
+                   dynamic_ncols=True, desc="train")
+        record = {}
+        while self.step < self.total_steps:
+            record = self.train_step(self.step)
+            self.step += 1
+            bar.update(1)
+            if self.step % cfg.train.log_interval == 0 or self.step == self.total_steps:
+                record["seconds"] = round(time.perf_counter() - start_time, 2)
+                append_metrics(self.run, record)
+                bar.set_postfix(stage=record["stage"], loss=f"{record['loss']:.4f}",
+                                psnr=f"{record['psnr']:.2f}", n=record["gaussians"])
+            stage_end = self.step == cfg.coarse.iterations or self.step == self.total_steps
+            if self.step % cfg.train.checkpoint_interval == 0 or stage_end:
+                save_checkpoint(self.run, self.step, self.checkpoint_state(),
+                                cfg.train.keep_checkpoints)
+        bar.close()
+        atomic_torch_save(self.model_state(), self.run / "model.pt")
+        return {"steps": self.step, "gaussians": len(self.model.gaussians),
+                "seconds": time.perf_counter() - start_time, "last": record}
+
+
+def load_run(run_dir) -> tuple[NeHaDModel, dict]:
+    """Load RUN/model.pt (or the latest checkpoint) as a model plus its metadata."""
+    run = Path(run_dir)
+    path = run / "model.pt"
+    if not path.exists():
+        raise RunError(f"{run}: no model.pt (training not finished?)")
+    state = load_state(path)
+    cfg = config_from_dict(state["config"])
+    gaussians = GaussianParameters.empty_like_state(state["gaussians"])
+    gaussians.load_state_dict(state["gaussians"])
+    field = DeformationField(cfg.field, state["aabb"], float(state["extent"]))
+    field.load_state_dict(state["field"])
+    model = NeHaDModel(gaussians, field).eval()
+    return model, {k: v for k, v in state.items() if k not in ("gaussians", "field")}
