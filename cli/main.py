@@ -171,6 +171,25 @@ def _single_camera(view: str):
     return cam
 
 
+def _render_time(source, camera, time_, extrapolate):
+    """The time to render a dynamic source at: --time, else the view's time; checked against
+    the trained range unless --extrapolate."""
+    import math
+
+    if not source.dynamic:
+        return None
+    t = time_ if time_ is not None else camera.time
+    if t is None:
+        raise InputError(f"{source.path}: a dynamic scene needs --time T (the view has no time)")
+    lo, hi = source.time_range
+    if not math.isfinite(t):
+        raise InputError(f"--time {t}: not a finite number")
+    if not extrapolate and not (lo - 1e-9 <= t <= hi + 1e-9):
+        raise InputError(f"--time {t}: outside the trained time range [{lo:g}, {hi:g}] "
+                         f"(pass --extrapolate to render it anyway)")
+    return float(t)
+
+
 def _write_all(outputs) -> None:
     """Write each (path, array) atomically; if one fails, remove those already written
     by this call, so a failed run leaves no partial set of outputs."""
@@ -204,11 +223,16 @@ def _write_all(outputs) -> None:
               help="Render at this size instead of the camera's, same field of view.")
 @click.option("--sh-degree", type=click.IntRange(0, 3), default=None,
               help="Use SH up to this degree (default: all the scene has).")
-def render(scene, view, output, depth, alpha, background, size, sh_degree):
+@click.option("--time", "time_", type=float, default=None,
+              help="Time t in [0, 1] for a dynamic scene (a run directory); default: the view's "
+                   "own time when it has one (a D-NeRF frame).")
+@click.option("--extrapolate", is_flag=True,
+              help="Allow --time outside the trained time range.")
+def render(scene, view, output, depth, alpha, background, size, sh_degree, time_, extrapolate):
     """Render SCENE through one camera to an image.
 
-    SCENE is a standard 3DGS Gaussian PLY (exported ONNX models and training run directories
-    will follow).
+    SCENE is a standard 3DGS Gaussian PLY, or a training run directory (rendered at --time by its
+    torch model, through the same rasterizer the runtime uses). Exported ONNX models will follow.
     """
     from .sources import open_source
 
@@ -224,9 +248,10 @@ def render(scene, view, output, depth, alpha, background, size, sh_degree):
             _check_output(depth, "--depth", (".exr",), "the depth map")
             if depth.resolve() == output.resolve():
                 raise InputError(f"--depth {depth}: same file as -o")
-        source = open_source(scene)
-        cloud = source.gaussians()
         camera = _single_camera(view)
+        source = open_source(scene)
+        t = _render_time(source, camera, time_, extrapolate)
+        cloud = source.gaussians(t)
         if size is not None:
             camera = camera.with_size(*size)
         bg = (0.0, 0.0, 0.0) if alpha else (background or source.default_background)

@@ -7,7 +7,7 @@ SCENE                           source                          status
 ==============================  ==============================  ===========================
 ``*.ply``                       a standard 3DGS PLY (static)    supported
 ``*.onnx``                      an exported ``nehad-onnx/1``    not supported yet
-a directory                     a training run (needs torch)    not supported yet
+a directory                     a training run (needs torch)    supported
 ==============================  ==============================  ===========================
 
 Adding a source: a class with ``describe()``, ``default_background`` and ``gaussians(time)``, and
@@ -26,6 +26,8 @@ class PlySource:
     """A static 3DGS PLY: the same Gaussians at every time; black background by default."""
 
     kind = "ply"
+    dynamic = False
+    time_range = (0.0, 1.0)
     default_background = (0.0, 0.0, 0.0)
 
     def __init__(self, path: Path):
@@ -49,13 +51,45 @@ class PlySource:
         return f"{len(cloud)} Gaussians, SH degree {cloud.sh_degree}"
 
 
-def open_source(path) -> PlySource:
+class RunSource:
+    """A training run directory (RUN/model.pt): the deformed Gaussians at any time, computed by
+    the torch model; the background the run was trained with."""
+
+    kind = "run"
+    dynamic = True
+
+    def __init__(self, path: Path):
+        from nehad.trainer import load_run  # torch: only for this source
+
+        self.path = Path(path)
+        self.model, self.meta = load_run(self.path)
+        self.default_background = tuple(float(v) for v in self.meta["background"])
+        self.time_range = tuple(float(v) for v in self.meta["time_range"])
+        self.sh_degree = int(self.meta["sh_degree"])
+
+    def gaussians(self, time: float | None = None):
+        import torch
+
+        from nehad.runtime.gaussians import GaussianCloud
+
+        with torch.no_grad():
+            params = self.model.gaussians_at(time, deform=time is not None)
+        means, scales, quats, opac, sh = (t.detach().cpu().numpy() for t in params)
+        k = (self.sh_degree + 1) ** 2
+        return GaussianCloud(means, scales, quats, opac, sh[:, :k])
+
+    def describe(self) -> str:
+        return f"run {self.path.name}: {len(self.model.gaussians)} Gaussians, SH degree {self.sh_degree}"
+
+
+def open_source(path):
     """The scene source for a SCENE argument, dispatched on the path (see the module doc)."""
     p = Path(path)
     suffix = p.suffix.lower()
     if p.is_dir():
-        raise InputError(f"{p}: rendering a training run directory is not supported yet "
-                         f"(give a 3DGS .ply file)")
+        if not (p / "model.pt").exists():
+            raise InputError(f"{p}: not a finished training run (no model.pt)")
+        return RunSource(p)
     if suffix == ".ply":
         return PlySource(p)  # a missing file is reported by the PLY reader
     if suffix == ".onnx":

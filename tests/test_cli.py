@@ -316,7 +316,7 @@ def test_unsupported_sources(scene, tmp_path):
     runner = CliRunner()
     (tmp_path / "model.onnx").write_bytes(b"")
     for src, needle in ((tmp_path / "model.onnx", "not supported yet"),
-                        (tmp_path, "not supported yet"),
+                        (tmp_path, "not a finished training run"),
                         (tmp_path / "scene.xyz", "no such file")):
         res = runner.invoke(main, ["render", str(src), "--view", str(cam), "-o",
                                    str(tmp_path / "o.png")])

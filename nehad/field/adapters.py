@@ -1,0 +1,60 @@
+"""Attribute adapters (paper Sec. "Neural Hamiltonian Deformation Fields": dmu = A_mu v,
+ds = A_s v, dr = A_r v; SPEC 4.5) and the Verlet force F = A_mu' v_c (SPEC 4.5-4.6)."""
+
+from __future__ import annotations
+
+from typing import NamedTuple, Optional
+
+import torch
+from torch import nn
+
+
+class AdapterOutput(NamedTuple):
+    dmu: torch.Tensor  # (N, 3) position offset ("velocity" of the Verlet step)
+    ds: torch.Tensor  # (N, 3) log-scale offset
+    q: torch.Tensor  # (N, 4) quaternion delta (1, 0, 0, 0) + A_r v, not normalised
+    d_opacity: Optional[torch.Tensor] = None  # (N, 1) when deforming appearance
+    d_sh: Optional[torch.Tensor] = None  # (N, K, 3) when deforming appearance
+
+
+def _zero_linear(i: int, o: int) -> nn.Linear:
+    lin = nn.Linear(i, o)
+    nn.init.zeros_(lin.weight)
+    nn.init.zeros_(lin.bias)
+    return lin
+
+
+class Adapters(nn.Module):
+    """Linear, zero-initialised adapters, so a fresh field is the identity deformation.
+
+    `mu`: Linear(W, 3), `scale`: Linear(W, 3), `rot`: Linear(W, 4) (+ `opacity`: Linear(W, 1),
+    `sh`: Linear(W, 3K) when `deform_appearance`)."""
+
+    def __init__(self, width: int = 64, deform_appearance: bool = False, sh_coeffs: int = 16):
+        super().__init__()
+        self.mu = _zero_linear(width, 3)
+        self.scale = _zero_linear(width, 3)
+        self.rot = _zero_linear(width, 4)
+        self.sh_coeffs = sh_coeffs
+        if deform_appearance:
+            self.opacity = _zero_linear(width, 1)
+            self.sh = _zero_linear(width, 3 * sh_coeffs)
+        else:
+            self.opacity = self.sh = None
+        self.register_buffer("identity_quat", torch.tensor([1.0, 0.0, 0.0, 0.0]),
+                             persistent=False)
+
+    def forward(self, v: torch.Tensor) -> AdapterOutput:
+        q = self.rot(v) + self.identity_quat.to(v.dtype)
+        d_o = d_sh = None
+        if self.opacity is not None:
+            d_o = self.opacity(v)
+            d_sh = self.sh(v).reshape(v.shape[0], self.sh_coeffs, 3)
+        return AdapterOutput(self.mu(v), self.scale(v), q, d_o, d_sh)
+
+    def force(self, v_c: torch.Tensor) -> torch.Tensor:
+        """F = A_mu' v_c: A_mu's weight without its bias (SPEC 4.5), (N, 3)."""
+        return v_c @ self.mu.weight.t()
+
+
+__all__ = ["Adapters", "AdapterOutput"]

@@ -1,0 +1,238 @@
+"""Configuration of the NeHaD deformation field (SPEC sections 4 and 5).
+
+Every knob of the field lives in :class:`FieldConfig`; defaults are the D-NeRF preset of the
+paper / 4DGS where the paper gives a value, and the SPEC's documented choice where it does not
+(BED constants, `dt`, `phi_max`). `validate()` raises a ValueError that names the offending field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Any, Mapping
+
+#: Smooth activations allowed in the scalar networks F1, F2 (SPEC 4.3).
+SMOOTH_ACTIVATIONS = ("tanh", "softplus", "silu")
+DECODERS = ("hnn", "mlp")
+HNN_GRAD_MODES = ("autograd", "closed_form")
+SPATIAL_REGULARIZERS = ("tv", "second_order")
+
+
+@dataclass
+class FieldConfig:
+    """Hex-plane encoder + trunk + decoder (HNN or 4DGS MLP) + physics switches.
+
+    Ablation switches (paper Tab. "ablation", SPEC 4 last paragraph) each turn one NeHaD component
+    off on its own; the formula used when a switch is off is documented in
+    :class:`nehad.field.deformation.DeformationField`.
+    """
+
+    # ---------------- hex-plane encoder (SPEC 4.1, 4DGS `kplanes_config`) ----------------
+    out_dim: int = 32
+    """Feature channels per plane (4DGS `output_coordinate_dim`; D-NeRF 32, HyperNeRF/DyNeRF 16)."""
+    resolution: tuple[int, int, int, int] = (64, 64, 64, 25)
+    """Base plane resolution (x, y, z, t). The time resolution is about half the number of
+    timestamps (25..100 for D-NeRF, 150 for HyperNeRF/DyNeRF); it is NOT scaled by `multires`."""
+    multires: tuple[int, ...] = (1, 2)
+    """Spatial upsampling factors, one hex-plane per factor; features are concatenated, so the
+    feature width is `out_dim * len(multires)` (D-NeRF (1, 2); HyperNeRF (1, 2, 4))."""
+    plane_init_low: float = 0.1
+    """Spatial planes are initialised U(plane_init_low, plane_init_high) (4DGS / K-Planes)."""
+    plane_init_high: float = 0.5
+    """Upper bound of the spatial-plane initialisation."""
+    time_plane_init: float = 1.0
+    """Constant initial value of the space-time planes (1: the product starts time-independent)."""
+    spatial_regularizer: str = "tv"
+    """Spatial-plane smoothness: "tv" (K-Planes / 4DGS-paper total variation, first differences
+    along both axes) or "second_order" (what the 4DGS code computes under the name plane_tv:
+    squared second differences along the plane's first axis)."""
+    reg_plane_weight: float = 1e-4
+    """Weight of the spatial-plane smoothness in `regularization_loss()` (SPEC 5)."""
+    reg_time_smoothness_weight: float = 1e-2
+    """Weight of the second-order time smoothness of the space-time planes (SPEC 5)."""
+    reg_time_l1_weight: float = 1e-4
+    """Weight of the L1 distance of the space-time planes to 1 (SPEC 5)."""
+
+    # ---------------- trunk M (SPEC 4.2) ----------------
+    width: int = 64
+    """W: latent width of h = M(f). Must be even: h = (q, p) with d = W/2 each (SPEC 4.2).
+    64 for D-NeRF, 128 for the real-world presets."""
+    depth: int = 1
+    """D: Linear(F, W) followed by (D-1) x [ReLU, Linear(W, W)]."""
+
+    # ---------------- decoder (SPEC 4.3-4.5) ----------------
+    decoder: str = "hnn"
+    """"hnn" (NeHaD) or "mlp" (the 4DGS baseline row of the ablation: per-attribute ReLU heads,
+    mu + dmu, s + ds, r + dr; no BED, no Verlet, no rigidity clamp)."""
+    hnn_hidden: int = 64
+    """Hidden width of each scalar network F1, F2 (the paper gives none; our choice = W)."""
+    hnn_depth: int = 2
+    """Number of hidden (Linear + activation) layers of F1 and F2 before the Linear(hidden, 1)."""
+    activation: str = "tanh"
+    """Activation of F1, F2: "tanh" (default), "softplus" or "silu". NOT "relu": v = grad_h F
+    of a ReLU network is piecewise constant in h (its Jacobian, the Hessian of F, is zero almost
+    everywhere), so the loss on v would send no gradient to h and nothing upstream (planes, trunk)
+    would learn through v."""
+    hnn_grad: str = "autograd"
+    """How grad_h F is computed: "autograd" (`torch.autograd.grad(..., create_graph=True)`, the
+    training path of SPEC 4.4) or "closed_form" (the explicit formula of SPEC 4.4 used by the ONNX
+    export; mathematically identical). Under `torch.inference_mode()` closed form is always used,
+    because autograd cannot be re-enabled there."""
+    use_hnn: bool = True
+    """False = "HNN off" ablation: the two scalar networks and their input gradients are replaced
+    by two direct MLPs of the same hidden width/depth mapping h -> R^W, whose outputs take the
+    roles of v_c and v_s (v = v_c + v_s); everything downstream (adapters, force, BED, rigidity)
+    is unchanged. Only the curl-free / divergence-free structure is removed."""
+
+    # ---------------- position Verlet (SPEC 4.6) ----------------
+    verlet: bool = True
+    """Position Verlet mu~ = mu + dt dmu + dt^2/2 F; off: mu~ = mu + dt dmu (no force term)."""
+    dt: float = 1.0
+    """Integrator step. 1.0: with dt = 1/T the learnable displacement would shrink by the frame
+    count and learn T times slower (SPEC 4.6)."""
+
+    # ---------------- Boltzmann equilibrium decomposition (SPEC 4.7) ----------------
+    bed_position: bool = True
+    """Blend positions with M_pos; off: mu' = mu~ (equivalent to M_pos = 0)."""
+    bed_scale: bool = True
+    """Blend log-scale offsets with M_scale; off: s' = s + ds (equivalent to M_scale = 0)."""
+    sigma_s_fraction: float = 0.1
+    """sigma_s = sigma_s_fraction * scene extent (spatial sensitivity)."""
+    sigma_t: float = 0.25
+    """Temporal sensitivity (time is in [0, 1])."""
+    beta: float = 1.0
+    """Inverse temperature of the Boltzmann factor."""
+    gamma: float = 0.05
+    """Mask floor: masks lie in [gamma, 1]; gamma keeps every Gaussian minimally responsive."""
+    lam: float = 0.5
+    """Space-time coupling lambda of E_st; |lam| < 1 keeps E_st >= 0 so masks stay <= 1."""
+    norm_eps: float = 1e-12
+    """eps of the safe norms sqrt(|x|^2 + eps) (BED distance, rigidity axis, normalisations)."""
+
+    # ---------------- local rigidity (SPEC 4.8) ----------------
+    rigidity: bool = True
+    """Clamp the rotation angle of the quaternion delta; off: r' = N(r (x) q) unclamped."""
+    phi_max: float = math.pi
+    """Maximum rotation angle per deformation, phi' = phi_max tanh(phi / phi_max)."""
+
+    # ---------------- appearance (SPEC 4.9) ----------------
+    deform_opacity_sh: bool = False
+    """Also deform opacity logits and SH coefficients (4DGS does for DyNeRF; off for D-NeRF):
+    o' = o + A_o v, c' = c + A_c v (MLP decoder: extra heads). Not masked by BED."""
+    sh_coeffs: int = 16
+    """K, the SH coefficients per colour channel deformed when `deform_opacity_sh` (degree 3)."""
+
+    # ------------------------------------------------------------------------------------------
+    @property
+    def feature_dim(self) -> int:
+        """F, the hex-plane feature width = out_dim * len(multires)."""
+        return self.out_dim * len(self.multires)
+
+    def validate(self) -> "FieldConfig":
+        """Check every field; raise ValueError naming the first invalid one. Returns self."""
+
+        def bad(name: str, why: str):
+            raise ValueError(f"FieldConfig.{name} = {getattr(self, name)!r}: {why}")
+
+        def finite(name):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                bad(name, "must be a finite number")
+            return float(v)
+
+        def pos_int(name, minimum=1):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
+                bad(name, f"must be an integer >= {minimum}")
+
+        pos_int("out_dim")
+        res = self.resolution
+        if (not isinstance(res, (tuple, list)) or len(res) != 4
+                or any(isinstance(r, bool) or not isinstance(r, int) or r < 2 for r in res)):
+            bad("resolution", "must be 4 integers (x, y, z, t), each >= 2")
+        mr = self.multires
+        if (not isinstance(mr, (tuple, list)) or len(mr) == 0
+                or any(isinstance(m, bool) or not isinstance(m, int) or m < 1 for m in mr)):
+            bad("multires", "must be a non-empty list of integers >= 1")
+        lo, hi = finite("plane_init_low"), finite("plane_init_high")
+        if not lo < hi:
+            bad("plane_init_high", "must exceed plane_init_low")
+        finite("time_plane_init")
+        if self.spatial_regularizer not in SPATIAL_REGULARIZERS:
+            bad("spatial_regularizer", f"must be one of {SPATIAL_REGULARIZERS}")
+        for name in ("reg_plane_weight", "reg_time_smoothness_weight", "reg_time_l1_weight"):
+            if finite(name) < 0:
+                bad(name, "must be >= 0")
+        pos_int("width", 2)
+        if self.width % 2:
+            bad("width", "must be even (h = (q, p) with d = W/2)")
+        pos_int("depth")
+        if self.decoder not in DECODERS:
+            bad("decoder", f"must be one of {DECODERS}")
+        pos_int("hnn_hidden")
+        pos_int("hnn_depth")
+        if self.activation not in SMOOTH_ACTIVATIONS:
+            why = f"must be one of {SMOOTH_ACTIVATIONS}"
+            if self.activation == "relu":
+                why += ("; ReLU makes grad_h F piecewise constant in h, so nothing upstream of "
+                        "the HNN would learn through v")
+            bad("activation", why)
+        if self.hnn_grad not in HNN_GRAD_MODES:
+            bad("hnn_grad", f"must be one of {HNN_GRAD_MODES}")
+        for name in ("use_hnn", "verlet", "bed_position", "bed_scale", "rigidity",
+                     "deform_opacity_sh"):
+            if not isinstance(getattr(self, name), bool):
+                bad(name, "must be a bool")
+        if finite("dt") <= 0:
+            bad("dt", "must be > 0")
+        if finite("sigma_s_fraction") <= 0:
+            bad("sigma_s_fraction", "must be > 0")
+        if finite("sigma_t") <= 0:
+            bad("sigma_t", "must be > 0")
+        if finite("beta") <= 0:
+            bad("beta", "must be > 0")
+        if not 0.0 <= finite("gamma") < 1.0:
+            bad("gamma", "must lie in [0, 1)")
+        if not abs(finite("lam")) < 1.0:
+            bad("lam", "|lam| must be < 1 so that E_st >= 0 (masks <= 1)")
+        if finite("norm_eps") <= 0:
+            bad("norm_eps", "must be > 0")
+        if not 0.0 < finite("phi_max") <= 2 * math.pi:
+            bad("phi_max", "must lie in (0, 2 pi]")
+        pos_int("sh_coeffs")
+        return self
+
+    # ------------------------------------------------------------------------------------------
+    @classmethod
+    def preset(cls, name: str, **overrides: Any) -> "FieldConfig":
+        """4DGS hex-plane presets of SPEC 5: "dnerf", "hypernerf", "dynerf"; `overrides` win."""
+        presets = {
+            "dnerf": dict(out_dim=32, resolution=(64, 64, 64, 25), multires=(1, 2), width=64),
+            "hypernerf": dict(out_dim=16, resolution=(64, 64, 64, 150), multires=(1, 2, 4),
+                              width=128),
+            "dynerf": dict(out_dim=16, resolution=(64, 64, 64, 150), multires=(1, 2), width=128),
+        }
+        if name not in presets:
+            raise ValueError(f"FieldConfig.preset: unknown preset {name!r}; one of {list(presets)}")
+        return cls.from_dict({**presets[name], **overrides})
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "FieldConfig":
+        """Build from a plain mapping (e.g. a resolved YAML config); lists become tuples.
+        Unknown keys are an error naming the key. The result is validated."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise ValueError(f"FieldConfig: unknown field(s) {unknown}")
+        kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
+        return cls(**kwargs).validate()
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-data form (tuples as lists) for writing the resolved config."""
+        return {k: list(v) if isinstance(v, tuple) else v
+                for k, v in dataclasses.asdict(self).items()}
+
+
+__all__ = ["FieldConfig", "SMOOTH_ACTIVATIONS", "DECODERS", "HNN_GRAD_MODES",
+           "SPATIAL_REGULARIZERS"]

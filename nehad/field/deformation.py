@@ -1,0 +1,229 @@
+"""The NeHaD deformation field (paper Sec. 4 and Alg. 1; SPEC 4 steps 1-9).
+
+`DeformationField(cfg, aabb, extent)(means, log_scales, quats, t, mu_eq, t_eq)` maps canonical
+Gaussians to their deformed state at time t in [0, 1].
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Optional, Union
+
+import torch
+from torch import nn
+
+from nehad.field._trace import is_capturing
+from nehad.field.adapters import Adapters
+from nehad.field.bed import position_mask, scale_mask
+from nehad.field.config import FieldConfig
+from nehad.field.hexplane import HexPlane, normalize_aabb
+from nehad.field.hnn import DirectFieldDecoder, HamiltonianDecoder
+from nehad.field.mlp_decoder import MLPHeads
+from nehad.field.rigidity import clamp_rotation_delta, quat_multiply, safe_normalize
+from nehad.field.trunk import Trunk
+
+TimeLike = Union[float, torch.Tensor]
+
+
+@dataclass
+class DeformedGaussians:
+    """Deformed attributes at one time. `quats` are unit for the HNN decoder and r + dr
+    (unnormalised, normalised at render time as 4DGS does) for the MLP decoder. Opacity logits and
+    SH are the inputs passed through (or deformed, with `deform_opacity_sh`). `aux` holds
+    intermediate per-Gaussian tensors for visualisation and tests: "h", "v", "v_c", "v_s", "dmu",
+    "ds", "q", "force", "m_pos", "m_scale", "phi", "phi_clamped" (those that were computed)."""
+
+    means: torch.Tensor
+    log_scales: torch.Tensor
+    quats: torch.Tensor
+    opacity_logits: Optional[torch.Tensor] = None
+    sh: Optional[torch.Tensor] = None
+    aux: dict[str, torch.Tensor] = field(default_factory=dict)
+
+
+def time_column(t: TimeLike, n: int, like: torch.Tensor) -> torch.Tensor:
+    """t as an (N, 1) column: a float / one-element tensor is broadcast, (N,) or (N, 1) kept."""
+    if isinstance(t, torch.Tensor):
+        t = t.to(dtype=like.dtype, device=like.device)
+    else:
+        t = torch.tensor(float(t), dtype=like.dtype, device=like.device)
+    if not is_capturing():  # (shape checks would be baked into a traced graph as constants)
+        size = math.prod(t.shape)
+        if size not in (1, n):
+            raise ValueError(f"DeformationField: time has {size} elements; expected 1 or N = {n}")
+    return t.reshape(-1, 1).expand(n, 1)
+
+
+class DeformationField(nn.Module):
+    """Hex-plane encoder + trunk + decoder (SPEC 4).
+
+    Args:
+        cfg: FieldConfig (validated here).
+        aabb: (2, 3) box [[min], [max]] mapped to [-1, 1]^3 for the hex-plane (a buffer; see
+            `set_aabb`).
+        extent: scene extent; sigma_s = cfg.sigma_s_fraction * extent (a buffer).
+
+    HNN decoder, in order (SPEC 4):
+      1. f = HexPlane(normalize_aabb(mu), 2t - 1) of the CANONICAL mean mu;
+      2. h = M(f);
+      3-4. v_c = grad_h F1, v_s = (grad_h F2) M^T, v = v_c + v_s;
+           use_hnn=False: v_c, v_s are two direct MLP outputs (see FieldConfig.use_hnn);
+      5. dmu = A_mu v, ds = A_s v, q = (1, 0, 0, 0) + A_r v, force F = A_mu' v_c;
+      6. Verlet: mu~ = mu + dt dmu + dt^2/2 F;   verlet=False: mu~ = mu + dt dmu;
+      7. BED masks from the canonical mu, mu_eq, t, t_eq (nehad.field.bed);
+           mu' = mu~ (1 - M_pos) + mu M_pos, written as mu + (mu~ - mu)(1 - M_pos) (equal,
+           and exact at zero displacement);   bed_position=False: mu' = mu~;
+           s' = s + ds (1 - M_scale);   bed_scale=False: s' = s + ds;
+      8. rigidity: dr' = clamp(q) (phi' = phi_max tanh(phi / phi_max)), r' = N(r (x) dr');
+           rigidity=False: r' = N(r (x) q) (unclamped; N makes q's scale irrelevant);
+      9. opacity, SH passed through; deform_opacity_sh: o' = o + A_o v, c' = c + A_c v.
+    MLP decoder (4DGS baseline): mu' = mu + dmu, s' = s + ds, r' = r + dr (+ o, c with the flag);
+    no BED, Verlet or clamp; mu_eq / t_eq are ignored.
+    A fresh field (zero-initialised adapters / last layers) is the identity for every t.
+    """
+
+    def __init__(self, cfg: FieldConfig, aabb, extent: float = 1.0):
+        super().__init__()
+        self.cfg = dataclasses.replace(cfg).validate()  # own copy: later edits of `cfg` don't leak
+        self.hexplane = HexPlane(cfg.out_dim, cfg.resolution, cfg.multires, cfg.plane_init_low,
+                                 cfg.plane_init_high, cfg.time_plane_init)
+        self.trunk = Trunk(self.hexplane.feature_dim, cfg.width, cfg.depth)
+        if cfg.decoder == "mlp":
+            self.field = None
+            self.adapters = None
+            self.heads = MLPHeads(cfg.width, cfg.deform_opacity_sh, cfg.sh_coeffs)
+        else:
+            if cfg.use_hnn:
+                self.field = HamiltonianDecoder(cfg.width, cfg.hnn_hidden, cfg.hnn_depth,
+                                                cfg.activation, cfg.hnn_grad)
+            else:
+                self.field = DirectFieldDecoder(cfg.width, cfg.hnn_hidden, cfg.hnn_depth,
+                                                cfg.activation)
+            self.adapters = Adapters(cfg.width, cfg.deform_opacity_sh, cfg.sh_coeffs)
+            self.heads = None
+        self.register_buffer("aabb", torch.zeros(2, 3))
+        self.register_buffer("extent", torch.tensor(float(extent)))
+        self.set_aabb(aabb)
+
+    # ------------------------------------------------------------------ set-up helpers
+    def set_aabb(self, aabb) -> None:
+        """Set the hex-plane box (2, 3); max must exceed min on every axis."""
+        box = torch.as_tensor(aabb, dtype=self.aabb.dtype).reshape(2, 3)
+        if not bool(torch.all(box[1] > box[0])):
+            raise ValueError(f"DeformationField.aabb: max must exceed min on every axis, got "
+                             f"{box.tolist()}")
+        self.aabb.copy_(box)
+
+    def set_grad_mode(self, mode: str) -> None:
+        """Switch the HNN input gradient between "autograd" and "closed_form" (export)."""
+        if isinstance(self.field, HamiltonianDecoder):
+            if mode not in ("autograd", "closed_form"):
+                raise ValueError(f"DeformationField.set_grad_mode: unknown mode {mode!r}")
+            self.field.grad_mode = mode
+
+    def param_groups(self) -> dict[str, list[nn.Parameter]]:
+        """{"grid": hex-plane planes, "decoder": trunk, F1/F2 (or heads) and adapters}; the
+        trainer gives them different learning rates (SPEC 5: grid 1.6e-3 -> 1.6e-4, decoder
+        1e-3)."""
+        grid = list(self.hexplane.parameters())
+        ids = {id(p) for p in grid}
+        return {"grid": grid, "decoder": [p for p in self.parameters() if id(p) not in ids]}
+
+    def regularization_terms(self) -> dict[str, torch.Tensor]:
+        """Hex-plane regularisers of 4DGS (SPEC 5), unweighted."""
+        return {"plane_smoothness": self.hexplane.plane_smoothness(self.cfg.spatial_regularizer),
+                "time_smoothness": self.hexplane.time_smoothness(),
+                "time_l1": self.hexplane.time_l1()}
+
+    def regularization_loss(self) -> torch.Tensor:
+        """Weighted sum of `regularization_terms()` with the cfg.reg_*_weight values."""
+        r = self.regularization_terms()
+        c = self.cfg
+        return (c.reg_plane_weight * r["plane_smoothness"]
+                + c.reg_time_smoothness_weight * r["time_smoothness"]
+                + c.reg_time_l1_weight * r["time_l1"])
+
+    # ------------------------------------------------------------------ forward
+    def features(self, means: torch.Tensor, t_col: torch.Tensor) -> torch.Tensor:
+        """Step 1-2: h = M(HexPlane(normalize_aabb(mu), 2t - 1)), (N, W)."""
+        f = self.hexplane(normalize_aabb(means, self.aabb.to(means.dtype)), 2.0 * t_col - 1.0)
+        return self.trunk(f)
+
+    def forward(self, means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
+                t: TimeLike, mu_eq: Optional[torch.Tensor] = None,
+                t_eq: Optional[torch.Tensor] = None, opacity_logits: Optional[torch.Tensor] = None,
+                sh: Optional[torch.Tensor] = None) -> DeformedGaussians:
+        """Deform canonical Gaussians (means (N, 3), log_scales (N, 3), quats (N, 4) wxyz) to time
+        t (float, one-element tensor, or (N,)/(N, 1)). mu_eq (N, 3) and t_eq (N, 1) are required
+        when BED position (mu_eq, t_eq) or BED scale (t_eq) is on with the HNN decoder."""
+        n = means.shape[0]
+        t_col = time_column(t, n, means)
+        h = self.features(means, t_col)
+        if self.cfg.decoder == "mlp":
+            return self._forward_mlp(h, means, log_scales, quats, opacity_logits, sh)
+        cfg = self.cfg
+        fo = self.field(h)
+        ad = self.adapters(fo.v)
+        aux: dict[str, torch.Tensor] = {"h": h, "v": fo.v, "v_c": fo.v_c, "v_s": fo.v_s,
+                                        "dmu": ad.dmu, "ds": ad.ds, "q": ad.q}
+        # 6. position Verlet: displacement mu~ - mu.
+        disp = cfg.dt * ad.dmu
+        if cfg.verlet:
+            force = self.adapters.force(fo.v_c)
+            aux["force"] = force
+            disp = disp + (0.5 * cfg.dt * cfg.dt) * force
+        # 7. Boltzmann equilibrium blending.
+        if cfg.bed_position or cfg.bed_scale:
+            if t_eq is None or (cfg.bed_position and mu_eq is None):
+                raise ValueError("DeformationField.forward: mu_eq and t_eq are required with "
+                                 "bed_position / bed_scale on")
+            t_eq = t_eq.reshape(n, 1)
+        if cfg.bed_position:
+            m_pos = position_mask(means, mu_eq, t_col, t_eq,
+                                  sigma_s=cfg.sigma_s_fraction * self.extent.to(means.dtype),
+                                  sigma_t=cfg.sigma_t, beta=cfg.beta, gamma=cfg.gamma,
+                                  lam=cfg.lam, eps=cfg.norm_eps)
+            aux["m_pos"] = m_pos
+            disp = disp * (1.0 - m_pos)
+        new_means = means + disp
+        ds = ad.ds
+        if cfg.bed_scale:
+            m_scale = scale_mask(t_col, t_eq, sigma_t=cfg.sigma_t, beta=cfg.beta, gamma=cfg.gamma)
+            aux["m_scale"] = m_scale
+            ds = ds * (1.0 - m_scale)
+        new_log_scales = log_scales + ds
+        # 8. rotation: rigidity clamp of the quaternion delta, then r' = N(r (x) dr').
+        if cfg.rigidity:
+            rd = clamp_rotation_delta(ad.q, cfg.phi_max, cfg.norm_eps)
+            dr = rd.dr
+            aux["phi"], aux["phi_clamped"] = rd.phi, rd.phi_clamped
+        else:
+            dr = ad.q
+        new_quats = safe_normalize(quat_multiply(quats, dr), cfg.norm_eps)
+        # 9. appearance.
+        new_o, new_sh = self._appearance(opacity_logits, sh, ad.d_opacity, ad.d_sh)
+        return DeformedGaussians(new_means, new_log_scales, new_quats, new_o, new_sh, aux)
+
+    def _forward_mlp(self, h, means, log_scales, quats, opacity_logits, sh) -> DeformedGaussians:
+        d = self.heads(h)
+        new_o, new_sh = self._appearance(opacity_logits, sh, d["d_opacity"], d["d_sh"])
+        aux = {"h": h, "dmu": d["dmu"], "ds": d["ds"], "dr": d["dr"]}
+        return DeformedGaussians(means + d["dmu"], log_scales + d["ds"], quats + d["dr"],
+                                 new_o, new_sh, aux)
+
+    def _appearance(self, opacity_logits, sh, d_o, d_sh):
+        if d_o is None:
+            return opacity_logits, sh
+        if opacity_logits is None or sh is None:
+            raise ValueError("DeformationField.forward: deform_opacity_sh needs opacity_logits "
+                             "and sh")
+        k = sh.shape[1]
+        if k > self.cfg.sh_coeffs:
+            raise ValueError(f"DeformationField.forward: sh has {k} coefficients per channel, "
+                             f"more than cfg.sh_coeffs = {self.cfg.sh_coeffs}")
+        return opacity_logits + d_o.reshape(opacity_logits.shape), sh + d_sh[:, :k]
+
+
+__all__ = ["DeformationField", "DeformedGaussians", "time_column"]

@@ -1,0 +1,155 @@
+"""Multi-resolution hex-plane encoder (paper Eq. (k-planes) / Alg. 1 "hex-plane feature";
+SPEC 4.1; 4DGS `HexPlaneField`).
+
+For u = (x, y, z, t') in [-1, 1]^4 (x, y, z = `normalize_aabb(mu)`, t' = 2t - 1, SPEC 3) and each
+scale, the feature is the product over the six planes xy, xz, xt, yz, yt, zt of the bilinear sample
+psi(P_k, pi_k(u)); the scales are concatenated. Sampling is `F.grid_sample(mode="bilinear",
+align_corners=True, padding_mode="border")`, which exports as the standard ONNX GridSample
+(opset >= 16): no custom op.
+
+Plane layout follows 4DGS: plane k over the axis pair (a, b) (from `itertools.combinations(
+range(4), 2)`) is a Parameter of shape (1, C, res[b], res[a]), so grid_sample's x coordinate is
+axis a (width) and its y coordinate is axis b (height); for the space-time planes the height is t.
+"""
+
+from __future__ import annotations
+
+import itertools
+from typing import Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from nehad.field._trace import is_capturing
+
+#: Axis pairs of the six planes, in 4DGS order: xy, xz, xt, yz, yt, zt.
+PLANE_AXES: tuple[tuple[int, int], ...] = tuple(itertools.combinations(range(4), 2))
+PLANE_NAMES: tuple[str, ...] = tuple("xyzt"[a] + "xyzt"[b] for a, b in PLANE_AXES)
+SPACE_PLANES: tuple[int, ...] = tuple(k for k, ab in enumerate(PLANE_AXES) if 3 not in ab)
+TIME_PLANES: tuple[int, ...] = tuple(k for k, ab in enumerate(PLANE_AXES) if 3 in ab)
+
+
+def normalize_aabb(x: torch.Tensor, aabb: torch.Tensor) -> torch.Tensor:
+    """Map points in the box aabb = [[xmin, ymin, zmin], [xmax, ymax, zmax]] to [-1, 1]^3
+    (4DGS/K-Planes `normalize_aabb`). Points outside map outside [-1, 1]; the planes' border
+    padding then clamps them to the boundary value."""
+    return (x - aabb[0]) * (2.0 / (aabb[1] - aabb[0])) - 1.0
+
+
+def _tv(p: torch.Tensor) -> torch.Tensor:
+    """K-Planes total variation of a (1, C, H, W) plane: 2 (mean dH^2 + mean dW^2)."""
+    dh = (p[..., 1:, :] - p[..., :-1, :]).square().mean()
+    dw = (p[..., :, 1:] - p[..., :, :-1]).square().mean()
+    return 2.0 * (dh + dw)
+
+
+def _second_order(p: torch.Tensor) -> torch.Tensor:
+    """4DGS `compute_plane_smoothness`: mean squared second difference along the height axis
+    (for a space-time plane the height is t)."""
+    d1 = p[..., 1:, :] - p[..., :-1, :]
+    return (d1[..., 1:, :] - d1[..., :-1, :]).square().mean()
+
+
+class HexPlane(nn.Module):
+    """Six feature planes per scale; `forward(x, t)` -> (N, out_dim * len(multires)).
+
+    Args:
+        out_dim: channels C per plane.
+        resolution: base (x, y, z, t) resolution; the spatial entries are multiplied by each
+            multires factor, the time entry is not (4DGS).
+        multires: spatial upsampling factors, one scale each.
+        init_low, init_high: spatial planes ~ U(init_low, init_high).
+        time_init: constant initial value of the space-time planes.
+    Parameters are `planes.{scale}.{k}` with k indexing PLANE_NAMES.
+    """
+
+    def __init__(self, out_dim: int = 32, resolution: Sequence[int] = (64, 64, 64, 25),
+                 multires: Sequence[int] = (1, 2), init_low: float = 0.1, init_high: float = 0.5,
+                 time_init: float = 1.0):
+        super().__init__()
+        self.out_dim = int(out_dim)
+        self.multires = tuple(int(m) for m in multires)
+        self.base_resolution = tuple(int(r) for r in resolution)
+        self.planes = nn.ModuleList()
+        for m in self.multires:
+            res = [r * m for r in self.base_resolution[:3]] + [self.base_resolution[3]]
+            scale = nn.ParameterList()
+            for a, b in PLANE_AXES:
+                p = torch.empty(1, self.out_dim, res[b], res[a])
+                if b == 3:
+                    nn.init.constant_(p, time_init)
+                else:
+                    nn.init.uniform_(p, init_low, init_high)
+                scale.append(nn.Parameter(p))
+            self.planes.append(scale)
+        #: grid_sample point batches; 0 = automatic (see `_num_batches`), 1 = a single batch.
+        self.sample_batches = 0
+
+    @property
+    def feature_dim(self) -> int:
+        return self.out_dim * len(self.multires)
+
+    def resolutions(self) -> list[tuple[int, int, int, int]]:
+        """(x, y, z, t) resolution of each scale."""
+        return [tuple(r * m for r in self.base_resolution[:3]) + (self.base_resolution[3],)
+                for m in self.multires]
+
+    def _num_batches(self, x: torch.Tensor) -> int:
+        """Point batches for grid_sample. PyTorch's CPU grid_sample backward parallelises over
+        the batch dimension only, so with one batch the plane gradients are accumulated on one
+        thread; splitting the points into `torch.get_num_threads()` batches (the plane expanded,
+        not copied) roughly halves fwd+bwd time on 2 cores. Results are identical up to the
+        summation order of the plane gradients. One batch on GPUs, under export/compilation, for
+        small N, or when `sample_batches` is set to 1."""
+        if self.sample_batches > 0:
+            return self.sample_batches
+        if x.device.type != "cpu" or is_capturing() or x.shape[0] < 16384:
+            return 1
+        return max(1, torch.get_num_threads())
+
+    def forward(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+        """Features of points x (N, 3) in [-1, 1]^3 (already `normalize_aabb`-ed) at times
+        t (N, 1) in [-1, 1] (already mapped 2t - 1). Returns (N, out_dim * len(multires))."""
+        n = x.shape[0]
+        u = torch.cat([x, t.expand(n, 1).to(x.dtype)], dim=1)  # (N, 4)
+        b = self._num_batches(x)
+        pad = (-n) % b if b > 1 else 0
+        if pad:
+            u = torch.cat([u, u.new_zeros(pad, 4)], dim=0)
+        m = (n + pad) // b if b > 1 else n
+        u = u.reshape(b, 1, m, 4)  # point i -> batch i // m, slot i % m
+        coords = [u[..., [a, c]] for a, c in PLANE_AXES]  # (b, 1, m, 2) each
+        feats = []
+        for scale in self.planes:
+            f = None
+            for plane, c in zip(scale, coords):
+                grid = plane if b == 1 else plane.expand(b, -1, -1, -1)
+                s = F.grid_sample(grid, c, mode="bilinear", padding_mode="border",
+                                  align_corners=True)  # (b, C, 1, m)
+                f = s if f is None else f * s
+            feats.append(f)
+        out = torch.cat(feats, dim=1).reshape(b, self.feature_dim, m).transpose(1, 2)
+        out = out.reshape(b * m, self.feature_dim)
+        return out[:n] if pad > 0 else out
+
+    # ------------------------------------------------------------------ regularisers (SPEC 5)
+    def plane_smoothness(self, kind: str = "tv") -> torch.Tensor:
+        """Smoothness of the spatial planes xy, xz, yz, summed over planes and scales: "tv" =
+        K-Planes total variation; "second_order" = the 4DGS code's `_plane_regulation`."""
+        fn = _tv if kind == "tv" else _second_order
+        return sum(fn(scale[k]) for scale in self.planes for k in SPACE_PLANES)
+
+    def time_smoothness(self) -> torch.Tensor:
+        """Second-order smoothness along t of the space-time planes xt, yt, zt (4DGS
+        `_time_regulation`), summed over planes and scales."""
+        return sum(_second_order(scale[k]) for scale in self.planes for k in TIME_PLANES)
+
+    def time_l1(self) -> torch.Tensor:
+        """Mean |1 - P| of the space-time planes (4DGS `_l1_regulation`: keeps them near the
+        static value 1), summed over planes and scales."""
+        return sum((1.0 - scale[k]).abs().mean() for scale in self.planes for k in TIME_PLANES)
+
+
+__all__ = ["HexPlane", "normalize_aabb", "PLANE_AXES", "PLANE_NAMES", "SPACE_PLANES",
+           "TIME_PLANES"]

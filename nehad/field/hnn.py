@@ -1,0 +1,180 @@
+"""Hamiltonian decoder (paper Eq. (field), Alg. 1 "Hamiltonian prediction"; SPEC 4.3-4.4).
+
+Two scalar networks F1, F2: R^W -> R generate
+    v_c = grad_h F1(h)                      (conservative: its Jacobian, a Hessian, is symmetric)
+    g = grad_h F2(h) = (g_q, g_p),  v_s = g M^T = (g_p, -g_q)   (solenoidal: trace of J = 0)
+with M = [[0, I], [-I, 0]] the symplectic matrix, d = W/2, and v = v_c + v_s.
+
+The input gradient is computed either by autograd (training, SPEC 4.4: `torch.autograd.grad(
+F.sum(), h, create_graph=True)`) or in closed form (`scalar_net_input_grad`, used by the ONNX
+export; for a tanh MLP grad = W1^T[(1 - a1^2) * W2^T[(1 - a2^2) * w3]]). Both are the same
+function.
+
+The activation must be smooth: with ReLU, grad_h F would be piecewise constant in h (the Hessian of
+F vanishes almost everywhere), so a loss on v would pass no gradient to h and the planes and the
+trunk would learn nothing through v.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from nehad.field._trace import is_capturing
+from nehad.field.config import SMOOTH_ACTIVATIONS
+
+
+def activation_with_derivative(z: torch.Tensor, name: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """(act(z), act'(z)) for the smooth activations of SPEC 4.3, written with plain ops
+    (Tanh, Sigmoid, Softplus, Mul, Add) so that they export to ONNX."""
+    if name == "tanh":
+        a = torch.tanh(z)
+        return a, 1.0 - a * a
+    if name == "softplus":
+        return F.softplus(z), torch.sigmoid(z)
+    if name == "silu":
+        s = torch.sigmoid(z)
+        return z * s, s * (1.0 + z * (1.0 - s))
+    raise ValueError(f"activation {name!r}: must be one of {SMOOTH_ACTIVATIONS}")
+
+
+def _activation(z: torch.Tensor, name: str) -> torch.Tensor:
+    if name == "tanh":
+        return torch.tanh(z)
+    if name == "softplus":
+        return F.softplus(z)
+    if name == "silu":
+        return F.silu(z)
+    raise ValueError(f"activation {name!r}: must be one of {SMOOTH_ACTIVATIONS}")
+
+
+class ScalarNet(nn.Module):
+    """F: R^W -> R, `depth` x [Linear, activation] then Linear(hidden, 1, no bias); -> (N,)."""
+
+    def __init__(self, in_dim: int, hidden: int = 64, depth: int = 2, activation: str = "tanh"):
+        super().__init__()
+        if activation not in SMOOTH_ACTIVATIONS:
+            raise ValueError(f"ScalarNet.activation {activation!r}: must be one of "
+                             f"{SMOOTH_ACTIVATIONS} (a ReLU gives a piecewise-constant grad_h F)")
+        if depth < 1:
+            raise ValueError(f"ScalarNet.depth {depth}: must be >= 1")
+        self.activation = activation
+        dims = [in_dim] + [hidden] * depth
+        self.hidden_layers = nn.ModuleList(nn.Linear(i, o) for i, o in zip(dims[:-1], dims[1:]))
+        # No output bias: only grad_h F is used, and a constant would get no gradient.
+        self.out = nn.Linear(hidden, 1, bias=False)
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        a = h
+        for lin in self.hidden_layers:
+            a = _activation(lin(a), self.activation)
+        return self.out(a).squeeze(-1)
+
+
+def scalar_net_input_grad(net: ScalarNet, h: torch.Tensor) -> torch.Tensor:
+    """Closed-form grad_h net(h) (N, W), no autograd (SPEC 4.4 export form):
+    grad = W1^T [act'(z1) * W2^T [act'(z2) * ... W_L^T [act'(z_L) * w_out]]], batched as row
+    vectors: delta_L = act'(z_L) * w_out; delta_k = act'(z_k) * (delta_{k+1} W_{k+1});
+    grad = delta_1 W_1. Differentiable by ordinary (first-order) autograd."""
+    derivs = []
+    a = h
+    for lin in net.hidden_layers:
+        a, da = activation_with_derivative(F.linear(a, lin.weight, lin.bias), net.activation)
+        derivs.append(da)
+    delta = derivs[-1] * net.out.weight  # (N, H) * (1, H)
+    for k in range(len(derivs) - 1, 0, -1):
+        delta = derivs[k - 1] * (delta @ net.hidden_layers[k].weight)
+    return delta @ net.hidden_layers[0].weight
+
+
+def symplectic(g: torch.Tensor) -> torch.Tensor:
+    """g M^T = (g_p, -g_q) for g = (g_q, g_p), M = [[0, I], [-I, 0]] (paper Eq. (field))."""
+    d = g.shape[-1] // 2
+    return torch.cat([g[..., d:], -g[..., :d]], dim=-1)
+
+
+class FieldOutput(NamedTuple):
+    """v = v_c + v_s, each (N, W)."""
+
+    v: torch.Tensor
+    v_c: torch.Tensor
+    v_s: torch.Tensor
+
+
+class HamiltonianDecoder(nn.Module):
+    """F1, F2 -> (v, v_c, v_s) (SPEC 4.3-4.4).
+
+    `grad_mode` "autograd": `torch.autograd.grad` with `create_graph` when grad mode is on (so the
+    loss on v trains F1, F2 and everything upstream); under `torch.no_grad()` autograd is enabled
+    locally and the result is detached. Under `torch.inference_mode()` (where autograd cannot be
+    re-enabled), while a graph is being captured (ONNX export, jit trace, torch.compile) and in
+    "closed_form" mode the explicit gradient is used.
+    """
+
+    def __init__(self, width: int = 64, hidden: int = 64, depth: int = 2,
+                 activation: str = "tanh", grad_mode: str = "autograd"):
+        super().__init__()
+        if width % 2:
+            raise ValueError(f"HamiltonianDecoder.width {width}: must be even")
+        self.f1 = ScalarNet(width, hidden, depth, activation)
+        self.f2 = ScalarNet(width, hidden, depth, activation)
+        self.grad_mode = grad_mode
+
+    def input_gradients(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(grad_h F1, grad_h F2), each (N, W)."""
+        if (self.grad_mode == "closed_form" or torch.is_inference_mode_enabled()
+                or is_capturing()):
+            return scalar_net_input_grad(self.f1, h), scalar_net_input_grad(self.f2, h)
+        if self.grad_mode != "autograd":
+            raise ValueError(f"HamiltonianDecoder.grad_mode {self.grad_mode!r}")
+        training = torch.is_grad_enabled()
+        with torch.enable_grad():
+            base = h if (training and h.requires_grad) else h.detach().requires_grad_(True)
+            # Two differentiable copies so one backward pass yields both input gradients.
+            h1, h2 = base.clone(), base.clone()
+            total = self.f1(h1).sum() + self.f2(h2).sum()
+            g1, g2 = torch.autograd.grad(total, (h1, h2), create_graph=training)
+        if not training:
+            g1, g2 = g1.detach(), g2.detach()
+        return g1, g2
+
+    def forward(self, h: torch.Tensor) -> FieldOutput:
+        g1, g2 = self.input_gradients(h)
+        v_s = symplectic(g2)
+        return FieldOutput(g1 + v_s, g1, v_s)
+
+
+class DirectFieldDecoder(nn.Module):
+    """"HNN off" ablation (FieldConfig.use_hnn = False): two MLPs h -> R^W of the same hidden
+    width/depth/activation as F1, F2 output v_c and v_s directly (no gradient structure, so v_c is
+    not curl-free and v_s not divergence-free); v = v_c + v_s."""
+
+    def __init__(self, width: int = 64, hidden: int = 64, depth: int = 2,
+                 activation: str = "tanh"):
+        super().__init__()
+        if activation not in SMOOTH_ACTIVATIONS:
+            raise ValueError(f"DirectFieldDecoder.activation {activation!r}")
+        self.activation = activation
+        self.g1 = self._mlp(width, hidden, depth)
+        self.g2 = self._mlp(width, hidden, depth)
+
+    @staticmethod
+    def _mlp(width: int, hidden: int, depth: int) -> nn.ModuleList:
+        dims = [width] + [hidden] * depth + [width]
+        return nn.ModuleList(nn.Linear(i, o) for i, o in zip(dims[:-1], dims[1:]))
+
+    def _run(self, layers: nn.ModuleList, h: torch.Tensor) -> torch.Tensor:
+        for lin in layers[:-1]:
+            h = _activation(lin(h), self.activation)
+        return layers[-1](h)
+
+    def forward(self, h: torch.Tensor) -> FieldOutput:
+        v_c, v_s = self._run(self.g1, h), self._run(self.g2, h)
+        return FieldOutput(v_c + v_s, v_c, v_s)
+
+
+__all__ = ["ScalarNet", "scalar_net_input_grad", "activation_with_derivative", "symplectic",
+           "FieldOutput", "HamiltonianDecoder", "DirectFieldDecoder"]
