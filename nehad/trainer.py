@@ -241,6 +241,9 @@ class Trainer:
             renders.append((res, cam))
         if stage == "fine":
             total = total + self.model.field.regularization_loss()
+        if not torch.isfinite(total):
+            raise RunError(f"step {step + 1}: the loss became {float(total)}; training stopped "
+                           f"(the last checkpoint in {self.run} is intact)")
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
         for res, cam in renders:

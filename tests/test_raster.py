@@ -109,12 +109,19 @@ def _rel_err(a, b):
     return np.linalg.norm(a - b) / max(np.linalg.norm(b), 1e-30)
 
 
-@pytest.mark.parametrize("seed,n,width,height", [(1, 400, 50, 40), (2, 1500, 48, 48)])
-def test_backward_matches_autograd(seed, n, width, height):
+@pytest.mark.parametrize("seed,n,width,height,min_sigma,max_sigma", [
+    (1, 400, 50, 40, 0.3, 8.0),
+    (2, 1500, 48, 48, 0.3, 8.0),
+    (3, 6000, 40, 40, 1.0, 4.0),  # saturating: tiles stop before their last entries
+])
+def test_backward_matches_autograd(seed, n, width, height, min_sigma, max_sigma):
     rng = np.random.default_rng(seed)
     bg = (0.2, 0.3, 0.4)
-    m, cn, col, op, dep, rad = random_screen_scene(rng, n, width, height, max_sigma=8.0)
+    m, cn, col, op, dep, rad = random_screen_scene(rng, n, width, height, min_sigma=min_sigma,
+                                                   max_sigma=max_sigma)
     out = rasterize(m, cn, col, op, dep, rad, width, height, bg)
+    if n == 6000:
+        assert (out.stop < 2 ** 30).mean() > 0.5, "scene meant to exercise the early stop"
     g_rgb = rng.normal(size=(height, width, 3)).astype(np.float32)
     g_alpha = rng.normal(size=(height, width)).astype(np.float32)
     grads = rasterize_backward(out, g_rgb, g_alpha)
@@ -199,6 +206,20 @@ def test_autograd_function_end_to_end_against_dense_reference():
     assert res.means2d.grad is not None and res.means2d.grad.abs().sum() > 0
 
 
+def test_non_finite_inputs_are_invisible_not_fatal():
+    rng = np.random.default_rng(9)
+    m, cn, col, op, dep, rad = random_screen_scene(rng, 200, 40, 40)
+    bad = [(m, 0, np.nan), (m, 1, np.inf), (cn, 2, np.nan), (cn, 3, -np.inf), (op, 4, np.nan),
+           (dep, 5, np.nan), (cn, 6, 1e38)]
+    for arr, i, v in bad:
+        arr[i] = v
+    out = rasterize(m, cn, col, op, dep, rad, 40, 40)
+    assert np.isfinite(out.rgb).all() and np.isfinite(out.alpha).all()
+    assert not np.isin(np.arange(7), out.bins.gauss_ids).any()
+    grads = rasterize_backward(out, np.ones((40, 40, 3), np.float32))
+    assert np.isfinite(grads.means2d).all()
+
+
 def test_culled_and_empty_inputs():
     cam = _camera(32, 32)
     behind = GaussianCloud(np.array([[0.0, 0.0, -5.0]]), np.full((1, 3), 0.1),
@@ -207,3 +228,28 @@ def test_culled_and_empty_inputs():
     assert np.allclose(out.rgb, [0.25, 0.5, 0.75]) and np.all(out.alpha == 0)
     grads = rasterize_backward(out, np.ones((32, 32, 3), np.float32))
     assert np.all(grads.means2d == 0)
+
+
+def test_hidden_gaussians_get_exactly_zero_gradient():
+    """Entries behind every pixel's stopping point receive no gradient, whatever memory the
+    gradient buffers were carved from (a regression: they once summed uninitialised memory)."""
+    rng = np.random.default_rng(4)
+    w = h = 32
+    n_wall, n_hidden = 400, 300
+    means2d = np.concatenate([rng.uniform(0, w, (n_wall, 2)), rng.uniform(4, w - 4, (n_hidden, 2))])
+    conics = np.tile([[0.02, 0.0, 0.02]], (n_wall + n_hidden, 1))
+    colors = rng.uniform(0, 1, (n_wall + n_hidden, 3))
+    opac = np.concatenate([np.full(n_wall, 0.99), np.full(n_hidden, 0.9)])
+    depths = np.concatenate([rng.uniform(1, 2, n_wall), rng.uniform(5, 6, n_hidden)])
+    radii = np.full(n_wall + n_hidden, 22, np.int32)
+    f32 = lambda a: np.asarray(a, np.float32)
+    out = rasterize(f32(means2d), f32(conics), f32(colors), f32(opac), f32(depths), radii, w, h)
+    assert (out.stop < 2 ** 30).all()
+    for _ in range(3):
+        # leave NaN-filled blocks of the gradient buffer's size behind in the allocator
+        junk = [np.full((out.bins.gauss_ids.shape[0], 9), np.nan, np.float32) for _ in range(4)]
+        del junk
+        grads = rasterize_backward(out, np.ones((h, w, 3), np.float32))
+        for a in (grads.means2d, grads.conics, grads.colors, grads.opacities):
+            assert np.isfinite(a).all()
+        assert np.all(grads.colors[n_wall:] == 0) and np.all(grads.opacities[n_wall:] == 0)

