@@ -58,6 +58,13 @@ _T, _R, _G, _B, _D, _STOP = 0, 1, 2, 3, 4, 5
 _BT, _REST_R, _REST_G, _REST_B, _GR, _GG, _GB, _GA, _TFIN, _BSTOP = 0, 1, 2, 3, 4, 5, 6, 7, 8, 9
 
 
+@numba.njit(inline="always")
+def _unpack(rec):
+    """mean2d, conic, opacity and colour of a packed record (see `binning.PACKED_WIDTH`)."""
+    return (rec[P_MX], rec[P_MY], rec[P_CA], rec[P_CB], rec[P_CC], rec[P_OP], rec[P_R], rec[P_G],
+            rec[P_B])
+
+
 @numba.njit(inline="always", fastmath=True)
 def _row_span(rec, dy, x0):
     """Tile-local columns [lo, hi] of a row whose pixel centres lie inside the Gaussian's
@@ -107,17 +114,10 @@ def forward_kernel(tile_offsets, gauss_ids, packed, width, height, background,
                 if n_open == 0:
                     break
             rec = packed[gauss_ids[k]]
-            mx = rec[P_MX]
-            my = rec[P_MY]
-            ca = rec[P_CA]
-            cb = rec[P_CB]
-            cc = rec[P_CC]
-            op = rec[P_OP]
-            cr = rec[P_R]
-            cg = rec[P_G]
-            cbl = rec[P_B]
+            mx, my, ca, cb, cc, op, cr, cg, cbl = _unpack(rec)
             z = rec[P_Z]
-            for r in range(max(np.int32(rec[P_ROW0]) - y0, 0), min(np.int32(rec[P_ROW1]) - y0, TILE - 1) + 1):
+            for r in range(max(np.int32(rec[P_ROW0]) - y0, 0),
+                           min(np.int32(rec[P_ROW1]) - y0, TILE - 1) + 1):
                 dy = np.float32(y0 + r) + _HALF - my
                 lo, hi = _row_span(rec, dy, x0)
                 qyy = _HALF * cc * dy * dy
@@ -193,15 +193,7 @@ def backward_kernel(tile_offsets, gauss_ids, packed, width, height, out_rgb, out
         for k in range(start, start + last):
             local = np.float32(k - start)
             rec = packed[gauss_ids[k]]
-            mx = rec[P_MX]
-            my = rec[P_MY]
-            ca = rec[P_CA]
-            cb = rec[P_CB]
-            cc = rec[P_CC]
-            op = rec[P_OP]
-            cr = rec[P_R]
-            cg = rec[P_G]
-            cbl = rec[P_B]
+            mx, my, ca, cb, cc, op, cr, cg, cbl = _unpack(rec)
             d_mx = _F0
             d_my = _F0
             d_ca = _F0
@@ -211,7 +203,8 @@ def backward_kernel(tile_offsets, gauss_ids, packed, width, height, out_rgb, out
             d_g = _F0
             d_b = _F0
             d_op = _F0
-            for r in range(max(np.int32(rec[P_ROW0]) - y0, 0), min(np.int32(rec[P_ROW1]) - y0, TILE - 1) + 1):
+            for r in range(max(np.int32(rec[P_ROW0]) - y0, 0),
+                           min(np.int32(rec[P_ROW1]) - y0, TILE - 1) + 1):
                 dy = np.float32(y0 + r) + _HALF - my
                 lo, hi = _row_span(rec, dy, x0)
                 qyy = _HALF * cc * dy * dy
