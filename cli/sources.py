@@ -68,15 +68,9 @@ class RunSource:
         self.sh_degree = int(self.meta["sh_degree"])
 
     def gaussians(self, time: float | None = None):
-        import torch
+        from nehad.trainer import cloud_at
 
-        from nehad.runtime.gaussians import GaussianCloud
-
-        with torch.no_grad():
-            params = self.model.gaussians_at(time, deform=time is not None)
-        means, scales, quats, opac, sh = (t.detach().cpu().numpy() for t in params)
-        k = (self.sh_degree + 1) ** 2
-        return GaussianCloud(means, scales, quats, opac, sh[:, :k])
+        return cloud_at(self.model, time, self.sh_degree)
 
     def describe(self) -> str:
         return f"run {self.path.name}: {len(self.model.gaussians)} Gaussians, SH degree {self.sh_degree}"

@@ -72,6 +72,7 @@ class TrainConfig:
     sh_degree_interval: int = 1000
     init: Literal["auto", "points", "random"] = "auto"  # auto: the dataset's points if any
     init_random_points: int = 2000  # D-NeRF: random points in [-1.3, 1.3]^3
+    init_max_points: int = 0  # 0 = all; else a random subset of the dataset's points this large
     checkpoint_interval: int = 1000  # iterations between checkpoints (and at each stage end)
     log_interval: int = 50  # iterations between metric log lines
     keep_checkpoints: int = 2  # how many recent checkpoints stay on disk
@@ -126,7 +127,8 @@ def _cpu() -> Config:
         fine=StageConfig(iterations=6000),
         densify=DensifyConfig(start=300, stop=4000, interval=100, opacity_reset_interval=3000,
                               prune_interval=3000, max_gaussians=40000),
-        train=TrainConfig(sh_degree=3, sh_degree_interval=1000, checkpoint_interval=500),
+        train=TrainConfig(sh_degree=3, sh_degree_interval=1000, checkpoint_interval=500,
+                          init_max_points=20000),
     )
 
 
@@ -146,7 +148,22 @@ def _test() -> Config:
     )
 
 
-PRESETS = {"paper": _paper, "cpu": _cpu, "test": _test}
+def _quick() -> Config:
+    """A few minutes on a 2-core CPU for small scenes (the demo): a coarser hex-plane, short
+    stages, at most 10k Gaussians."""
+    return Config(
+        preset="quick",
+        field=dataclasses.replace(FieldConfig(), resolution=(32, 32, 32, 16)),
+        coarse=StageConfig(iterations=500),
+        fine=StageConfig(iterations=1500),
+        densify=DensifyConfig(start=200, stop=1200, interval=100, opacity_reset_interval=3000,
+                              prune_interval=3000, max_gaussians=10000),
+        train=TrainConfig(sh_degree=1, sh_degree_interval=500, checkpoint_interval=500,
+                          log_interval=50),
+    )
+
+
+PRESETS = {"paper": _paper, "cpu": _cpu, "quick": _quick, "test": _test}
 
 
 def build_config(preset: str = "cpu", config_file=None, overrides=()) -> Config:

@@ -148,8 +148,14 @@ class Trainer:
         if use_points:
             if pts is None:
                 raise ConfigError("train.init: 'points' but the dataset has no point cloud")
-            return GaussianParameters.from_points(pts, self.scene.initial_colors,
-                                                  sh_degree=cfg.sh_degree, seed=cfg.seed)
+            colors = self.scene.initial_colors
+            if 0 < cfg.init_max_points < len(pts):
+                keep = np.random.default_rng(cfg.seed).choice(len(pts), cfg.init_max_points,
+                                                              replace=False)
+                pts = pts[keep]
+                colors = None if colors is None else colors[keep]
+            return GaussianParameters.from_points(pts, colors, sh_degree=cfg.sh_degree,
+                                                  seed=cfg.seed)
         return GaussianParameters.random_in_box(cfg.init_random_points, sh_degree=cfg.sh_degree,
                                                 seed=cfg.seed)
 
@@ -268,7 +274,8 @@ class Trainer:
                 "aabb": torch.as_tensor(self.aabb), "extent": self.extent,
                 "background": list(self.background),
                 "sh_degree": self.active_sh_degree(self.total_steps),
-                "time_range": list(self.scene.time_range), "steps": self.step}
+                "time_range": list(self.scene.time_range), "steps": self.step,
+                "data_dir": str(self.data_dir.resolve())}
 
     def train(self) -> dict:
         from tqdm import tqdm
@@ -295,6 +302,17 @@ class Trainer:
         atomic_torch_save(self.model_state(), self.run / "model.pt")
         return {"steps": self.step, "gaussians": len(self.model.gaussians),
                 "seconds": time.perf_counter() - start_time, "last": record}
+
+
+def cloud_at(model: NeHaDModel, t: float | None, sh_degree: int):
+    """The activated Gaussians of a run at time t as a `GaussianCloud` (canonical if t is None),
+    for the shared rasterizer."""
+    from nehad.runtime.gaussians import GaussianCloud
+
+    with torch.no_grad():
+        params = model.gaussians_at(t, deform=t is not None)
+    means, scales, quats, opac, sh = (p.detach().cpu().numpy() for p in params)
+    return GaussianCloud(means, scales, quats, opac, sh[:, :(sh_degree + 1) ** 2])
 
 
 def load_run(run_dir) -> tuple[NeHaDModel, dict]:

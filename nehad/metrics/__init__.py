@@ -18,6 +18,9 @@ __all__ = ["image_metrics", "psnr", "ssim", "ms_ssim", "ms_ssim_per_image", "d_s
            "weights_available", "LpipsWeightsMissing", "INSTALL_HINT", "as_image_tensor"]
 
 
+LPIPS_MIN_SIZE = 32
+
+
 def image_metrics(pred, gt, lpips_nets=("alex", "vgg"), require_lpips: bool = False,
                   lpips_normalize: bool = True) -> dict:
     """All metrics of one rendered image against its reference.
@@ -46,8 +49,15 @@ def image_metrics(pred, gt, lpips_nets=("alex", "vgg"), require_lpips: bool = Fa
         out["ms_ssim_error"] = str(e)
     if lpips_nets:
         out["lpips_input"] = "[-1,1] (official)" if lpips_normalize else "[0,1] (3DGS/4DGS code)"
+    small = min(a.shape[-3], a.shape[-2]) < LPIPS_MIN_SIZE
     for net in lpips_nets or ():
         key = f"lpips_{net}"
+        if small:
+            # AlexNet's pooling leaves no feature map below this size; VGG's deepest taps ~1 px
+            out[key] = None
+            out["lpips_error"] = (f"images smaller than {LPIPS_MIN_SIZE} px on a side have no "
+                                  f"LPIPS")
+            continue
         try:
             out[key] = lpips.lpips(a, b, net=net, normalize=lpips_normalize)
         except LpipsWeightsMissing as e:
