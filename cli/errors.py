@@ -29,6 +29,8 @@ USER_ERROR_CLASSES = (
     ("nehad.configtools", "ConfigError"),
     ("nehad.trainer", "RunError"),
     ("nehad.metrics.lpips", "LpipsWeightsMissing"),
+    ("nehad.runtime.onnx_model", "OnnxModelError"),
+    ("nehad.export.onnx_export", "ExportError"),
 )
 
 

@@ -224,15 +224,16 @@ def _write_all(outputs) -> None:
 @click.option("--sh-degree", type=click.IntRange(0, 3), default=None,
               help="Use SH up to this degree (default: all the scene has).")
 @click.option("--time", "time_", type=float, default=None,
-              help="Time t in [0, 1] for a dynamic scene (a run directory); default: the view's "
+              help="Time t in [0, 1] for a dynamic scene (a run directory or .onnx); default: the view's "
                    "own time when it has one (a D-NeRF frame).")
 @click.option("--extrapolate", is_flag=True,
               help="Allow --time outside the trained time range.")
 def render(scene, view, output, depth, alpha, background, size, sh_degree, time_, extrapolate):
     """Render SCENE through one camera to an image.
 
-    SCENE is a standard 3DGS Gaussian PLY, or a training run directory (rendered at --time by its
-    torch model, through the same rasterizer the runtime uses). Exported ONNX models will follow.
+    SCENE is a standard 3DGS Gaussian PLY, an exported model (.onnx, rendered at --time with
+    onnxruntime, no torch needed), or a training run directory (rendered at --time by its torch
+    model). All go through the same rasterizer.
     """
     from .sources import open_source
 
@@ -279,6 +280,155 @@ def render(scene, view, output, depth, alpha, background, size, sh_degree, time_
     if not (out.alpha > 0).any():
         click.echo("warning: no Gaussian is in front of the camera; the image is the background",
                    err=True)
+
+
+# ---------------------------------------------------------------------------------------------
+# nehad export / info / ply (SPEC 7)
+
+
+@main.command("export")
+@click.argument("run", type=click.Path(file_okay=False, path_type=Path))
+@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
+              help="The .onnx file to write (atomically; only after the checks pass).")
+@click.option("--opset", type=int, default=17, show_default=True,
+              help="ONNX opset (17..20).")
+@click.option("--fp16-weights", is_flag=True,
+              help="Store the weights as float16 (a smaller file); the torch model is rounded "
+                   "the same way for the parity check.")
+def export_(run, output, opset, fp16_weights):
+    """Export the trained RUN to one self-contained ONNX file (format nehad-onnx/1).
+
+    The graph maps an input `time` [1] to the activated Gaussians (means, scales, quats,
+    opacities, sh) and uses only standard ONNX operators. Before writing, it is checked with
+    onnx.checker (full_check) and against the torch model at several times (1e-5). Needs torch.
+    """
+    with user_errors():
+        if output.suffix.lower() != ".onnx":
+            raise InputError(f"-o {output}: the model file must end in .onnx")
+        if not output.parent.is_dir():
+            raise InputError(f"-o {output}: output folder {output.parent} does not exist")
+        if output.is_dir():
+            raise InputError(f"-o {output}: is a folder")
+        if not (run / "model.pt").is_file():
+            raise InputError(f"{run}: not a finished training run (no model.pt)")
+        from nehad.export.onnx_export import MAX_OPSET, export_run
+
+        if not 17 <= opset <= MAX_OPSET:
+            raise InputError(f"--opset {opset}: supported opsets are 17..{MAX_OPSET}")
+        rep = export_run(run, output, opset=opset, fp16_weights=fp16_weights)
+    worst = max(rep.parity.values()) if rep.parity else 0.0
+    click.echo(f"{output}: {rep.num_gaussians} Gaussians, SH degree {rep.sh_degree}, opset "
+               f"{rep.opset}, {rep.file_size / 1e6:.2f} MB, {sum(rep.operators.values())} nodes "
+               f"({len(rep.operators)} operator types); parity vs torch {worst:.2g}; "
+               f"exported in {rep.seconds:.1f} s")
+
+
+@main.command()
+@click.argument("model", type=click.Path(dir_okay=False, path_type=Path))
+def info(model):
+    """Describe an exported MODEL (.onnx): Gaussians, SH degree, time range, bounds, opset,
+    operators used and file size. Needs neither torch nor onnx."""
+    with user_errors():
+        from nehad.runtime.onnx_model import read_model_info
+
+        i = read_model_info(model)
+    md = i.metadata
+    lo, hi = i.time_range
+    click.echo(f"{model}: {md['format']}")
+    click.echo(f"  Gaussians:    {i.num_gaussians}")
+    click.echo(f"  SH degree:    {i.sh_degree}")
+    click.echo(f"  time range:   [{lo:g}, {hi:g}]")
+    click.echo(f"  bounds:       min {_fmt3(i.aabb[0])}  max {_fmt3(i.aabb[1])}")
+    click.echo(f"  background:   {_fmt3(i.background)}")
+    if i.default_camera is not None:
+        c = i.default_camera
+        click.echo(f"  camera:       {c.width}x{c.height}{f' ({c.name})' if c.name else ''}")
+    for key, label in (("decoder", "decoder"), ("config_hash", "config hash"),
+                       ("nehad_version", "exported by"), ("fp16_weights", "fp16 weights")):
+        if key in md:
+            click.echo(f"  {label + ':':<13} {md[key]}")
+    click.echo(f"  opset:        {i.opset}")
+    click.echo(f"  file size:    {i.file_size} bytes ({i.file_size / 1e6:.2f} MB)")
+    ops = sorted(i.operators.items(), key=lambda kv: (-kv[1], kv[0]))
+    click.echo(f"  operators:    {sum(i.operators.values())} nodes, {len(ops)} types")
+    for k in range(0, len(ops), 6):
+        click.echo("    " + "  ".join(f"{op} {n}" for op, n in ops[k:k + 6]))
+
+
+def _fmt3(v) -> str:
+    return ",".join(f"{float(x):.4g}" for x in v)
+
+
+@main.command()
+@click.argument("scene", type=click.Path(path_type=Path))
+@click.option("-o", "--output", required=True, type=click.Path(path_type=Path),
+              help="The .ply to write; with --frames, a folder (created) for frame_NNNN.ply.")
+@click.option("--time", "time_", type=float, default=None,
+              help="Time t of the Gaussians (one frame).")
+@click.option("--frames", type=click.IntRange(min=1), default=None,
+              help="Write N frames at evenly spaced times over the time range instead.")
+@click.option("--extrapolate", is_flag=True, help="Allow --time outside the trained time range.")
+def ply(scene, output, time_, frames, extrapolate):
+    """Write the deformed Gaussians of SCENE (an exported .onnx, or a run folder) as standard
+    3DGS PLY: one frame at --time, or --frames N evenly spaced frames into a folder."""
+    import math
+
+    import numpy as np
+
+    from .sources import open_source
+
+    if (time_ is None) == (frames is None):
+        raise click.UsageError("give exactly one of --time T and --frames N")
+    with user_errors():
+        if frames is None:
+            if output.suffix.lower() != ".ply":
+                raise InputError(f"-o {output}: the PLY file must end in .ply")
+            if not output.parent.is_dir():
+                raise InputError(f"-o {output}: output folder {output.parent} does not exist")
+            if output.is_dir():
+                raise InputError(f"-o {output}: is a folder")
+        else:
+            if output.exists() and not output.is_dir():
+                raise InputError(f"-o {output}: exists and is not a folder")
+            if not output.parent.is_dir():
+                raise InputError(f"-o {output}: parent folder {output.parent} does not exist")
+        if time_ is not None and not math.isfinite(time_):
+            raise InputError(f"--time {time_}: not a finite number")
+        source = open_source(scene)
+        from nehad.runtime.ply import write_gaussian_ply
+
+        if frames is None:
+            lo, hi = source.time_range
+            if not extrapolate and not (lo - 1e-9 <= time_ <= hi + 1e-9):
+                raise InputError(f"--time {time_}: outside the trained time range [{lo:g}, "
+                                 f"{hi:g}] (pass --extrapolate to write it anyway)")
+            cloud = source.gaussians(time_ if source.dynamic else None)
+            write_gaussian_ply(output, cloud)
+            click.echo(f"{output}: {len(cloud)} Gaussians at t = {time_:g}")
+            return
+        lo, hi = source.time_range
+        times = np.linspace(lo, hi, frames) if frames > 1 else np.array([lo])
+        created = not output.exists()
+        output.mkdir(exist_ok=True)
+        done, count = [], 0
+        try:
+            for k, t in enumerate(times):
+                path = output / f"frame_{k:04d}.ply"
+                cloud = source.gaussians(float(t) if source.dynamic else None)
+                count = len(cloud)
+                write_gaussian_ply(path, cloud)
+                done.append(path)
+        except BaseException:
+            for p in done:
+                p.unlink(missing_ok=True)
+            if created:
+                try:
+                    output.rmdir()
+                except OSError:
+                    pass
+            raise
+    click.echo(f"{output}/: {frames} frames frame_0000.ply .. frame_{frames - 1:04d}.ply at t = "
+               f"{lo:g} .. {hi:g}, {count} Gaussians each")
 
 
 # ---------------------------------------------------------------------------------------------

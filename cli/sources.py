@@ -6,7 +6,7 @@ A source gives the activated Gaussians at a time and the background its format i
 SCENE                           source                          status
 ==============================  ==============================  ===========================
 ``*.ply``                       a standard 3DGS PLY (static)    supported
-``*.onnx``                      an exported ``nehad-onnx/1``    not supported yet
+``*.onnx``                      an exported ``nehad-onnx/1``    supported (no torch)
 a directory                     a training run (needs torch)    supported
 ==============================  ==============================  ===========================
 
@@ -76,6 +76,34 @@ class RunSource:
         return f"run {self.path.name}: {len(self.model.gaussians)} Gaussians, SH degree {self.sh_degree}"
 
 
+class OnnxSource:
+    """An exported ``nehad-onnx/1`` model: the deformed Gaussians at any time, computed by
+    onnxruntime (no torch); time range and background from the file's metadata."""
+
+    kind = "onnx"
+    dynamic = True
+
+    def __init__(self, path: Path, threads: int | None = None):
+        from nehad.runtime.onnx_model import open_model  # onnxruntime: only for this source
+
+        self.path = Path(path)
+        self.model = open_model(self.path, threads=threads)
+        self.default_background = tuple(float(v) for v in self.model.background)
+        self.time_range = tuple(float(v) for v in self.model.time_range)
+        self.sh_degree = self.model.sh_degree
+        self.default_camera = self.model.default_camera
+
+    def gaussians(self, time: float | None = None):
+        """The Gaussians at `time` (the middle of the time range when None)."""
+        if time is None:
+            time = 0.5 * (self.time_range[0] + self.time_range[1])
+        return self.model.gaussians(time)
+
+    def describe(self) -> str:
+        return (f"model {self.path.name}: {self.model.num_gaussians} Gaussians, "
+                f"SH degree {self.sh_degree}")
+
+
 def open_source(path):
     """The scene source for a SCENE argument, dispatched on the path (see the module doc)."""
     p = Path(path)
@@ -87,9 +115,11 @@ def open_source(path):
     if suffix == ".ply":
         return PlySource(p)  # a missing file is reported by the PLY reader
     if suffix == ".onnx":
-        raise InputError(f"{p}: rendering an exported .onnx model is not supported yet "
-                         f"(give a 3DGS .ply file)")
+        if not p.exists():
+            raise InputError(f"{p}: no such file")
+        return OnnxSource(p)
     if not p.exists():
         raise InputError(f"{p}: no such file or directory")
     raise InputError(f"{p}: unknown scene type {suffix or '(no extension)'!r} "
-                     f"(expected a 3DGS .ply file)")
+                     f"(expected a 3DGS .ply file, an exported .onnx model "
+                     f"or a training run folder)")

@@ -70,17 +70,18 @@ class NeHaDModel(torch.nn.Module):
         self.gaussians = gaussians
         self.field = field
 
-    def gaussians_at(self, t: float | None, deform: bool = True):
-        """Activated (means, scales, quats, opacities, sh) at time t (canonical if not deform)."""
+    def gaussians_at(self, t, deform: bool = True):
+        """Activated (means, scales, quats, opacities (N,), sh) at time t (canonical if not
+        deform). t is a float or a one-element tensor (the ONNX export traces it as an input)."""
         g = self.gaussians
         if not deform or t is None:
             return g.activated()
         sh = torch.cat([g.sh_dc, g.sh_rest], 1)
-        out = self.field(g.means, g.log_scales, g.quats, float(t), g.mu_eq, g.t_eq,
+        out = self.field(g.means, g.log_scales, g.quats, t, g.mu_eq, g.t_eq,
                          opacity_logits=g.opacity_logits, sh=sh)
         quats = out.quats / out.quats.norm(dim=-1, keepdim=True)
-        return (out.means, torch.exp(out.log_scales), quats, torch.sigmoid(out.opacity_logits),
-                out.sh)
+        opacities = torch.sigmoid(out.opacity_logits).reshape(g.means.shape[0])
+        return out.means, torch.exp(out.log_scales), quats, opacities, out.sh
 
 
 def scene_bounds(points: np.ndarray | None) -> np.ndarray:

@@ -315,7 +315,7 @@ def test_unsupported_sources(scene, tmp_path):
     _, cam = scene
     runner = CliRunner()
     (tmp_path / "model.onnx").write_bytes(b"")
-    for src, needle in ((tmp_path / "model.onnx", "not supported yet"),
+    for src, needle in ((tmp_path / "model.onnx", "not an ONNX model"),
                         (tmp_path, "not a finished training run"),
                         (tmp_path / "scene.xyz", "no such file")):
         res = runner.invoke(main, ["render", str(src), "--view", str(cam), "-o",

@@ -1,0 +1,50 @@
+"""The module that is traced into the `nehad-onnx/1` graph (SPEC 7).
+
+`ExportGraph(model, sh_degree)(time)` computes exactly what `NeHaDModel.gaussians_at(t)` computes
+(activated means, scales, unit wxyz quats, opacities, SH truncated to `sh_degree`), but takes the
+time as a float32 tensor of shape [1] instead of a Python float, so that the time stays a graph
+input instead of being baked in as a constant. The canonical Gaussians (with mu_eq, t_eq) and the
+field's weights are the model's parameters and buffers: they become initializers.
+
+The HNN gradient is taken in closed form (SPEC 4.4), never with autograd: the field's grad mode is
+switched to "closed_form" by :func:`closed_form_copy`.
+"""
+
+from __future__ import annotations
+
+import copy
+
+import torch
+from torch import nn
+
+OUTPUT_NAMES = ("means", "scales", "quats", "opacities", "sh")
+
+
+def closed_form_copy(model) -> nn.Module:
+    """A deep copy of `model` in eval mode whose HNN gradient is the closed form (no autograd);
+    the caller's model is left untouched."""
+    model = copy.deepcopy(model).eval()
+    model.field.set_grad_mode("closed_form")
+    for p in model.parameters():
+        p.requires_grad_(False)
+    return model
+
+
+class ExportGraph(nn.Module):
+    """forward(time [1]) -> (means [N,3], scales [N,3], quats [N,4], opacities [N], sh [N,K,3])."""
+
+    def __init__(self, model, sh_degree: int):
+        super().__init__()
+        if not 0 <= int(sh_degree) <= model.gaussians.sh_degree:
+            raise ValueError(f"ExportGraph: sh_degree {sh_degree} outside 0..{model.gaussians.sh_degree}")
+        self.model = model
+        self.sh_degree = int(sh_degree)
+        self.k = (self.sh_degree + 1) ** 2
+
+    def forward(self, time: torch.Tensor):
+        # exactly NeHaDModel.gaussians_at, with the time kept a tensor (a graph input)
+        means, scales, quats, opacities, sh = self.model.gaussians_at(time.reshape(1))
+        return means, scales, quats, opacities, sh[:, :self.k]
+
+
+__all__ = ["ExportGraph", "OUTPUT_NAMES", "closed_form_copy"]

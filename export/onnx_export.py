@@ -1,0 +1,282 @@
+"""Export a trained NeHaD run to one self-contained `nehad-onnx/1` file (SPEC 7).
+
+    from nehad.export.onnx_export import export_run
+    report = export_run("runs/lego", "lego.onnx")
+
+The graph is traced with torch's TorchScript-based exporter (`dynamo=False`, fast and exact for
+this fixed-size graph) from :class:`nehad.export.graph.ExportGraph`. Before anything is written,
+the graph is checked (standard operators only, opset >= 17, `onnx.checker` full_check) and run
+with onnxruntime at a few times including 0 and 1 against the torch model (parity 1e-5, absolute
+or relative for values above 1). The file is then written atomically (a temporary file in the
+same folder, renamed over the target).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+import tempfile
+import time as _time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from nehad.export.checks import FORMAT, MIN_OPSET, check_graph
+from nehad.export.graph import OUTPUT_NAMES, ExportGraph, closed_form_copy
+
+PARITY_TOL = 1e-5
+PARITY_TIMES = (0.0, 0.25, 0.5, 0.8, 1.0)
+MAX_OPSET = 20  # the highest opset the TorchScript-based exporter writes
+
+
+class ExportError(ValueError):
+    """The run cannot be exported, or the exported graph failed its own checks."""
+
+
+@dataclass
+class ExportReport:
+    path: Path
+    num_gaussians: int
+    sh_degree: int
+    opset: int
+    file_size: int
+    seconds: float
+    operators: dict
+    parity: dict = field(default_factory=dict)  # output name -> max error over the check times
+    parity_vs_fp32: dict = field(default_factory=dict)  # with fp16 weights: vs the unrounded model
+    metadata: dict = field(default_factory=dict)
+
+
+def parity_error(got: np.ndarray, ref: np.ndarray) -> float:
+    """max |got - ref| / max(1, |ref|): absolute for values up to 1, relative above."""
+    got = np.asarray(got, np.float64)
+    ref = np.asarray(ref, np.float64)
+    if got.shape != ref.shape:
+        return math.inf
+    if got.size == 0:
+        return 0.0
+    return float(np.max(np.abs(got - ref) / np.maximum(1.0, np.abs(ref))))
+
+
+def torch_outputs(graph: ExportGraph, t: float) -> list[np.ndarray]:
+    with torch.no_grad():
+        return [o.detach().cpu().numpy() for o in graph(torch.tensor([t], dtype=torch.float32))]
+
+
+def _default_camera(meta: dict):
+    """cam.json dict of the first test (else val, train) camera of the run's dataset, or None."""
+    data_dir = meta.get("data_dir")
+    if not data_dir:
+        return None
+    from nehad.runtime.cameras import camera_to_dict, load_view
+
+    for split in ("test", "val", "train"):
+        path = Path(data_dir) / f"transforms_{split}.json"
+        if path.is_file():
+            try:
+                cam = load_view(path, 0)
+                return camera_to_dict(cam[0] if isinstance(cam, list) else cam)
+            except Exception:  # an unreadable dataset only loses the default camera
+                continue
+    return None
+
+
+def build_metadata(model, meta: dict, sh_degree: int, cfg=None) -> dict[str, str]:
+    from nehad import __version__
+
+    aabb = meta.get("aabb", model.field.aabb)
+    aabb = np.asarray(aabb.detach().cpu().numpy() if torch.is_tensor(aabb) else aabb, np.float64)
+    md = {
+        "format": FORMAT,
+        "sh_degree": str(int(sh_degree)),
+        "num_gaussians": str(len(model.gaussians)),
+        "time_range": json.dumps([float(v) for v in meta.get("time_range", (0.0, 1.0))]),
+        "background": json.dumps([float(v) for v in meta.get("background", (0.0, 0.0, 0.0))]),
+        "aabb": json.dumps(aabb.reshape(2, 3).tolist()),
+        "extent": repr(float(meta.get("extent", float(model.field.extent)))),
+        "decoder": str(model.field.cfg.decoder),
+        "nehad_version": __version__,
+    }
+    if cfg is not None:
+        from nehad.configtools import config_hash
+
+        md["config_hash"] = config_hash(cfg)
+    cam = _default_camera(meta)
+    if cam is not None:
+        md["default_camera"] = json.dumps(cam)
+    return md
+
+
+def _to_fp16_initializers(proto) -> int:
+    """Store each float32 initializer whose values are exactly representable in float16 as
+    float16 plus a Cast back to float32 (exact). Returns the number converted."""
+    import onnx
+    from onnx import numpy_helper
+
+    graph = proto.graph
+    outputs = {o.name for o in graph.output}
+    keep, casts, count = [], [], 0
+    for init in graph.initializer:
+        if init.data_type != onnx.TensorProto.FLOAT or init.name in outputs:
+            keep.append(init)
+            continue
+        arr = numpy_helper.to_array(init)
+        half = arr.astype(np.float16)
+        if arr.size < 16 or not np.isfinite(half).all() or not np.array_equal(
+                half.astype(np.float32), arr):
+            keep.append(init)
+            continue
+        name16 = f"{init.name}__fp16"
+        keep.append(numpy_helper.from_array(half, name16))
+        casts.append(onnx.helper.make_node("Cast", [name16], [init.name], to=onnx.TensorProto.FLOAT,
+                                           name=f"{init.name}__cast"))
+        count += 1
+    del graph.initializer[:]
+    graph.initializer.extend(keep)
+    nodes = list(graph.node)
+    del graph.node[:]
+    graph.node.extend(casts + nodes)
+    return count
+
+
+def _name_outputs(proto) -> None:
+    """Give the graph outputs the names of SPEC 7. An output the exporter folded into a constant
+    (the SH, which do not depend on time) comes out as an initializer with a generated name: it
+    is routed through an Identity node to its proper name."""
+    import onnx
+
+    for out, name in zip(proto.graph.output, OUTPUT_NAMES):
+        if out.name != name:
+            proto.graph.node.append(onnx.helper.make_node("Identity", [out.name], [name],
+                                                          name=f"{name}__output"))
+            out.name = name
+
+
+def _trace(graph: ExportGraph, opset: int) -> bytes:
+    buf = io.BytesIO()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(graph, (torch.tensor([0.5], dtype=torch.float32),), buf,
+                          input_names=["time"], output_names=list(OUTPUT_NAMES),
+                          opset_version=opset, dynamo=False, do_constant_folding=True)
+    return buf.getvalue()
+
+
+def export_model(model, meta: dict, out_path, *, opset: int = MIN_OPSET, fp16_weights: bool = False,
+                 cfg=None, sh_degree: int | None = None, times=PARITY_TIMES,
+                 tol: float = PARITY_TOL) -> ExportReport:
+    """Export `model` (a NeHaDModel) with run metadata `meta` (as returned by load_run) to
+    `out_path`. Raises ExportError (nothing written) when a check fails."""
+    import onnx
+    import onnxruntime as ort
+
+    start = _time.perf_counter()
+    out_path = Path(out_path)
+    if not MIN_OPSET <= int(opset) <= MAX_OPSET:
+        raise ExportError(f"--opset {opset}: supported opsets are {MIN_OPSET}..{MAX_OPSET}")
+    if not out_path.parent.is_dir():
+        raise ExportError(f"{out_path}: output folder {out_path.parent} does not exist")
+    if sh_degree is None:
+        sh_degree = int(meta.get("sh_degree", model.gaussians.sh_degree))
+    work = closed_form_copy(model)
+    if fp16_weights:
+        with torch.no_grad():
+            for p in work.parameters():
+                p.copy_(p.to(torch.float16).to(torch.float32))
+    graph = ExportGraph(work, sh_degree).eval()
+    for name, value in zip(("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest"),
+                           (work.gaussians.means, work.gaussians.log_scales, work.gaussians.quats,
+                            work.gaussians.opacity_logits, work.gaussians.sh_dc,
+                            work.gaussians.sh_rest)):
+        if not torch.isfinite(value).all():
+            raise ExportError(f"the model's {name} holds NaN or infinite values")
+    try:
+        blob = _trace(graph, int(opset))
+    except Exception as e:
+        raise ExportError(f"torch.onnx.export failed: {' '.join(str(e).split())[:400]}") from e
+    proto = onnx.load_from_string(blob)
+    _name_outputs(proto)
+    if fp16_weights:
+        _to_fp16_initializers(proto)
+    md = build_metadata(model, meta, sh_degree, cfg)
+    md["fp16_weights"] = "1" if fp16_weights else "0"
+    del proto.metadata_props[:]
+    for k, v in md.items():
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = k, v
+    proto.producer_name = "nehad"
+    from nehad import __version__
+
+    proto.producer_version = __version__
+    proto.doc_string = "NeHaD dynamic 3D Gaussians (nehad-onnx/1): time [1] -> activated Gaussians"
+    try:
+        ops = check_graph(proto, full_check=True)
+    except ValueError as e:
+        raise ExportError(f"exported graph failed its checks: {e}") from None
+    data = proto.SerializeToString()
+
+    # Parity against the torch model before writing.
+    opts = ort.SessionOptions()
+    opts.log_severity_level = 3
+    sess = ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
+    names = [o.name for o in sess.get_outputs()]
+    if names != list(OUTPUT_NAMES):
+        raise ExportError(f"exported graph outputs {names}, expected {list(OUTPUT_NAMES)}")
+    original = ExportGraph(closed_form_copy(model), sh_degree).eval() if fp16_weights else None
+    parity = {n: 0.0 for n in OUTPUT_NAMES}
+    vs32 = {n: 0.0 for n in OUTPUT_NAMES}
+    for t in times:
+        got = sess.run(None, {"time": np.array([t], np.float32)})
+        for n, a, b in zip(OUTPUT_NAMES, got, torch_outputs(graph, t)):
+            if not np.isfinite(a).all():
+                raise ExportError(f"exported graph: output {n} at time {t} holds NaN/inf")
+            parity[n] = max(parity[n], parity_error(a, b))
+        if original is not None:
+            for n, a, b in zip(OUTPUT_NAMES, got, torch_outputs(original, t)):
+                vs32[n] = max(vs32[n], parity_error(a, b))
+    worst = max(parity.values())
+    if not worst <= tol:
+        raise ExportError(f"exported graph does not match the torch model: max error "
+                          f"{worst:.3g} > {tol:g} ({parity})")
+
+    fd, tmp = tempfile.mkstemp(prefix=f".{out_path.stem}.", suffix=".tmp.onnx", dir=out_path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        mask = os.umask(0o022)
+        os.umask(mask)
+        os.chmod(tmp, 0o666 & ~mask)
+        os.replace(tmp, out_path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except OSError:
+            pass
+        raise
+    return ExportReport(out_path, len(model.gaussians), int(sh_degree), int(opset), len(data),
+                        _time.perf_counter() - start, dict(ops), parity,
+                        vs32 if fp16_weights else {}, md)
+
+
+def export_run(run_dir, out_path, *, opset: int = MIN_OPSET, fp16_weights: bool = False,
+               **kw) -> ExportReport:
+    """Export RUN/model.pt (see :func:`export_model`)."""
+    from nehad.config import config_from_dict
+    from nehad.trainer import load_run
+
+    run = Path(run_dir)
+    if not (run / "model.pt").is_file():
+        raise ExportError(f"{run}: not a finished training run (no model.pt)")
+    model, meta = load_run(run)
+    cfg = config_from_dict(meta["config"]) if "config" in meta else None
+    return export_model(model, meta, out_path, opset=opset, fp16_weights=fp16_weights, cfg=cfg,
+                        **kw)
+
+
+__all__ = ["ExportError", "ExportReport", "MAX_OPSET", "PARITY_TOL", "export_model", "export_run",
+           "parity_error"]

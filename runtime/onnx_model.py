@@ -1,0 +1,248 @@
+"""Load and run an exported `nehad-onnx/1` model without torch (SPEC 7).
+
+    model = OnnxModel("lego.onnx", threads=4)
+    cloud = model.gaussians(0.5)          # GaussianCloud for nehad.runtime.raster.render
+    model.time_range, model.background, model.default_camera, model.aabb
+
+The file is validated when opened: the format tag and metadata, the input `time` float32 [1], the
+outputs means [N,3], scales [N,3], quats [N,4], opacities [N], sh [N,K,3] (and an optional
+`layer` [N]). A foreign or truncated file, or outputs holding NaN, raise :class:`OnnxModelError`
+with a message naming the file. The deformed Gaussians of the last few times are cached, so
+several views at one time deform once.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import threading
+from collections import OrderedDict
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .gaussians import GaussianCloud
+from .onnx_proto import ModelSummary, ProtoError, summarize
+
+FORMAT = "nehad-onnx/1"
+OUTPUTS = ("means", "scales", "quats", "opacities", "sh")
+REQUIRED_METADATA = ("format", "sh_degree", "num_gaussians", "time_range", "background", "aabb")
+
+
+class OnnxModelError(ValueError):
+    """An .onnx file that is not a usable nehad-onnx/1 model (the message names the file)."""
+
+
+@dataclass
+class ModelInfo:
+    """What `nehad info` shows: read from the file alone (no session)."""
+
+    path: Path
+    file_size: int
+    opset: int
+    operators: dict  # op type -> count
+    metadata: dict  # raw metadata_props
+    summary: ModelSummary
+    sh_degree: int
+    num_gaussians: int
+    time_range: tuple
+    background: tuple
+    aabb: np.ndarray  # (2, 3)
+    default_camera: object  # runtime.cameras.Camera or None
+
+
+def _json(md: dict, key: str, source: str):
+    try:
+        return json.loads(md[key])
+    except (ValueError, TypeError):
+        raise OnnxModelError(f"{source}: metadata {key!r} is not valid JSON: {md[key]!r}") from None
+
+
+def _floats(value, n: int, key: str, source: str) -> list[float]:
+    try:
+        out = [float(v) for v in np.asarray(value, np.float64).reshape(-1)]
+    except (ValueError, TypeError):
+        out = None
+    if out is None or len(out) != n or not all(math.isfinite(v) for v in out):
+        raise OnnxModelError(f"{source}: metadata {key!r} must hold {n} finite numbers, got "
+                             f"{value!r}")
+    return out
+
+
+def read_model_info(path) -> ModelInfo:
+    """Read and validate the file's summary and metadata (no onnxruntime session)."""
+    path = Path(path)
+    source = str(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise OnnxModelError(f"{source}: no such file") from None
+    except IsADirectoryError:
+        raise OnnxModelError(f"{source}: is a folder, not an .onnx file") from None
+    try:
+        s = summarize(data)
+    except ProtoError as e:
+        raise OnnxModelError(f"{source}: not a readable ONNX file (truncated or corrupt: {e})") from None
+    if not s.has_graph or not s.opsets:
+        raise OnnxModelError(f"{source}: not an ONNX model (no graph or opset)")
+    md = s.metadata
+    fmt = md.get("format")
+    if fmt != FORMAT:
+        raise OnnxModelError(f"{source}: not a nehad model (metadata format is {fmt!r}, expected "
+                             f"{FORMAT!r}; export one with `nehad export RUN -o model.onnx`)")
+    missing = [k for k in REQUIRED_METADATA if k not in md]
+    if missing:
+        raise OnnxModelError(f"{source}: metadata lacks {', '.join(missing)}")
+    try:
+        deg, n = int(md["sh_degree"]), int(md["num_gaussians"])
+    except ValueError:
+        raise OnnxModelError(f"{source}: metadata sh_degree / num_gaussians are not integers") from None
+    if not 0 <= deg <= 3 or n < 0:
+        raise OnnxModelError(f"{source}: metadata sh_degree {deg} / num_gaussians {n} out of range")
+    lo, hi = _floats(_json(md, "time_range", source), 2, "time_range", source)
+    if lo > hi:
+        raise OnnxModelError(f"{source}: metadata time_range [{lo}, {hi}] is empty")
+    bg = _floats(_json(md, "background", source), 3, "background", source)
+    aabb = np.asarray(_floats(_json(md, "aabb", source), 6, "aabb", source)).reshape(2, 3)
+    camera = None
+    if "default_camera" in md:
+        from .cameras import CameraError, parse_camera
+
+        obj = _json(md, "default_camera", source)
+        try:
+            camera = parse_camera(obj, source=f"{source} (metadata default_camera)")
+        except (CameraError, TypeError, AttributeError) as e:
+            raise OnnxModelError(f"{source}: metadata default_camera: {e}") from None
+    opset = int(s.opsets.get("", s.opsets.get("ai.onnx", 0)))
+    return ModelInfo(path, len(data), opset, dict(s.operators), dict(md), s, deg, n, (lo, hi),
+                     tuple(bg), aabb, camera)
+
+
+def _dims(arg) -> list:
+    return [d if isinstance(d, int) else None for d in (arg.shape or [])]
+
+
+class OnnxModel:
+    """An exported NeHaD model with an onnxruntime session (see the module doc).
+
+    Args:
+        path: the .onnx file.
+        threads: intra-op threads of the session (None or 0: onnxruntime's default).
+        cache_size: how many times' deformed Gaussians to keep (0: no cache).
+    """
+
+    def __init__(self, path, threads: int | None = None, cache_size: int = 4):
+        self.path = Path(path)
+        self.source = str(self.path)
+        self.info = read_model_info(self.path)
+        self.metadata = self.info.metadata
+        self.sh_degree = self.info.sh_degree
+        self.num_gaussians = self.info.num_gaussians
+        self.time_range = self.info.time_range
+        self.background = self.info.background
+        self.aabb = self.info.aabb
+        self.default_camera = self.info.default_camera
+        self.cache_size = max(0, int(cache_size))
+        self._cache: OrderedDict = OrderedDict()
+        self._lock = threading.Lock()
+        self.runs = 0  # session runs so far (the cache saves the others)
+        if threads is not None and int(threads) < 0:
+            raise OnnxModelError(f"{self.source}: threads must be >= 0, got {threads}")
+        import onnxruntime as ort
+
+        opts = ort.SessionOptions()
+        opts.log_severity_level = 3
+        opts.intra_op_num_threads = int(threads or 0)
+        opts.inter_op_num_threads = 1
+        try:
+            self.session = ort.InferenceSession(self.source, opts,
+                                                providers=["CPUExecutionProvider"])
+        except Exception as e:
+            raise OnnxModelError(f"{self.source}: onnxruntime cannot load the model: "
+                                 f"{' '.join(str(e).split())[:300]}") from None
+        self._check_signature()
+
+    def _check_signature(self) -> None:
+        src, n, k = self.source, self.num_gaussians, (self.sh_degree + 1) ** 2
+        inputs = self.session.get_inputs()
+        if len(inputs) != 1 or inputs[0].name != "time" or inputs[0].type != "tensor(float)" \
+                or _dims(inputs[0]) not in ([1], [None]):
+            got = [(i.name, i.type, i.shape) for i in inputs]
+            raise OnnxModelError(f"{src}: expected one input 'time' float32 [1], got {got}")
+        expected = {"means": [n, 3], "scales": [n, 3], "quats": [n, 4], "opacities": [n],
+                    "sh": [n, k, 3], "layer": [n]}
+        outs = {o.name: o for o in self.session.get_outputs()}
+        missing = [name for name in OUTPUTS if name not in outs]
+        if missing:
+            raise OnnxModelError(f"{src}: the model lacks outputs {missing} "
+                                 f"(has {sorted(outs)})")
+        extra = sorted(set(outs) - set(expected))
+        if extra:
+            raise OnnxModelError(f"{src}: unexpected outputs {extra}")
+        for name, o in outs.items():
+            want = "tensor(int32)" if name == "layer" else "tensor(float)"
+            dims = _dims(o)
+            shape_ok = len(dims) == len(expected[name]) and all(
+                d is None or d == e for d, e in zip(dims, expected[name]))
+            if o.type != want or not shape_ok:
+                raise OnnxModelError(f"{src}: output {name!r} is {o.type} {o.shape}; expected "
+                                     f"{want} {expected[name]} (N = num_gaussians {n}, K = {k})")
+        self.output_names = [o.name for o in self.session.get_outputs()]
+
+    # ------------------------------------------------------------------ running
+    def outputs(self, time: float) -> dict[str, np.ndarray]:
+        """All outputs at `time` (cached per float32 time)."""
+        try:
+            t = float(time)
+        except (TypeError, ValueError):
+            raise OnnxModelError(f"{self.source}: time {time!r} is not a number") from None
+        if not math.isfinite(t):
+            raise OnnxModelError(f"{self.source}: time {t} is not a finite number")
+        key = float(np.float32(t))
+        with self._lock:
+            hit = self._cache.get(key)
+            if hit is not None:
+                self._cache.move_to_end(key)
+                return hit
+        values = self.session.run(None, {"time": np.array([key], np.float32)})
+        out = dict(zip(self.output_names, values))
+        for name, arr in out.items():
+            bad = int(np.size(arr) - np.count_nonzero(np.isfinite(arr)))
+            if bad:
+                raise OnnxModelError(f"{self.source}: output {name!r} at time {t:g} holds {bad} "
+                                     f"NaN or infinite values")
+        with self._lock:
+            self.runs += 1
+            if self.cache_size:
+                self._cache[key] = out
+                while len(self._cache) > self.cache_size:
+                    self._cache.popitem(last=False)
+        return out
+
+    def gaussians(self, time: float) -> GaussianCloud:
+        """The deformed, activated Gaussians at `time` for the shared rasterizer."""
+        o = self.outputs(time)
+        return GaussianCloud(o["means"], o["scales"], o["quats"], o["opacities"], o["sh"])
+
+    def clear_cache(self) -> None:
+        with self._lock:
+            self._cache.clear()
+
+    def __len__(self) -> int:
+        return self.num_gaussians
+
+
+def open_model(path, threads: int | None = None) -> OnnxModel:
+    """`OnnxModel(path, threads)`; the thread count defaults to $NEHAD_THREADS when set."""
+    if threads is None and os.environ.get("NEHAD_THREADS"):
+        try:
+            threads = int(os.environ["NEHAD_THREADS"])
+        except ValueError:
+            raise OnnxModelError(f"NEHAD_THREADS={os.environ['NEHAD_THREADS']!r}: not an "
+                                 f"integer") from None
+    return OnnxModel(path, threads=threads)
+
+
+__all__ = ["FORMAT", "ModelInfo", "OnnxModel", "OnnxModelError", "open_model", "read_model_info"]

@@ -1,0 +1,185 @@
+"""`nehad export`: the nehad-onnx/1 file of SPEC 7 (operators, checker, metadata, parity with the
+torch model and with torch-side renders, fp16 weights, bad inputs)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+onnx = pytest.importorskip("onnx")
+ort = pytest.importorskip("onnxruntime")
+
+from click.testing import CliRunner  # noqa: E402
+
+from nehad.cli.main import main  # noqa: E402
+from nehad.export.checks import ALLOWED_OPS, check_graph, opset_of, operator_counts  # noqa: E402
+from nehad.export.onnx_export import (ExportError, export_model, export_run,  # noqa: E402
+                                      parity_error)
+
+OUTPUTS = ("means", "scales", "quats", "opacities", "sh")
+TIMES = (0.0, 0.13, 0.5, 0.77, 1.0)
+
+
+def make_run(root, decoder: str, seed: int = 0):
+    """A tiny trained run (test preset) whose deformation is made clearly non-trivial: the
+    adapters / last head layers get random weights (a fresh field is the identity), the
+    equilibrium parameters are spread out. Returns (run dir, data dir)."""
+    from nehad.checkpoint import atomic_torch_save, load_state
+    from nehad.config import build_config
+    from nehad.data.synth import synthesize_scene
+    from nehad.trainer import Trainer
+
+    data = root / "scene"
+    if not data.exists():
+        synthesize_scene(data, resolution=24, frames=8, points=300, seed=seed)
+    run = root / f"run_{decoder}"
+    # short stages; the HNN run ends at SH degree 0 of the stored 1 (the export truncates)
+    sets = [f"field.decoder={decoder}", "coarse.iterations=10", "fine.iterations=6",
+            f"train.sh_degree_interval={100 if decoder == 'hnn' else 5}"]
+    Trainer(build_config("test", None, sets), data, run, progress=False).train()
+    state = load_state(run / "model.pt")
+    g = torch.Generator().manual_seed(seed + 7)
+    for name, p in state["field"].items():
+        if name.startswith("adapters.") or (name.startswith("heads.") and ".3." in name):
+            state["field"][name] = torch.randn(p.shape, generator=g) * 0.3
+        elif name.startswith("hexplane.") and p.is_floating_point():
+            state["field"][name] = p + torch.randn(p.shape, generator=g) * 0.5
+    gs = state["gaussians"]
+    gs["t_eq"] = torch.rand(gs["t_eq"].shape, generator=g)
+    gs["mu_eq"] = gs["mu_eq"] + torch.randn(gs["mu_eq"].shape, generator=g) * 0.2
+    atomic_torch_save(state, run / "model.pt")
+    return run, data
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("export")
+    return {d: make_run(root, d)[0] for d in ("hnn", "mlp")}
+
+
+def torch_reference(run, t):
+    from nehad.trainer import load_run
+
+    model, meta = load_run(run)
+    k = (int(meta["sh_degree"]) + 1) ** 2
+    with torch.no_grad():
+        out = [o.numpy() for o in model.gaussians_at(t)]
+    out[4] = out[4][:, :k]
+    return out
+
+
+@pytest.mark.parametrize("decoder", ["hnn", "mlp"])
+def test_export_parity_operators_metadata(runs, tmp_path, decoder):
+    run = runs[decoder]
+    path = tmp_path / "model.onnx"
+    res = CliRunner().invoke(main, ["export", str(run), "-o", str(path)])
+    assert res.exit_code == 0, res.output
+    proto = onnx.load(str(path))
+    onnx.checker.check_model(proto, full_check=True)
+    ops = operator_counts(proto)
+    print(f"{decoder}: {path.stat().st_size} bytes, operators {dict(sorted(ops.items()))}")
+    assert set(ops) <= ALLOWED_OPS, set(ops) - ALLOWED_OPS
+    assert all(n.domain in ("", "ai.onnx") for n in proto.graph.node)
+    assert [imp.domain for imp in proto.opset_import] in ([""], ["ai.onnx"])
+    assert opset_of(proto) >= 17
+    assert "GridSample" in ops and "Atan2" not in ops and "Gradient" not in ops
+    if decoder == "hnn":
+        assert {"Atan", "Tanh", "Where"} <= set(ops)
+    check_graph(proto)
+    assert [i.name for i in proto.graph.input] == ["time"]
+    assert [o.name for o in proto.graph.output] == list(OUTPUTS)
+    md = {p.key: p.value for p in proto.metadata_props}
+    assert md["format"] == "nehad-onnx/1"
+    assert md["sh_degree"] == ("0" if decoder == "hnn" else "1")
+    assert json.loads(md["time_range"]) == [0.0, 1.0]
+    assert len(json.loads(md["background"])) == 3 and len(json.loads(md["aabb"])) == 2
+    assert json.loads(md["default_camera"])["width"] == 24
+    assert len(md["config_hash"]) == 16 and md["nehad_version"]
+
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    worst = {n: 0.0 for n in OUTPUTS}
+    for t in TIMES:
+        got = sess.run(None, {"time": np.array([t], np.float32)})
+        ref = torch_reference(run, t)
+        assert int(md["num_gaussians"]) == len(ref[0])
+        for n, a, b in zip(OUTPUTS, got, ref):
+            assert a.shape == b.shape and a.dtype == np.float32, n
+            worst[n] = max(worst[n], parity_error(a, b))
+    print(f"{decoder}: parity vs torch gaussians_at {worst}")
+    assert max(worst.values()) <= 1e-5
+    # the deformation is not trivially the identity (randomised adapters)
+    m0 = sess.run(["means"], {"time": np.array([0.0], np.float32)})[0]
+    m1 = sess.run(["means"], {"time": np.array([1.0], np.float32)})[0]
+    print(f"{decoder}: max |means(0) - means(1)| = {np.abs(m0 - m1).max():.3g}")
+    assert np.abs(m0 - m1).max() > 1e-2
+
+
+@pytest.mark.parametrize("decoder", ["hnn", "mlp"])
+def test_render_from_onnx_matches_run_render(runs, tmp_path, decoder):
+    from nehad.runtime.images import read_image
+
+    run = runs[decoder]
+    path = tmp_path / "m.onnx"
+    export_run(run, path)
+    cam = f"{run.parent / 'scene' / 'transforms_test.json'}:0"
+    runner = CliRunner()
+    for t in (0.0, 0.6, 1.0):
+        a, b = tmp_path / f"run_{t}.exr", tmp_path / f"onnx_{t}.exr"
+        for src, out in ((run, a), (path, b)):
+            res = runner.invoke(main, ["render", str(src), "--view", cam, "--time", str(t),
+                                       "--size", "64x64", "-o", str(out)])
+            assert res.exit_code == 0, res.output
+        x, y = read_image(a), read_image(b)
+        mse = float(np.mean((x.astype(np.float64) - y) ** 2))
+        psnr = 10 * np.log10(1.0 / max(mse, 1e-30))
+        print(f"{decoder} t={t}: ONNX vs torch render PSNR {psnr:.1f} dB")
+        assert psnr > 60.0
+        assert 0.02 < float(np.mean(np.abs(x - 1.0))) or x.std() > 0.01  # something is drawn
+
+
+def test_fp16_weights_smaller_and_exact_vs_rounded_model(runs, tmp_path):
+    full, half = tmp_path / "full.onnx", tmp_path / "half.onnx"
+    r32 = export_run(runs["hnn"], full)
+    r16 = export_run(runs["hnn"], half, fp16_weights=True)
+    print(f"fp32 {r32.file_size} B in {r32.seconds:.2f} s; fp16 {r16.file_size} B; "
+          f"fp16 vs unrounded model {r16.parity_vs_fp32}")
+    assert r16.file_size < 0.8 * r32.file_size
+    assert max(r16.parity.values()) <= 1e-5  # vs the fp16-rounded torch model
+    assert max(r16.parity_vs_fp32.values()) < 1e-2
+    proto = onnx.load(str(half))
+    check_graph(proto)
+    assert any(i.data_type == onnx.TensorProto.FLOAT16 for i in proto.graph.initializer)
+    assert {p.key: p.value for p in proto.metadata_props}["fp16_weights"] == "1"
+
+
+def test_export_refuses_and_writes_nothing(runs, tmp_path):
+    from nehad.trainer import load_run
+
+    model, meta = load_run(runs["hnn"])
+    out = tmp_path / "x.onnx"
+    with pytest.raises(ExportError, match="does not match"):
+        export_model(model, meta, out, tol=-1.0)  # an impossible tolerance: the check fails
+    with pytest.raises(ExportError, match="opset"):
+        export_model(model, meta, out, opset=16)
+    assert list(tmp_path.iterdir()) == []  # no temp file left, nothing written
+    # the caller's model is untouched (grad mode, requires_grad)
+    assert model.field.field.grad_mode == "autograd"
+    assert all(p.requires_grad for p in model.parameters())
+
+
+def test_export_cli_bad_inputs(runs, tmp_path):
+    runner = CliRunner()
+    cases = [
+        ([str(tmp_path / "nope"), "-o", str(tmp_path / "a.onnx")], "not a finished training run"),
+        ([str(runs["hnn"]), "-o", str(tmp_path / "missing" / "a.onnx")], "does not exist"),
+        ([str(runs["hnn"]), "-o", str(tmp_path / "a.onx")], "must end in .onnx"),
+        ([str(runs["hnn"]), "-o", str(tmp_path / "a.onnx"), "--opset", "16"], "opset"),
+    ]
+    for args, needle in cases:
+        res = runner.invoke(main, ["export"] + args)
+        assert res.exit_code != 0 and needle in res.output, res.output
+        assert "Traceback" not in res.output
+    assert not any(p.suffix.startswith(".on") for p in tmp_path.rglob("*"))
