@@ -534,7 +534,8 @@ def test_time_inputs_param_groups_and_appearance():
 @pytest.mark.filterwarnings("ignore::DeprecationWarning")  # legacy (TorchScript) exporter: fast
 def test_field_exports_to_onnx_with_standard_ops(tmp_path):
     """The default (autograd) field switches to the closed-form gradient while exported: only
-    standard ops (GridSample, Atan, Where; no Atan2, no gradient ops) and parity with torch."""
+    standard ops (Gather for the plane lookups, Atan, Where; no GridSample, no Atan2, no gradient
+    ops) and parity with torch."""
     onnx = pytest.importorskip("onnx")
     ort = pytest.importorskip("onnxruntime")
     torch.manual_seed(0)
@@ -557,7 +558,7 @@ def test_field_exports_to_onnx_with_standard_ops(tmp_path):
     model = onnx.load(path)
     onnx.checker.check_model(model, full_check=True)
     ops = {n.op_type for n in model.graph.node}
-    assert {"GridSample", "Atan", "Tanh"} <= ops and "Atan2" not in ops
+    assert {"Gather", "Atan", "Tanh"} <= ops and "Atan2" not in ops and "GridSample" not in ops
     assert all(n.domain in ("", "ai.onnx") for n in model.graph.node)
     sess = ort.InferenceSession(path, providers=["CPUExecutionProvider"])
     for t in (0.0, 0.3, 1.0):
@@ -566,3 +567,19 @@ def test_field_exports_to_onnx_with_standard_ops(tmp_path):
             ref = AtTime()(torch.tensor([t]))
         for a, b in zip(got, ref):
             assert np.abs(a - b.numpy()).max() < 1e-5
+
+
+def test_bilinear_gather_equals_grid_sample():
+    """The export path of the hex-plane lookup is grid_sample(bilinear, border, align_corners)."""
+    import torch.nn.functional as F
+
+    from nehad.field.hexplane import bilinear_gather
+
+    g = torch.Generator().manual_seed(3)
+    for h, w in [(7, 5), (25, 64), (2, 2)]:
+        plane = torch.randn(1, 4, h, w, generator=g, dtype=torch.float64)
+        xy = torch.rand(500, 2, generator=g, dtype=torch.float64) * 2.6 - 1.3  # some outside
+        xy[:4] = torch.tensor([[-1.0, -1.0], [1.0, 1.0], [1.0, -1.0], [-1.0, 1.0]])
+        ref = F.grid_sample(plane, xy[None, None], mode="bilinear", padding_mode="border",
+                            align_corners=True)[0, :, 0].T
+        assert torch.allclose(bilinear_gather(plane, xy), ref, atol=1e-12), (h, w)

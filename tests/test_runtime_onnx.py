@@ -115,7 +115,7 @@ def test_render_info_ply_without_torch(exported, tmp_path):
                           timeout=120)
     assert proc.returncode == 0, proc.stderr
     for needle in ("nehad-onnx/1", "Gaussians:", "SH degree:", "time range:", "bounds:",
-                   "opset:", "17", "GridSample", "file size:"):
+                   "opset:", "17", "Gather", "file size:"):
         assert needle in proc.stdout, (needle, proc.stdout)
     ply = tmp_path / "f.ply"
     proc = subprocess.run(cli + ["ply", str(path), "--time", "0.3", "-o", str(ply)], env=env,
