@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import shlex
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -42,53 +41,6 @@ def main():
 
 # ---------------------------------------------------------------------------------------------
 # nehad synth
-
-
-class _FolderProgress:
-    """A progress bar for a library call without a progress hook: a daemon thread counts the
-    frame images that appear (or are rewritten) under `root` while the call runs in the main
-    thread. tqdm shows it only on a terminal and only after `delay` seconds."""
-
-    def __init__(self, root: Path, pattern: str, total: int, desc: str, delay: float = 1.0):
-        self.root, self.pattern, self.total = root, pattern, total
-        self.before = self._snapshot()
-        self._stop = threading.Event()
-        from tqdm import tqdm
-
-        self.bar = tqdm(total=total, desc=desc, unit="frame", delay=delay, disable=None,
-                        leave=False, file=sys.stderr)
-        self.thread = threading.Thread(target=self._run, daemon=True)
-
-    def _snapshot(self) -> dict:
-        out = {}
-        if self.root.is_dir():
-            for p in self.root.glob(self.pattern):
-                try:
-                    out[p] = p.stat().st_mtime_ns
-                except OSError:
-                    pass
-        return out
-
-    def _count(self) -> int:
-        now = self._snapshot()
-        return sum(1 for p, m in now.items() if self.before.get(p) != m)
-
-    def _run(self):
-        while not self._stop.wait(0.25):
-            n = min(self._count(), self.total)
-            self.bar.update(n - self.bar.n)
-
-    def __enter__(self):
-        self.thread.start()
-        return self
-
-    def __exit__(self, *exc):
-        self._stop.set()
-        self.thread.join()
-        if exc[0] is None:
-            self.bar.update(self.total - self.bar.n)
-        self.bar.close()
-        return False
 
 
 @main.command()
@@ -122,9 +74,12 @@ def synth(out, scene, resolution, frames, seed, fixed_time, num_gaussians):
     held = max(1, int(round(0.1 * frames)))  # val/test frame count of synthesize_scene
     start = time.perf_counter()
     with user_errors():
-        with _FolderProgress(out, "*/r_*.png", frames + 2 * held, desc="synth"):
+        from tqdm import tqdm
+
+        with tqdm(total=frames + 2 * held, desc="synth", unit="frame", delay=1.0, disable=None,
+                  leave=False, file=sys.stderr) as bar:
             synthesize_scene(out, scene=scene, resolution=resolution, frames=frames, seed=seed,
-                             fixed_time=fixed_time)
+                             fixed_time=fixed_time, progress=lambda: bar.update(1))
         t_ply = 0.5 if fixed_time is None else fixed_time
         if num_gaussians > 0:
             from nehad.data.synth_gaussians import scene_gaussians

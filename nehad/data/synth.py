@@ -312,8 +312,9 @@ def _ply_bytes(points: np.ndarray, colours: np.ndarray) -> bytes:
 
 def synthesize_scene(out_dir, scene: str = "spheres", resolution: int = 64, frames: int = 50,
                      seed: int = 0, fixed_time: float | None = None, fov_deg: float = 45.0,
-                     supersample: int = 3, points: int = 2000) -> Path:
+                     supersample: int = 3, points: int = 2000, progress=None) -> Path:
     """Write a synthetic dynamic scene in the D-NeRF layout to `out_dir` and return its path.
+    `progress`, if given, is called once per image written.
 
     `resolution` is the square image size, `frames` the number of train frames (val and test get
     ``max(1, round(0.1 * frames))`` each). Train frame k has time ``k / (frames - 1)``; val and test
@@ -366,6 +367,8 @@ def synthesize_scene(out_dir, scene: str = "spheres", resolution: int = 64, fram
             rgba = render_view(scene_objects(scene, t), cam, supersample=supersample)
             name = f"r_{k:0{digits}d}"
             write_image(out / split / f"{name}.png", rgba, bit_depth=8)
+            if progress is not None:
+                progress()
             records.append({"file_path": f"./{split}/{name}", "time": t,
                             "transform_matrix": [[float(x) for x in row] for row in c2w]})
         doc = {"camera_angle_x": angle_x, "frames": records}
