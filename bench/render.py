@@ -1,8 +1,8 @@
 """Frames per second of `nehad render` in a warm process: deformation (onnxruntime on the exported
 model, a new time every frame, so the per-time cache never hits) plus rasterization, at the
-model's training resolution and at twice that.
+widths given (default 400 and 800: a MuJoCo scene trained at 400x400 and its 800x800 render).
 
-    python bench/render.py MODEL [--frames 30] [--threads 2]
+    python bench/render.py MODEL [--sizes 400,800] [--frames 30] [--threads 2]
 
 MODEL is an exported model.onnx or a training run directory (exported to a temporary file
 first). The camera is the model's default camera (the dataset's first test view).
@@ -25,6 +25,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("model", type=Path)
     ap.add_argument("--frames", type=int, default=30)
+    ap.add_argument("--sizes", default="400,800", help="image widths (height keeps the aspect)")
     ap.add_argument("--threads", type=int, default=2)
     args = ap.parse_args()
 
@@ -50,8 +51,8 @@ def main() -> None:
     times = np.linspace(lo, hi, args.frames + 1)
     print(f"{path.name}: {model.num_gaussians} Gaussians; threads: onnxruntime {args.threads}, "
           f"numba {numba.get_num_threads()}")
-    for scale in (1, 2):
-        cam = camera.with_size(camera.width * scale, camera.height * scale)
+    for width in (int(w) for w in args.sizes.split(",")):
+        cam = camera.with_size(width, round(width * camera.height / camera.width))
         render(model.gaussians(float(times[-1])), cam, model.background)  # warm-up
         deform_s = raster_s = 0.0
         t_all = time.perf_counter()
