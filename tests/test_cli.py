@@ -22,6 +22,7 @@ from nehad.runtime.images import read_image
 from nehad.runtime.ply import read_gaussian_ply, write_gaussian_ply
 
 from raster_reference import reference_forward, reference_project
+from torch_blocker import blocked_torch_env  # noqa: E402
 
 WIDTH, HEIGHT = 96, 72  # not multiples of 16: partial edge tiles
 BACKGROUND = (0.2, 0.4, 0.6)
@@ -145,21 +146,12 @@ def test_synth_without_gaussians_and_bad_scene(tmp_path):
 # render
 
 
-def _blocked_torch_env(tmp_path: Path) -> dict:
-    """Environment in which `import torch` raises ImportError (a fake package first on the path)."""
-    block = tmp_path / "no_torch"
-    (block / "torch").mkdir(parents=True)
-    (block / "torch" / "__init__.py").write_text(
-        "raise ImportError('torch is blocked in this test: the renderer must not need it')\n")
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(block)] + [p for p in [env.get("PYTHONPATH")] if p])
-    return env
 
 
 def test_render_matches_reference_without_torch(scene, tmp_path):
     ply, cam = scene
     out = tmp_path / "render.png"
-    env = _blocked_torch_env(tmp_path)
+    env = blocked_torch_env(tmp_path)
     blocked = subprocess.run([sys.executable, "-c", "import torch"], env=env, capture_output=True)
     assert blocked.returncode != 0  # the blocker works
     bg = ",".join(str(v) for v in BACKGROUND)

@@ -19,6 +19,7 @@ from click.testing import CliRunner  # noqa: E402
 from nehad.cli.main import main  # noqa: E402
 from nehad.runtime.onnx_model import OnnxModel, OnnxModelError, read_model_info  # noqa: E402
 from nehad.runtime.ply import read_gaussian_ply  # noqa: E402
+from torch_blocker import blocked_torch_env  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -74,14 +75,6 @@ def fake_model(path, n=2, sh_degree=0, means=None, metadata=None, drop_output=No
     return Path(path)
 
 
-def _blocked_torch_env(tmp_path: Path) -> dict:
-    block = tmp_path / "no_torch"
-    (block / "torch").mkdir(parents=True)
-    (block / "torch" / "__init__.py").write_text(
-        "raise ImportError('torch is blocked in this test: the runtime must not need it')\n")
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(block)] + [p for p in [env.get("PYTHONPATH")] if p])
-    return env
 
 
 def test_model_metadata_cache_and_threads(exported):
@@ -102,7 +95,7 @@ def test_model_metadata_cache_and_threads(exported):
 
 def test_render_info_ply_without_torch(exported, tmp_path):
     path, _, cam = exported
-    env = _blocked_torch_env(tmp_path)
+    env = blocked_torch_env(tmp_path)
     assert subprocess.run([sys.executable, "-c", "import torch"], env=env,
                           capture_output=True).returncode != 0
     cli = [sys.executable, "-m", "nehad.cli.main"]
