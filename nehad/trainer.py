@@ -103,13 +103,13 @@ class Trainer:
         self.log = log
         self._check_run_dir(resume)
         torch.manual_seed(cfg.train.seed)
+        # RGB images ignore the background, so one load over white (or the configured colour)
+        # serves both kinds; the render background then follows from whether any frame has alpha
+        load_bg = cfg.data.background if cfg.data.background is not None else (1.0, 1.0, 1.0)
         self.scene = load_dnerf(self.data_dir, splits=(cfg.data.train_split,),
-                                background=(0.0, 0.0, 0.0), downscale=cfg.data.downscale)
+                                background=load_bg, downscale=cfg.data.downscale)
         has_alpha = any(f.alpha is not None for f in self.scene.frames[cfg.data.train_split])
         self.background = resolve_background(cfg, has_alpha)
-        if self.background != (0.0, 0.0, 0.0):
-            self.scene = load_dnerf(self.data_dir, splits=(cfg.data.train_split,),
-                                    background=self.background, downscale=cfg.data.downscale)
         self.train_views = _views(self.scene, cfg.data.train_split)
         self.extent = float(self.scene.extent)
         self.aabb = scene_bounds(self.scene.initial_points)
