@@ -137,18 +137,13 @@ class Camera:
 
     def scaled(self, factor: float) -> "Camera":
         """The same camera for an image resized by `factor` (e.g. 0.5 for half resolution)."""
-        w = int(round(self.width * factor))
-        h = int(round(self.height * factor))
-        sx, sy = w / self.width, h / self.height
-        return Camera(w, h, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy,
-                      self.world_to_camera, self.time, self.name)
+        return self.with_size(int(round(self.width * factor)), int(round(self.height * factor)))
 
     def with_size(self, width: int, height: int) -> "Camera":
         """The same field of view rendered at another image size."""
-        return self.scaled(1.0) if (width, height) == (self.width, self.height) else Camera(
-            int(width), int(height), self.fx * width / self.width, self.fy * height / self.height,
-            self.cx * width / self.width, self.cy * height / self.height,
-            self.world_to_camera, self.time, self.name)
+        sx, sy = width / self.width, height / self.height
+        return Camera(int(width), int(height), self.fx * sx, self.fy * sy, self.cx * sx,
+                      self.cy * sy, self.world_to_camera, self.time, self.name)
 
 
 # ---------------------------------------------------------------------------------------------
