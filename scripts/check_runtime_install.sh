@@ -36,7 +36,8 @@ fi
 echo "== render model.onnx in the venv"
 "$work/venv/bin/nehad" render "$work/model.onnx" --view "$work/scene/transforms_test.json:0" \
     --time 0.5 -o "$work/venv.png"
-"$work/venv/bin/nehad" info "$work/model.onnx" | head -3
+# sed, not head: head would close the pipe early and the SIGPIPE fails the script under pipefail
+"$work/venv/bin/nehad" info "$work/model.onnx" | sed -n 1,3p
 # run from $work: in the repository root the source folder nehad/ would shadow the installed package
 (cd "$work" && "$work/venv/bin/python" - "$work/full.png" "$work/venv.png") <<'PY'
 import sys
