@@ -31,6 +31,13 @@ USER_ERROR_CLASSES = (
     ("nehad.metrics.lpips", "LpipsWeightsMissing"),
     ("nehad.runtime.onnx_model", "OnnxModelError"),
     ("nehad.export.onnx_export", "ExportError"),
+    ("nehad.viz", "VizError"),
+    ("nehad.runtime.splat", "SplatError"),
+    ("nehad.runtime.paths", "PathError"),
+    ("nehad.runtime.video", "VideoError"),
+    ("nehad.runtime.batch", "BatchError"),
+    ("nehad.runtime.distribute", "RenderError"),
+    ("nehad.runtime.layers", "LayerError"),
 )
 
 

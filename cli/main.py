@@ -57,15 +57,25 @@ def main():
 @click.option("--gaussians", "num_gaussians", type=click.IntRange(min=0), default=5000,
               show_default=True,
               help="Number of Gaussians in gaussians.ply, a 3DGS PLY approximating the scene at "
-                   "t = 0.5 (or --fixed-time); 0 writes none.")
-def synth(out, scene, resolution, frames, seed, fixed_time, num_gaussians):
-    """Write a synthetic dynamic scene in the D-NeRF layout to the folder OUT.
+                   "t = 0.5 (or --fixed-time); 0 writes none. D-NeRF format only.")
+@click.option("--format", "fmt", type=click.Choice(["dnerf", "hypernerf", "dynerf"]),
+              default="dnerf", show_default=True,
+              help="Dataset layout: dnerf (transforms_*.json, RGBA PNGs), hypernerf (nerfies "
+                   "camera/, rgb/1x, rgb/2x, dataset.json, ...) or dynerf (camXX.mp4 videos and "
+                   "poses_bounds.npy; --frames is then the frames per video).")
+@click.option("--cameras", type=click.IntRange(min=2), default=4, show_default=True,
+              help="dynerf: number of cameras (cam00 is the test camera).")
+def synth(out, scene, resolution, frames, seed, fixed_time, num_gaussians, fmt, cameras):
+    """Write a synthetic dynamic scene to the folder OUT (D-NeRF layout unless --format).
 
-    OUT gets train/, val/, test/ (RGBA PNGs), transforms_{train,val,test}.json, points3d.ply
-    (initial points) and gaussians.ply (a ready-made 3DGS PLY of the scene, to render).
+    D-NeRF: OUT gets train/, val/, test/ (RGBA PNGs), transforms_{train,val,test}.json,
+    points3d.ply (initial points) and gaussians.ply (a ready-made 3DGS PLY of the scene, to
+    render). HyperNeRF and DyNeRF: the files of those releases, RGB over black (see README).
     """
     from nehad.data.synth import SCENES, synthesize_scene
 
+    if fmt != "dnerf":
+        return _synth_other_format(out, fmt, scene, resolution, frames, seed, fixed_time, cameras)
     if scene not in SCENES:
         raise click.BadParameter(f"unknown scene {scene!r}; expected one of {', '.join(SCENES)}",
                                  param_hint="'--scene'")
@@ -97,6 +107,33 @@ def synth(out, scene, resolution, frames, seed, fixed_time, num_gaussians):
         q = shlex.quote(str(out))
         click.echo(f"try: nehad render {q}/gaussians.ply --view {q}/transforms_test.json:0 "
                    f"-o render.png --background 1,1,1")
+
+
+def _synth_other_format(out, fmt, scene, resolution, frames, seed, fixed_time, cameras):
+    from nehad.data.synth import SCENES
+    from nehad.data.synth_formats import planned_images, synthesize_format
+
+    if scene not in SCENES:
+        raise click.BadParameter(f"unknown scene {scene!r}; expected one of {', '.join(SCENES)}",
+                                 param_hint="'--scene'")
+    if out.exists() and not out.is_dir():
+        raise click.BadParameter(f"{out} exists and is not a folder", param_hint="'OUT'")
+    start = time.perf_counter()
+    with user_errors():
+        from tqdm import tqdm
+
+        with tqdm(total=planned_images(fmt, frames, cameras), desc="synth", unit="frame",
+                  delay=1.0, disable=None, leave=False, file=sys.stderr) as bar:
+            synthesize_format(out, fmt, scene=scene, resolution=resolution, frames=frames,
+                              seed=seed, fixed_time=fixed_time, cameras=cameras,
+                              progress=lambda: bar.update(1))
+    what = (f"{cameras} cameras x {frames} frames (cam00.mp4 .. is the test camera), "
+            f"poses_bounds.npy, points3D_downsample2.ply" if fmt == "dynerf" else
+            f"{planned_images(fmt, frames)} images in rgb/1x and rgb/2x, camera/*.json, "
+            f"dataset.json, metadata.json, scene.json, points.npy")
+    click.echo(f"wrote {out}/ ({fmt} layout, scene {scene!r}, seed {seed}, "
+               f"{time.perf_counter() - start:.1f} s): {what}")
+    click.echo(f"try: nehad train {shlex.quote(str(out))} -o run --preset test")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -183,7 +220,11 @@ def _write_all(outputs) -> None:
                    "own time when it has one (a D-NeRF frame).")
 @click.option("--extrapolate", is_flag=True,
               help="Allow --time outside the trained time range.")
-def render(scene, view, output, depth, alpha, background, size, sh_degree, time_, extrapolate):
+@click.option("--lod", type=click.IntRange(min=0), default=None, metavar="K",
+              help="Render streaming layers 0..K only (a run trained with --lod-levels, its "
+                   "export, or a --split-layers folder; default: all layers there are).")
+def render(scene, view, output, depth, alpha, background, size, sh_degree, time_, extrapolate,
+           lod):
     """Render SCENE through one camera to an image.
 
     SCENE is a standard 3DGS Gaussian PLY, an exported model (.onnx, rendered at --time with
@@ -205,7 +246,9 @@ def render(scene, view, output, depth, alpha, background, size, sh_degree, time_
             if depth.resolve() == output.resolve():
                 raise InputError(f"--depth {depth}: same file as -o")
         camera = _single_camera(view)
-        source = open_source(scene)
+        source = open_source(scene, lod=lod)
+        for problem in getattr(source, "problems", ()):
+            click.echo(f"warning: {problem}", err=True)
         t = _render_time(source, camera, time_, extrapolate)
         cloud = source.gaussians(t)
         if size is not None:
@@ -243,21 +286,35 @@ def render(scene, view, output, depth, alpha, background, size, sh_degree, time_
 
 @main.command("export")
 @click.argument("run", type=click.Path(file_okay=False, path_type=Path))
-@click.option("-o", "--output", required=True, type=click.Path(dir_okay=False, path_type=Path),
+@click.option("-o", "--output", default=None, type=click.Path(dir_okay=False, path_type=Path),
               help="The .onnx file to write (atomically; only after the checks pass).")
 @click.option("--opset", type=int, default=17, show_default=True,
               help="ONNX opset (17..20).")
 @click.option("--fp16-weights", is_flag=True,
               help="Store the weights as float16 (a smaller file); the torch model is rounded "
                    "the same way for the parity check.")
-def export_(run, output, opset, fp16_weights):
+@click.option("--split-layers", "split_dir", default=None,
+              type=click.Path(file_okay=False, path_type=Path),
+              help="For a run trained with --lod-levels: write DIR/base.onnx (field + layer 0), "
+                   "DIR/layer_K.bin per enhancement layer and DIR/manifest.json (sizes, "
+                   "sha256) for streaming (docs/streaming.md). With or instead of -o.")
+def export_(run, output, opset, fp16_weights, split_dir):
     """Export the trained RUN to one self-contained ONNX file (format nehad-onnx/1).
 
     The graph maps an input `time` [1] to the activated Gaussians (means, scales, quats,
-    opacities, sh) and uses only standard ONNX operators. Before writing, it is checked with
-    onnx.checker (full_check) and against the torch model at several times (1e-5). Needs torch.
+    opacities, sh; and `layer` for a run trained with streaming layers) and uses only standard
+    ONNX operators. Before writing, it is checked with onnx.checker (full_check) and against the
+    torch model at several times (1e-5). Needs torch.
     """
+    if output is None and split_dir is None:
+        raise click.UsageError("give -o MODEL.onnx, --split-layers DIR, or both")
+    if split_dir is not None and fp16_weights:
+        raise click.UsageError("--fp16-weights applies to -o only; --split-layers writes float32")
     with user_errors():
+        if split_dir is not None:
+            _export_split(run, split_dir, opset)
+        if output is None:
+            return
         if output.suffix.lower() != ".onnx":
             raise InputError(f"-o {output}: the model file must end in .onnx")
         if not output.parent.is_dir():
@@ -276,6 +333,26 @@ def export_(run, output, opset, fp16_weights):
                f"{rep.opset}, {rep.file_size / 1e6:.2f} MB, {sum(rep.operators.values())} nodes "
                f"({len(rep.operators)} operator types); parity vs torch {worst:.2g}; "
                f"exported in {rep.seconds:.1f} s")
+
+
+def _export_split(run: Path, folder: Path, opset: int) -> None:
+    """`nehad export --split-layers`: base model, chunks and manifest (SPEC 8)."""
+    if not (run / "model.pt").is_file():
+        raise InputError(f"{run}: not a finished training run (no model.pt)")
+    if folder.exists() and not folder.is_dir():
+        raise InputError(f"--split-layers {folder}: exists and is not a folder")
+    if not folder.parent.is_dir():
+        raise InputError(f"--split-layers {folder}: parent folder {folder.parent} does not exist")
+    from nehad.export.layers import export_split_layers
+
+    rep = export_split_layers(run, folder, opset=opset)
+    worst = max(rep.parity.values()) if rep.parity else 0.0
+    click.echo(f"{folder}/: {len(rep.manifest['layers'])} layers, parity vs torch {worst:.2g} "
+               f"(every prefix), exported in {rep.seconds:.1f} s")
+    for e in rep.manifest["layers"]:
+        click.echo(f"  layer {e['layer']}: {e['file']:<12} {e['gaussians']:>8} Gaussians "
+                   f"{e['bytes']:>11} bytes  (layers 0..{e['layer']}: "
+                   f"{e['cumulative_bytes']} bytes)")
 
 
 @main.command()
@@ -298,6 +375,10 @@ def info(model):
     if i.default_camera is not None:
         c = i.default_camera
         click.echo(f"  camera:       {c.width}x{c.height}{f' ({c.name})' if c.name else ''}")
+    if "lod_layers" in md:  # SPEC 8 streaming layers (Gaussians per layer)
+        split = (" (split: this file holds layer 0; chunks add the rest)"
+                 if md.get("lod_split") == "1" else "")
+        click.echo(f"  layers:       {md['lod_layers']}{split}")
     for key, label in (("decoder", "decoder"), ("config_hash", "config hash"),
                        ("nehad_version", "exported by"), ("fp16_weights", "fp16 weights")):
         if key in md:
@@ -317,15 +398,19 @@ def _fmt3(v) -> str:
 @main.command()
 @click.argument("scene", type=click.Path(path_type=Path))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path),
-              help="The .ply to write; with --frames, a folder (created) for frame_NNNN.ply.")
+              help="The .ply (or .splat) to write; with --frames, a folder (created) for "
+                   "frame_NNNN.ply.")
 @click.option("--time", "time_", type=float, default=None,
               help="Time t of the Gaussians (one frame).")
 @click.option("--frames", type=click.IntRange(min=1), default=None,
               help="Write N frames at evenly spaced times over the time range instead.")
 @click.option("--extrapolate", is_flag=True, help="Allow --time outside the trained time range.")
-def ply(scene, output, time_, frames, extrapolate):
+@click.option("--format", "fmt", type=click.Choice(["ply", "splat"]), default=None,
+              help="ply (3DGS PLY, full SH) or splat (antimatter15 .splat for web viewers: DC "
+                   "colour only); default: from -o's suffix, ply for --frames.")
+def ply(scene, output, time_, frames, extrapolate, fmt):
     """Write the deformed Gaussians of SCENE (an exported .onnx, or a run folder) as standard
-    3DGS PLY: one frame at --time, or --frames N evenly spaced frames into a folder."""
+    3DGS PLY (or .splat): one frame at --time, or --frames N evenly spaced frames into a folder."""
     import math
 
     import numpy as np
@@ -335,9 +420,11 @@ def ply(scene, output, time_, frames, extrapolate):
     if (time_ is None) == (frames is None):
         raise click.UsageError("give exactly one of --time T and --frames N")
     with user_errors():
+        if fmt is None:
+            fmt = "splat" if frames is None and output.suffix.lower() == ".splat" else "ply"
         if frames is None:
-            if output.suffix.lower() != ".ply":
-                raise InputError(f"-o {output}: the PLY file must end in .ply")
+            if output.suffix.lower() != f".{fmt}":
+                raise InputError(f"-o {output}: the {fmt.upper()} file must end in .{fmt}")
             if not output.parent.is_dir():
                 raise InputError(f"-o {output}: output folder {output.parent} does not exist")
             if output.is_dir():
@@ -351,14 +438,16 @@ def ply(scene, output, time_, frames, extrapolate):
             raise InputError(f"--time {time_}: not a finite number")
         source = open_source(scene)
         from nehad.runtime.ply import write_gaussian_ply
+        from nehad.runtime.splat import write_splat
 
+        writer = write_splat if fmt == "splat" else write_gaussian_ply
         if frames is None:
             lo, hi = source.time_range
             if not extrapolate and not (lo - 1e-9 <= time_ <= hi + 1e-9):
                 raise InputError(f"--time {time_}: outside the trained time range [{lo:g}, "
                                  f"{hi:g}] (pass --extrapolate to write it anyway)")
             cloud = source.gaussians(time_ if source.dynamic else None)
-            write_gaussian_ply(output, cloud)
+            writer(output, cloud)
             click.echo(f"{output}: {len(cloud)} Gaussians at t = {time_:g}")
             return
         lo, hi = source.time_range
@@ -368,10 +457,10 @@ def ply(scene, output, time_, frames, extrapolate):
         done, count = [], 0
         try:
             for k, t in enumerate(times):
-                path = output / f"frame_{k:04d}.ply"
+                path = output / f"frame_{k:04d}.{fmt}"
                 cloud = source.gaussians(float(t) if source.dynamic else None)
                 count = len(cloud)
-                write_gaussian_ply(path, cloud)
+                writer(path, cloud)
                 done.append(path)
         except BaseException:
             for p in done:
@@ -382,8 +471,8 @@ def ply(scene, output, time_, frames, extrapolate):
                 except OSError:
                     pass
             raise
-    click.echo(f"{output}/: {frames} frames frame_0000.ply .. frame_{frames - 1:04d}.ply at t = "
-               f"{lo:g} .. {hi:g}, {count} Gaussians each")
+    click.echo(f"{output}/: {frames} frames frame_0000.{fmt} .. frame_{frames - 1:04d}.{fmt} "
+               f"at t = {lo:g} .. {hi:g}, {count} Gaussians each")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -396,7 +485,8 @@ def ply(scene, output, time_, frames, extrapolate):
               help="Run directory: config.yaml, checkpoints/, metrics.jsonl, model.pt.")
 @click.option("--preset", default="cpu", show_default=True,
               help="Settings to start from: paper (the paper's), cpu (sized for a 2-core CPU at "
-                   "half resolution) or test (seconds, tiny).")
+                   "half resolution), quick, test (seconds, tiny), hypernerf or dynerf (the "
+                   "paper's recipe with those datasets' hex-plane settings).")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False, path_type=Path),
               default=None, help="YAML file applied on top of the preset.")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
@@ -404,9 +494,13 @@ def ply(scene, output, time_, frames, extrapolate):
                    "--set field.decoder=mlp (repeatable; applied last).")
 @click.option("--resume", is_flag=True,
               help="Continue the run in OUTPUT from its last checkpoint (same config required).")
+@click.option("--lod-levels", type=click.IntRange(1, 6), default=None,
+              help="Train L streaming layers (same as --set lod.levels=L): layer 0 at 1/2^(L-1) "
+                   "of the resolution, each next layer at twice the previous one, lower layers "
+                   "frozen (see docs/streaming.md).")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def train(data, run, preset, config_file, overrides, resume, quiet):
-    """Train a NeHaD scene on the dataset in DATA (D-NeRF layout).
+def train(data, run, preset, config_file, overrides, resume, lod_levels, quiet):
+    """Train a NeHaD scene on the dataset in DATA (D-NeRF, HyperNeRF or DyNeRF layout).
 
     A coarse stage fits static Gaussians, then the fine stage trains the Hamiltonian deformation
     field with them. Checkpoints are written atomically every train.checkpoint_interval steps; a
@@ -417,10 +511,12 @@ def train(data, run, preset, config_file, overrides, resume, quiet):
             raise InputError(f"{data}: no such dataset folder")
         from nehad.config import build_config
 
+        if lod_levels is not None:
+            overrides = (*overrides, f"lod.levels={lod_levels}")
         cfg = build_config(preset, config_file, overrides)
-        from nehad.trainer import Trainer
+        from nehad.lod import make_trainer
 
-        trainer = Trainer(cfg, data, run, resume=resume, progress=not quiet)
+        trainer = make_trainer(cfg, data, run, resume=resume, progress=not quiet)
         if resume and trainer.step:
             click.echo(f"resuming {run} at step {trainer.step} of {trainer.total_steps}")
         summary = trainer.train()
@@ -428,6 +524,8 @@ def train(data, run, preset, config_file, overrides, resume, quiet):
     click.echo(f"{run}/model.pt: {summary['steps']} steps, {summary['gaussians']} Gaussians, "
                f"last train PSNR {last.get('psnr', float('nan')):.2f} dB, "
                f"{summary['seconds'] / 60:.1f} min")
+    if getattr(trainer, "layer_sizes", None):
+        click.echo(f"  layers (Gaussians): {', '.join(str(n) for n in trainer.layer_sizes)}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -485,6 +583,18 @@ def demo(out, resolution, overrides, quiet):
     click.echo(format_table(res["eval"]))
     click.echo(f"train: {res['train']['steps']} steps in {res['train']['seconds'] / 60:.1f} min; "
                f"frames over time: {res['strip']}")
+
+
+from .viz import report as _report_command, viz as _viz_group  # noqa: E402  (issue 8)
+
+main.add_command(_viz_group)
+main.add_command(_report_command)
+
+from .batch import batch as _batch_command  # noqa: E402  (issue 5)
+from .video import video as _video_command  # noqa: E402  (issue 5)
+
+main.add_command(_video_command)
+main.add_command(_batch_command)
 
 
 if __name__ == "__main__":  # python -m nehad.cli.main

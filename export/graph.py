@@ -18,6 +18,7 @@ import torch
 from torch import nn
 
 OUTPUT_NAMES = ("means", "scales", "quats", "opacities", "sh")
+LAYER_OUTPUT = "layer"  # SPEC 7: with LOD layers, each Gaussian's layer [N] int32
 
 
 def closed_form_copy(model) -> nn.Module:
@@ -31,20 +32,30 @@ def closed_form_copy(model) -> nn.Module:
 
 
 class ExportGraph(nn.Module):
-    """forward(time [1]) -> (means [N,3], scales [N,3], quats [N,4], opacities [N], sh [N,K,3])."""
+    """forward(time [1]) -> (means [N,3], scales [N,3], quats [N,4], opacities [N], sh [N,K,3])
+    and, when `layer` ([N] layer index of each Gaussian, SPEC 8) is given, `layer` [N] int32."""
 
-    def __init__(self, model, sh_degree: int):
+    def __init__(self, model, sh_degree: int, layer=None):
         super().__init__()
         if not 0 <= int(sh_degree) <= model.gaussians.sh_degree:
             raise ValueError(f"ExportGraph: sh_degree {sh_degree} outside 0..{model.gaussians.sh_degree}")
         self.model = model
         self.sh_degree = int(sh_degree)
         self.k = (self.sh_degree + 1) ** 2
+        self.with_layer = layer is not None
+        if self.with_layer:
+            self.register_buffer("layer", torch.as_tensor(layer, dtype=torch.int32).reshape(-1))
+
+    @property
+    def output_names(self) -> tuple[str, ...]:
+        return OUTPUT_NAMES + ((LAYER_OUTPUT,) if self.with_layer else ())
 
     def forward(self, time: torch.Tensor):
         # exactly NeHaDModel.gaussians_at, with the time kept a tensor (a graph input)
         means, scales, quats, opacities, sh = self.model.gaussians_at(time.reshape(1))
+        if self.with_layer:
+            return means, scales, quats, opacities, sh[:, :self.k], self.layer
         return means, scales, quats, opacities, sh[:, :self.k]
 
 
-__all__ = ["ExportGraph", "OUTPUT_NAMES", "closed_form_copy"]
+__all__ = ["ExportGraph", "LAYER_OUTPUT", "OUTPUT_NAMES", "closed_form_copy"]

@@ -144,13 +144,13 @@ def _to_fp16_initializers(proto) -> int:
     return count
 
 
-def _name_outputs(proto) -> None:
+def _name_outputs(proto, names=OUTPUT_NAMES) -> None:
     """Give the graph outputs the names of SPEC 7. An output the exporter folded into a constant
     (the SH, which do not depend on time) comes out as an initializer with a generated name: it
     is routed through an Identity node to its proper name."""
     import onnx
 
-    for out, name in zip(proto.graph.output, OUTPUT_NAMES):
+    for out, name in zip(proto.graph.output, names):
         if out.name != name:
             proto.graph.node.append(onnx.helper.make_node("Identity", [out.name], [name],
                                                           name=f"{name}__output"))
@@ -162,9 +162,22 @@ def _trace(graph: ExportGraph, opset: int) -> bytes:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         torch.onnx.export(graph, (torch.tensor([0.5], dtype=torch.float32),), buf,
-                          input_names=["time"], output_names=list(OUTPUT_NAMES),
+                          input_names=["time"], output_names=list(graph.output_names),
                           opset_version=opset, dynamo=False, do_constant_folding=True)
     return buf.getvalue()
+
+
+def run_layers_of(meta: dict, n: int):
+    """The [n] layer of each Gaussian when the run was trained with LOD layers (SPEC 8), else
+    None (then the file has no `layer` output)."""
+    if meta.get("layer") is None:
+        return None
+    from nehad.lod import run_layers
+
+    try:
+        return run_layers(meta, n)
+    except ValueError as e:
+        raise ExportError(str(e)) from None
 
 
 def export_model(model, meta: dict, out_path, *, opset: int = MIN_OPSET, fp16_weights: bool = False,
@@ -188,7 +201,9 @@ def export_model(model, meta: dict, out_path, *, opset: int = MIN_OPSET, fp16_we
         with torch.no_grad():
             for p in work.parameters():
                 p.copy_(p.to(torch.float16).to(torch.float32))
-    graph = ExportGraph(work, sh_degree).eval()
+    layer = run_layers_of(meta, len(model.gaussians))
+    graph = ExportGraph(work, sh_degree, layer).eval()
+    names_out = graph.output_names
     for name, value in zip(("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest"),
                            (work.gaussians.means, work.gaussians.log_scales, work.gaussians.quats,
                             work.gaussians.opacity_logits, work.gaussians.sh_dc,
@@ -200,11 +215,14 @@ def export_model(model, meta: dict, out_path, *, opset: int = MIN_OPSET, fp16_we
     except Exception as e:
         raise ExportError(f"torch.onnx.export failed: {' '.join(str(e).split())[:400]}") from e
     proto = onnx.load_from_string(blob)
-    _name_outputs(proto)
+    _name_outputs(proto, names_out)
     if fp16_weights:
         _to_fp16_initializers(proto)
     md = build_metadata(model, meta, sh_degree, cfg)
     md["fp16_weights"] = "1" if fp16_weights else "0"
+    if layer is not None:  # SPEC 8: Gaussians per layer, layer 0 first
+        md["lod_layers"] = json.dumps(np.bincount(layer, minlength=int(layer.max()) + 1
+                                                  if len(layer) else 1).tolist())
     del proto.metadata_props[:]
     for k, v in md.items():
         entry = proto.metadata_props.add()
@@ -225,19 +243,20 @@ def export_model(model, meta: dict, out_path, *, opset: int = MIN_OPSET, fp16_we
     opts.log_severity_level = 3
     sess = ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
     names = [o.name for o in sess.get_outputs()]
-    if names != list(OUTPUT_NAMES):
-        raise ExportError(f"exported graph outputs {names}, expected {list(OUTPUT_NAMES)}")
-    original = ExportGraph(closed_form_copy(model), sh_degree).eval() if fp16_weights else None
-    parity = {n: 0.0 for n in OUTPUT_NAMES}
-    vs32 = {n: 0.0 for n in OUTPUT_NAMES}
+    if names != list(names_out):
+        raise ExportError(f"exported graph outputs {names}, expected {list(names_out)}")
+    original = (ExportGraph(closed_form_copy(model), sh_degree, layer).eval() if fp16_weights
+                else None)
+    parity = {n: 0.0 for n in names_out}
+    vs32 = {n: 0.0 for n in names_out}
     for t in times:
         got = sess.run(None, {"time": np.array([t], np.float32)})
-        for n, a, b in zip(OUTPUT_NAMES, got, torch_outputs(graph, t)):
+        for n, a, b in zip(names_out, got, torch_outputs(graph, t)):
             if not np.isfinite(a).all():
                 raise ExportError(f"exported graph: output {n} at time {t} holds NaN/inf")
             parity[n] = max(parity[n], parity_error(a, b))
         if original is not None:
-            for n, a, b in zip(OUTPUT_NAMES, got, torch_outputs(original, t)):
+            for n, a, b in zip(names_out, got, torch_outputs(original, t)):
                 vs32[n] = max(vs32[n], parity_error(a, b))
     worst = max(parity.values())
     if not worst <= tol:

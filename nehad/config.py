@@ -1,5 +1,5 @@
 """Every training knob of nehad as typed dataclasses with documented defaults (SPEC section 5),
-and the presets `paper`, `cpu` (default) and `test`.
+and the presets `paper`, `cpu` (default), `quick`, `test`, `hypernerf` and `dynerf`.
 
 A run's config is: preset -> YAML file (`--config`) -> dotted overrides (`--set a.b=v`), each
 applied on top of the previous one; the resolved config is saved in the run directory.
@@ -20,6 +20,13 @@ from nehad.field.config import FieldConfig
 class DataConfig:
     background: tuple[float, float, float] | None = None  # None: white for RGBA D-NeRF data, black for RGB
     downscale: int = 1  # integer image downscale factor (2 = half resolution)
+    # Train images with alpha over a new random background colour each step (3DGS's
+    # --random_background). Over a fixed white background, semi-transparent white "fog" is free
+    # wherever it covers white, and it hides the scene from cameras inside it (the MuJoCo close
+    # cameras); a random colour makes every uncovered pixel count. Evaluation uses `background`.
+    random_background: bool = True
+    frame_stride: int = 1  # keep every n-th frame (DyNeRF: video frames 0, n, 2n, ...; D-NeRF
+    # and HyperNeRF: every n-th image of each split); applies to training and evaluation alike
     train_split: str = "train"
     eval_split: str = "test"
 
@@ -41,7 +48,8 @@ class OptimConfig:
     rotation_lr: float = 1e-3
     grid_lr_init: float = 1.6e-3  # hex-plane planes, exponential decay ...
     grid_lr_final: float = 1.6e-4  # ... to this
-    decoder_lr: float = 1e-3  # trunk, HNN scalar networks and adapters
+    decoder_lr: float = 1e-3  # trunk, HNN scalar networks and adapters ...
+    decoder_lr_final: float | None = None  # ... decaying exponentially to this (None: constant)
     t_eq_lr: float = 1e-3  # BED equilibrium times (mu_eq learns like positions)
 
 
@@ -79,6 +87,23 @@ class TrainConfig:
 
 
 @dataclass
+class LodConfig:
+    """Layered progressive optimisation for streaming (SPEC 8, `nehad.lod`): layer 0 is trained
+    (coarse + fine stages) at the lowest resolution, data.downscale * 2^(levels - 1); each further
+    layer adds Gaussians trained at twice the previous resolution while the earlier layers stay
+    frozen and the deformation field is shared."""
+
+    levels: int = 1  # number of layers L; 1 = ordinary training (no layers)
+    iterations: int = 0  # steps per enhancement layer; 0 = fine.iterations
+    opacity_threshold: float = 0.02  # at each layer's end, its Gaussians below this opacity are
+    # dropped: a higher threshold makes each layer smaller (fewer bytes, less detail)
+    spawn_opacity: float = 0.05  # opacity of the Gaussians that seed an enhancement layer (one
+    # child per Gaussian of the layers below, drawn from its parent, half its size)
+    train_field: bool = False  # also train the shared field during enhancement layers (it then
+    # changes how the frozen lower layers move: a layer-0-only render drifts from what it was)
+
+
+@dataclass
 class Config:
     preset: str = "cpu"
     data: DataConfig = dc_field(default_factory=DataConfig)
@@ -89,6 +114,7 @@ class Config:
     densify: DensifyConfig = dc_field(default_factory=DensifyConfig)
     loss: LossConfig = dc_field(default_factory=LossConfig)
     train: TrainConfig = dc_field(default_factory=TrainConfig)
+    lod: LodConfig = dc_field(default_factory=LodConfig)
 
     def validate(self) -> "Config":
         try:
@@ -105,10 +131,20 @@ class Config:
                 raise ConfigError(f"{name}.batch_size: must be >= 1")
         if self.data.downscale < 1:
             raise ConfigError("data.downscale: must be >= 1")
+        if self.data.frame_stride < 1:
+            raise ConfigError("data.frame_stride: must be >= 1")
         if not 0 <= self.train.sh_degree <= 3:
             raise ConfigError("train.sh_degree: must be in 0..3")
         if self.densify.interval < 1:
             raise ConfigError("densify.interval: must be >= 1")
+        if not 1 <= self.lod.levels <= 6:
+            raise ConfigError("lod.levels: must be in 1..6")
+        if self.lod.iterations < 0:
+            raise ConfigError("lod.iterations: must be >= 0 (0 = fine.iterations)")
+        if not 0.0 <= self.lod.opacity_threshold < 1.0:
+            raise ConfigError("lod.opacity_threshold: must lie in [0, 1)")
+        if not 0.0 < self.lod.spawn_opacity < 1.0:
+            raise ConfigError("lod.spawn_opacity: must lie in (0, 1)")
         return self
 
 
@@ -163,7 +199,35 @@ def _quick() -> Config:
     )
 
 
-PRESETS = {"paper": _paper, "cpu": _cpu, "quick": _quick, "test": _test}
+def _hypernerf() -> Config:
+    """The paper's recipe on HyperNeRF captures (SPEC section 5): hex-plane out_dim 16,
+    [64, 64, 64, 150], multires [1, 2, 4], trunk W = 128; images from rgb/2x (536 x 960, the
+    paper's resolution, as 4DGS reads them). Regulariser weights of 4DGS's
+    arguments/hypernerf/default.py (plane TV 2e-4, time smoothness 1e-3, time L1 1e-4)."""
+    return Config(
+        preset="hypernerf",
+        data=DataConfig(downscale=2),
+        field=FieldConfig.preset("hypernerf", reg_plane_weight=2e-4,
+                                 reg_time_smoothness_weight=1e-3, reg_time_l1_weight=1e-4),
+    )
+
+
+def _dynerf() -> Config:
+    """The paper's recipe on DyNeRF videos (SPEC section 5): hex-plane out_dim 16,
+    [64, 64, 64, 150], multires [1, 2], trunk W = 128, opacity and SH deformed as 4DGS does for
+    DyNeRF (arguments/dynerf/default.py: no_do=False, no_dshs=False, and its regulariser weights);
+    1352 x 1014 frames (the 2704 x 2028 videos halved, the paper's resolution). Every frame of
+    every camera is held in memory as float32: on a CPU add --set data.frame_stride=N."""
+    return Config(
+        preset="dynerf",
+        data=DataConfig(downscale=2),
+        field=FieldConfig.preset("dynerf", deform_opacity_sh=True, reg_plane_weight=2e-4,
+                                 reg_time_smoothness_weight=1e-3, reg_time_l1_weight=1e-4),
+    )
+
+
+PRESETS = {"paper": _paper, "cpu": _cpu, "quick": _quick, "test": _test,
+           "hypernerf": _hypernerf, "dynerf": _dynerf}
 
 
 def build_config(preset: str = "cpu", config_file=None, overrides=()) -> Config:

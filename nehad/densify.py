@@ -73,6 +73,9 @@ class DensifyStrategy:
         self.cfg = cfg
         self.extent = float(extent)
         self.state = DensifyState.zeros(0)
+        #: The first `frozen` Gaussians are never cloned, split, pruned or opacity-reset: the
+        #: frozen lower layers of layered training (SPEC 8, nehad.lod). New ones go after them.
+        self.frozen = 0
 
     def reset(self, n: int) -> None:
         self.state = DensifyState.zeros(n)
@@ -121,6 +124,7 @@ class DensifyStrategy:
             self.reset(n)
             return {}
         grads = s.grad_accum / s.visible_count.clamp_min(1)
+        grads[:self.frozen] = -1.0  # frozen layers never densify (below any threshold)
         max_scale = torch.exp(params.log_scales).max(dim=1).values
         hot = grads >= cfg.grad_threshold
         if cfg.max_gaussians > 0:
@@ -152,6 +156,7 @@ class DensifyStrategy:
             big_screen = radii > cfg.max_screen_size
             big_world = torch.exp(params.log_scales).detach().max(dim=1).values > 0.1 * self.extent
             prune |= big_screen | big_world
+        prune[:self.frozen] = False
         n_prune = int(prune.sum())
         if n_prune:
             keep_gaussians(params, optimizer, ~prune)
@@ -177,5 +182,6 @@ class DensifyStrategy:
     def _reset_opacity(self, params, optimizer) -> None:
         capped = torch.minimum(params.opacity_logits.detach(),
                                torch.logit(torch.tensor(0.01)))
+        capped[:self.frozen] = params.opacity_logits.detach()[:self.frozen]
         _replace_parameter(params, optimizer, "opacity_logits", capped,
                            lambda v: torch.zeros_like(v))

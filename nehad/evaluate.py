@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from nehad.config import config_from_dict
-from nehad.data.dnerf import load_dnerf
+from nehad.data.loader import load_dataset
 from nehad.trainer import RunError, cloud_at, load_run
 
 METRIC_KEYS = ("psnr", "ssim", "ms_ssim", "d_ssim", "lpips_alex", "lpips_vgg")
@@ -45,7 +45,8 @@ def evaluate_run(run_dir, split: str = "test", data_dir=None, lpips: bool = True
     if not data.is_dir():
         raise RunError(f"{run}: dataset folder {data} not found; pass --data DIR")
     background = tuple(float(v) for v in meta["background"])
-    scene = load_dnerf(data, splits=(split,), background=background, downscale=cfg.data.downscale)
+    scene = load_dataset(data, splits=(split,), background=background,
+                         downscale=cfg.data.downscale, frame_stride=cfg.data.frame_stride)
     frames = scene.frames[split]
     if max_frames > 0:
         frames = frames[:max_frames]

@@ -22,7 +22,8 @@ from nehad.checkpoint import (append_metrics, atomic_torch_save, list_checkpoint
                               save_checkpoint)
 from nehad.config import Config, config_from_dict
 from nehad.configtools import ConfigError, diff, dump_yaml, to_dict
-from nehad.data.dnerf import DNeRFScene, load_dnerf
+from nehad.data.dnerf import DNeRFScene
+from nehad.data.loader import load_dataset
 from nehad.densify import DensifyStrategy
 from nehad.field.deformation import DeformationField
 from nehad.gaussians import GaussianParameters
@@ -51,15 +52,25 @@ def exp_lr(step: int, total: int, lr_init: float, lr_final: float) -> float:
 @dataclass
 class Views:
     cameras: list
-    images: list  # (H, W, 3) float32 tensors
+    images: list  # (H, W, 3) float32 tensors, composited over the load background
     times: list
+    alphas: list  # (H, W, 1) float32 tensors, or None for images without alpha
 
 
 def _views(scene: DNeRFScene, split: str) -> Views:
     frames = scene.frames[split]
     return Views([f.camera for f in frames], [torch.from_numpy(np.ascontiguousarray(f.image))
                                               for f in frames],
-                 [float(f.camera.time or 0.0) for f in frames])
+                 [float(f.camera.time or 0.0) for f in frames],
+                 [None if f.alpha is None else torch.from_numpy(f.alpha)[:, :, None]
+                  for f in frames])
+
+
+def recomposite(image: torch.Tensor, alpha: torch.Tensor, old_bg, new_bg) -> torch.Tensor:
+    """An image composited over `old_bg`, composited over `new_bg` instead:
+    rgb + (new - old)(1 - a) (the loader adds bg (1 - a) to premultiplied colour)."""
+    delta = torch.as_tensor(np.asarray(new_bg, np.float32) - np.asarray(old_bg, np.float32))
+    return image + delta * (1.0 - alpha)
 
 
 class NeHaDModel(torch.nn.Module):
@@ -106,8 +117,10 @@ class Trainer:
         # RGB images ignore the background, so one load over white (or the configured colour)
         # serves both kinds; the render background then follows from whether any frame has alpha
         load_bg = cfg.data.background if cfg.data.background is not None else (1.0, 1.0, 1.0)
-        self.scene = load_dnerf(self.data_dir, splits=(cfg.data.train_split,),
-                                background=load_bg, downscale=cfg.data.downscale)
+        self.load_background = tuple(float(v) for v in load_bg)
+        self.scene = load_dataset(self.data_dir, splits=(cfg.data.train_split,),
+                                  background=load_bg, downscale=cfg.data.downscale,
+                                  frame_stride=cfg.data.frame_stride)
         has_alpha = any(f.alpha is not None for f in self.scene.frames[cfg.data.train_split])
         self.background = resolve_background(cfg, has_alpha)
         self.train_views = _views(self.scene, cfg.data.train_split)
@@ -216,18 +229,24 @@ class Trainer:
             elif name == "grid":
                 group["lr"] = exp_lr(it, length, o.grid_lr_init, o.grid_lr_final) if fine else 0.0
             elif name == "decoder":
-                group["lr"] = o.decoder_lr if fine else 0.0
+                final = o.decoder_lr if o.decoder_lr_final is None else o.decoder_lr_final
+                group["lr"] = exp_lr(it, length, o.decoder_lr, final) if fine else 0.0
 
     def active_sh_degree(self, step: int) -> int:
         return min(self.cfg.train.sh_degree, step // max(self.cfg.train.sh_degree_interval, 1))
+
+    def start_fine_stage(self) -> None:
+        """Called at the first fine step: the BED equilibria start at the Gaussians (SPEC 4.7);
+        layered training (nehad.lod) overrides it to start each enhancement layer instead."""
+        self.model.gaussians.reset_equilibrium()
+        self.strategy.reset(len(self.model.gaussians))
 
     # -- one step --------------------------------------------------------------------------
     def train_step(self, step: int) -> dict:
         cfg = self.cfg
         stage, it, length = self.stage_of(step)
         if stage == "fine" and it == 0:
-            self.model.gaussians.reset_equilibrium()
-            self.strategy.reset(len(self.model.gaussians))
+            self.start_fine_stage()
         self._set_learning_rates(stage, it, length)
         batch = (cfg.coarse if stage == "coarse" else cfg.fine).batch_size
         rng = np.random.default_rng([cfg.train.seed, step])
@@ -240,8 +259,12 @@ class Trainer:
         for k in views:
             cam = self.train_views.cameras[k]
             params = self.model.gaussians_at(self.train_views.times[k], deform=stage == "fine")
-            res = render_torch(*params, cam, background=self.background, sh_degree=degree)
-            target = self.train_views.images[k]
+            target, alpha = self.train_views.images[k], self.train_views.alphas[k]
+            background = self.background
+            if cfg.data.random_background and alpha is not None:
+                background = tuple(float(v) for v in rng.random(3))
+                target = recomposite(target, alpha, self.load_background, background)
+            res = render_torch(*params, cam, background=background, sh_degree=degree)
             loss = photometric_loss(res.rgb, target, cfg.loss.ssim_weight) / batch
             total = total + loss
             psnrs.append(psnr(res.rgb, target))

@@ -89,7 +89,8 @@ def read_image(path) -> np.ndarray:
     return pixels
 
 
-def write_image(path, image: np.ndarray, bit_depth: int = 8) -> Path:
+def write_image(path, image: np.ndarray, bit_depth: int = 8,
+                png_compression: int | None = None) -> Path:
     """Write (H, W) or (H, W, C) data atomically; the extension picks the format.
 
     PNG/JPEG values are clipped to [0, 1] (NaN -> 0) and quantised to `bit_depth` (8, or 16 for
@@ -97,7 +98,8 @@ def write_image(path, image: np.ndarray, bit_depth: int = 8) -> Path:
     they are (depth, linear colour). RGBA (and gray+alpha) input is associated (premultiplied)
     colour, as a render over a black background gives; a PNG stores straight alpha, so colour is
     divided by alpha (in float, before quantisation) and :func:`read_image` multiplies it back.
-    Returns the path.
+    `png_compression` (0..9, zlib level) trades PNG size for speed (video frames use 1: about
+    half the write time of the default for a quarter more bytes). Returns the path.
     """
     import OpenImageIO as oiio
 
@@ -136,6 +138,8 @@ def write_image(path, image: np.ndarray, bit_depth: int = 8) -> Path:
         if out is None:
             raise ImageError(f"{path}: no writer for {ext!r} ({oiio.geterror()})")
         spec = oiio.ImageSpec(w, h, c, fmt)
+        if png_compression is not None and ext == ".png":
+            spec.attribute("png:compressionLevel", int(png_compression))
         if straight_alpha:
             spec.alpha_channel = c - 1
             spec.attribute("oiio:UnassociatedAlpha", 1)

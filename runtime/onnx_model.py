@@ -147,6 +147,7 @@ class OnnxModel:
         self.cache_size = max(0, int(cache_size))
         self._cache: OrderedDict = OrderedDict()
         self._lock = threading.Lock()
+        self._extra_feeds: dict = {}  # optional inputs (streaming layers, runtime/layers.py)
         self.runs = 0  # session runs so far (the cache saves the others)
         if threads is not None and int(threads) < 0:
             raise OnnxModelError(f"{self.source}: threads must be >= 0, got {threads}")
@@ -206,7 +207,8 @@ class OnnxModel:
             if hit is not None:
                 self._cache.move_to_end(key)
                 return hit
-        values = self.session.run(None, {"time": np.array([key], np.float32)})
+        values = self.session.run(None, {"time": np.array([key], np.float32),
+                                         **self._extra_feeds})
         out = dict(zip(self.output_names, values))
         for name, arr in out.items():
             bad = int(np.size(arr) - np.count_nonzero(np.isfinite(arr)))
@@ -221,10 +223,42 @@ class OnnxModel:
                     self._cache.popitem(last=False)
         return out
 
-    def gaussians(self, time: float) -> GaussianCloud:
-        """The deformed, activated Gaussians at `time` for the shared rasterizer."""
+    def gaussians(self, time: float, max_layer: int | None = None) -> GaussianCloud:
+        """The deformed, activated Gaussians at `time` for the shared rasterizer; with
+        `max_layer` K, only those of streaming layers 0..K (SPEC 8: the `layer` output)."""
         o = self.outputs(time)
+        if max_layer is not None:
+            if not 0 <= int(max_layer) < self.num_layers:
+                raise OnnxModelError(f"{self.source}: --lod {max_layer}: the model has "
+                                     f"{self.num_layers} layer(s), 0..{self.num_layers - 1}")
+            if "layer" in o:
+                keep = o["layer"] <= int(max_layer)
+                return GaussianCloud(o["means"][keep], o["scales"][keep], o["quats"][keep],
+                                     o["opacities"][keep], o["sh"][keep])
         return GaussianCloud(o["means"], o["scales"], o["quats"], o["opacities"], o["sh"])
+
+    @property
+    def num_layers(self) -> int:
+        """Streaming layers in the file (metadata `lod_layers`; 1 without layers)."""
+        text = self.metadata.get("lod_layers")
+        if not text:
+            return 1
+        try:
+            return max(1, len(json.loads(text)))
+        except (ValueError, TypeError):
+            raise OnnxModelError(f"{self.source}: metadata lod_layers is not a JSON list: "
+                                 f"{text!r}") from None
+
+    def set_extra_inputs(self, feeds: dict) -> None:
+        """Feed these optional inputs (overridable initializers, e.g. the extra_* Gaussians of
+        streaming layers) with every run from now on; clears the cache."""
+        known = {i.name for i in self.session.get_overridable_initializers()}
+        unknown = sorted(set(feeds) - known)
+        if unknown:
+            raise OnnxModelError(f"{self.source}: the model has no optional inputs {unknown}")
+        with self._lock:
+            self._extra_feeds = dict(feeds)
+            self._cache.clear()
 
     def clear_cache(self) -> None:
         with self._lock:

@@ -118,3 +118,31 @@ def test_resume_with_another_config_is_refused(tmp_path, tiny_scene):
     assert "fine.iterations" in again.stderr and "Traceback" not in again.stderr
     fresh = _train_cli(tiny_scene, tmp_path / "r")
     assert fresh.returncode != 0 and "--resume" in fresh.stderr
+
+
+def test_random_background_recomposites_the_target_exactly(tmp_path, tiny_scene, monkeypatch):
+    from nehad.data.dnerf import load_dnerf
+    from nehad.trainer import recomposite
+
+    # the same RGBA frame loaded over white and over black: recompositing one gives the other
+    white = load_dnerf(tiny_scene, splits=("train",), background=(1, 1, 1)).frames["train"][0]
+    black = load_dnerf(tiny_scene, splits=("train",), background=(0, 0, 0)).frames["train"][0]
+    assert white.alpha is not None and (white.alpha < 0.5).any()
+    alpha = torch.from_numpy(white.alpha)[:, :, None]
+    got = recomposite(torch.from_numpy(white.image), alpha, (1, 1, 1), (0, 0, 0))
+    assert torch.allclose(got, torch.from_numpy(black.image), atol=1e-6)
+    # the trainer draws a new colour each step (and the same one for the same step on resume)
+    tr = _run(tmp_path, "rb", tiny_scene)
+    seen = []
+    import nehad.trainer as trainer_module
+    real = trainer_module.render_torch
+
+    def spy(*args, background, **kw):
+        seen.append(tuple(background))
+        return real(*args, background=background, **kw)
+
+    monkeypatch.setattr(trainer_module, "render_torch", spy)
+    for s in (0, 1, 1):
+        tr.train_step(s)
+    assert seen[0] != seen[1] and seen[1] == seen[2]
+    assert all(0.0 <= v <= 1.0 for c in seen for v in c)

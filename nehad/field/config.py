@@ -47,6 +47,13 @@ class FieldConfig:
     """Spatial-plane smoothness: "tv" (K-Planes / 4DGS-paper total variation, first differences
     along both axes) or "second_order" (what the 4DGS code computes under the name plane_tv:
     squared second differences along the plane's first axis)."""
+    mipmap: bool = False
+    """Scale-aware anisotropic mipmapping of the hex-plane lookups (SPEC 8, paper appendix):
+    each plane gets a 2x average-pooled pyramid and a Gaussian samples it trilinearly at a level
+    set by its world-axis scales relative to the plane cells (`nehad.field.mipmap`). Off by
+    default; present in training and in the exported graph alike."""
+    mipmap_levels: int = 0
+    """Most pyramid levels per scale with `mipmap` (0 = as many as the plane sizes allow)."""
     reg_plane_weight: float = 1e-4
     """Weight of the spatial-plane smoothness in `regularization_loss()` (SPEC 5)."""
     reg_time_smoothness_weight: float = 1e-2
@@ -180,8 +187,11 @@ class FieldConfig:
             bad("activation", why)
         if self.hnn_grad not in HNN_GRAD_MODES:
             bad("hnn_grad", f"must be one of {HNN_GRAD_MODES}")
+        if (isinstance(self.mipmap_levels, bool) or not isinstance(self.mipmap_levels, int)
+                or self.mipmap_levels < 0):
+            bad("mipmap_levels", "must be an integer >= 0 (0 = automatic)")
         for name in ("use_hnn", "verlet", "bed_position", "bed_scale", "rigidity",
-                     "deform_opacity_sh"):
+                     "deform_opacity_sh", "mipmap"):
             if not isinstance(getattr(self, name), bool):
                 bad(name, "must be a bool")
         if finite("dt") <= 0:

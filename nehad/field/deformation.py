@@ -89,6 +89,7 @@ class DeformationField(nn.Module):
         self.cfg = dataclasses.replace(cfg).validate()  # own copy: later edits of `cfg` don't leak
         self.hexplane = HexPlane(cfg.out_dim, cfg.resolution, cfg.multires, cfg.plane_init_low,
                                  cfg.plane_init_high, cfg.time_plane_init)
+        self.hexplane.mipmap_levels = cfg.mipmap_levels  # used only with cfg.mipmap (SPEC 8)
         self.trunk = Trunk(self.hexplane.feature_dim, cfg.width, cfg.depth)
         if cfg.decoder == "mlp":
             self.field = None
@@ -146,9 +147,23 @@ class DeformationField(nn.Module):
                 + c.reg_time_l1_weight * r["time_l1"])
 
     # ------------------------------------------------------------------ forward
-    def features(self, means: torch.Tensor, t_col: torch.Tensor) -> torch.Tensor:
-        """Step 1-2: h = M(HexPlane(normalize_aabb(mu), 2t - 1)), (N, W)."""
-        f = self.hexplane(normalize_aabb(means, self.aabb.to(means.dtype)), 2.0 * t_col - 1.0)
+    def features(self, means: torch.Tensor, t_col: torch.Tensor,
+                 log_scales: Optional[torch.Tensor] = None,
+                 quats: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """Step 1-2: h = M(HexPlane(normalize_aabb(mu), 2t - 1)), (N, W). With cfg.mipmap the
+        lookups are mipmapped by the canonical Gaussians' world-axis scales (SPEC 8), which
+        then need `log_scales` and `quats`."""
+        aabb = self.aabb.to(means.dtype)
+        sigma = None
+        if self.cfg.mipmap:
+            if log_scales is None or quats is None:
+                raise ValueError("DeformationField.features: field.mipmap needs the Gaussians' "
+                                 "log_scales and quats")
+            from nehad.field.mipmap import world_axis_sigma
+
+            sigma = world_axis_sigma(log_scales, quats, self.cfg.norm_eps) * (
+                2.0 / (aabb[1] - aabb[0]))
+        f = self.hexplane(normalize_aabb(means, aabb), 2.0 * t_col - 1.0, sigma)
         return self.trunk(f)
 
     def forward(self, means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
@@ -160,7 +175,7 @@ class DeformationField(nn.Module):
         when BED position (mu_eq, t_eq) or BED scale (t_eq) is on with the HNN decoder."""
         n = means.shape[0]
         t_col = time_column(t, n, means)
-        h = self.features(means, t_col)
+        h = self.features(means, t_col, log_scales, quats)
         if self.cfg.decoder == "mlp":
             return self._forward_mlp(h, means, log_scales, quats, opacity_logits, sh)
         cfg = self.cfg

@@ -106,6 +106,8 @@ class HexPlane(nn.Module):
             self.planes.append(scale)
         #: grid_sample point batches; 0 = automatic (see `_num_batches`), 1 = a single batch.
         self.sample_batches = 0
+        #: SPEC 8 mipmapping: the most pyramid levels per scale (0 = as many as the planes allow).
+        self.mipmap_levels = 0
 
     @property
     def feature_dim(self) -> int:
@@ -129,9 +131,15 @@ class HexPlane(nn.Module):
             return 1
         return max(1, torch.get_num_threads())
 
-    def forward(self, x: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, t: torch.Tensor,
+                sigma: torch.Tensor | None = None) -> torch.Tensor:
         """Features of points x (N, 3) in [-1, 1]^3 (already `normalize_aabb`-ed) at times
-        t (N, 1) in [-1, 1] (already mapped 2t - 1). Returns (N, out_dim * len(multires))."""
+        t (N, 1) in [-1, 1] (already mapped 2t - 1). Returns (N, out_dim * len(multires)).
+        With `sigma` (N, 3), the Gaussians' world-axis standard deviations in the same
+        normalised units as x, the planes are sampled through their mip pyramids (SPEC 8,
+        `nehad.field.mipmap`)."""
+        if sigma is not None:
+            return self._forward_mipmap(x, t, sigma)
         n = x.shape[0]
         u = torch.cat([x, t.expand(n, 1).to(x.dtype)], dim=1)  # (N, 4)
         b = self._num_batches(x)
@@ -164,6 +172,40 @@ class HexPlane(nn.Module):
         out = torch.cat(feats, dim=1).reshape(b, self.feature_dim, m).transpose(1, 2)
         out = out.reshape(b * m, self.feature_dim)
         return out[:n] if pad > 0 else out
+
+    def mip_levels(self) -> list[int]:
+        """L_max of each scale (SPEC 8): halvings until a spatial side is 1, capped by
+        `mipmap_levels` when that is > 0."""
+        from nehad.field.mipmap import auto_levels
+
+        out = []
+        for res in self.resolutions():
+            n = auto_levels(res[:3])
+            out.append(min(n, self.mipmap_levels) if self.mipmap_levels > 0 else n)
+        return out
+
+    def _forward_mipmap(self, x: torch.Tensor, t: torch.Tensor,
+                        sigma: torch.Tensor) -> torch.Tensor:
+        """Scale-aware anisotropic mipmapping (SPEC 8): per scale, the level l_hat of each point
+        from its footprint in cells, then a trilinear sample of every plane's pyramid; the
+        product over planes and the concatenation over scales as without mipmapping."""
+        from nehad.field.mipmap import PlanePyramid, build_pyramid, mip_level
+
+        n = x.shape[0]
+        u = torch.cat([x, t.expand(n, 1).to(x.dtype)], dim=1)  # (N, 4)
+        sigma = sigma.detach()
+        feats = []
+        for scale, res, l_max in zip(self.planes, self.resolutions(), self.mip_levels()):
+            cells = torch.tensor([(r - 1) * 0.5 for r in res[:3]], dtype=x.dtype,
+                                 device=x.device)
+            level = mip_level(sigma * cells, l_max)  # (N,)
+            f = None
+            for plane, (a, c) in zip(scale, PLANE_AXES):
+                pyr = PlanePyramid(build_pyramid(plane, l_max, pool_height=c != 3))
+                s = pyr.sample_trilinear(u[:, [a, c]], level)
+                f = s if f is None else f * s
+            feats.append(f)
+        return torch.cat(feats, dim=1)
 
     # ------------------------------------------------------------------ regularisers (SPEC 5)
     def plane_smoothness(self, kind: str = "tv") -> torch.Tensor:

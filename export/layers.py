@@ -1,0 +1,267 @@
+"""`nehad export RUN --split-layers DIR`: a layered run (SPEC 8, nehad.lod) as a base model plus
+one chunk per enhancement layer and a manifest, for streaming (format: nehad.runtime.layers and
+docs/streaming.md).
+
+The base graph (`SplitBaseGraph`) holds the field and layer 0's canonical Gaussians as
+initializers and takes the enhancement layers' canonical Gaussians as optional inputs whose
+defaults are empty; it appends them to layer 0's and deforms all of them with the same code as
+`NeHaDModel.gaussians_at` (called on the concatenated arrays). Before anything is written, the
+graph passes the SPEC 7 checks and is run with onnxruntime with no extra inputs and with every
+prefix of layers, against the torch model's outputs for the same Gaussians (1e-5).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import time as _time
+import types
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from nehad.export.checks import MIN_OPSET, check_graph
+from nehad.export.graph import LAYER_OUTPUT, OUTPUT_NAMES, closed_form_copy
+from nehad.export.onnx_export import (MAX_OPSET, PARITY_TIMES, PARITY_TOL, ExportError,
+                                      _name_outputs, build_metadata, parity_error, run_layers_of)
+from nehad.runtime.layers import (BASE_FILE, CHUNK_ARRAYS, EXTRA_LAYER, EXTRA_PREFIX, MANIFEST,
+                                  MANIFEST_FORMAT, atomic_write, chunk_file_name, encode_chunk,
+                                  sha256_of)
+
+INPUT_NAMES = ("time",) + tuple(EXTRA_PREFIX + n for n in CHUNK_ARRAYS) + (EXTRA_LAYER,)
+
+
+def canonical_arrays(model, sh_coeffs: int, rows=slice(None)) -> dict[str, torch.Tensor]:
+    """The canonical Gaussians' raw arrays (chunk layout) of `model`'s rows `rows`."""
+    g = model.gaussians
+    sh = torch.cat([g.sh_dc, g.sh_rest], 1)[:, :sh_coeffs]
+    return {"means": g.means[rows], "log_scales": g.log_scales[rows], "quats": g.quats[rows],
+            "opacity_logits": g.opacity_logits[rows].reshape(-1), "sh": sh[rows],
+            "mu_eq": g.mu_eq[rows], "t_eq": g.t_eq[rows].reshape(-1, 1)}
+
+
+class _Canonical:
+    """Duck-typed GaussianParameters over plain tensors (for `NeHaDModel.gaussians_at`)."""
+
+    def __init__(self, a: dict):
+        self.means, self.log_scales, self.quats = a["means"], a["log_scales"], a["quats"]
+        self.opacity_logits = a["opacity_logits"]
+        self.sh_dc, self.sh_rest = a["sh"][:, :1], a["sh"][:, 1:]
+        self.mu_eq, self.t_eq = a["mu_eq"], a["t_eq"]
+
+
+def deform_arrays(model, arrays: dict, t: torch.Tensor):
+    """`NeHaDModel.gaussians_at(t)` for Gaussians given as canonical arrays (row-independent)."""
+    from nehad.trainer import NeHaDModel
+
+    proxy = types.SimpleNamespace(gaussians=_Canonical(arrays), field=model.field)
+    return NeHaDModel.gaussians_at(proxy, t)
+
+
+class SplitBaseGraph(nn.Module):
+    """forward(time [1], extra_means [M,3], ..., extra_layer [M]) -> the SPEC 7 outputs and
+    `layer` for layer 0's Gaussians followed by the M extra ones."""
+
+    def __init__(self, model, sh_degree: int, n0: int):
+        super().__init__()
+        self.model = model
+        self.k = (int(sh_degree) + 1) ** 2
+        with torch.no_grad():
+            base = canonical_arrays(model, self.k, slice(0, n0))
+        for name, value in base.items():
+            self.register_buffer(f"base_{name}", value.detach().clone())
+        self.register_buffer("base_layer", torch.zeros(n0, dtype=torch.int32))
+
+    def forward(self, time, means, log_scales, quats, opacity_logits, sh, mu_eq, t_eq, layer):
+        extra = dict(zip(CHUNK_ARRAYS, (means, log_scales, quats, opacity_logits, sh, mu_eq,
+                                        t_eq)))
+        arrays = {n: torch.cat([getattr(self, f"base_{n}"), extra[n]], 0) for n in CHUNK_ARRAYS}
+        out = deform_arrays(self.model, arrays, time.reshape(1))
+        means_, scales_, quats_, opac_, sh_ = out
+        return means_, scales_, quats_, opac_, sh_[:, :self.k], torch.cat([self.base_layer, layer])
+
+
+@dataclass
+class SplitReport:
+    folder: Path
+    manifest: dict
+    parity: dict = field(default_factory=dict)  # output -> worst error over times and prefixes
+    seconds: float = 0.0
+
+
+def _empty_initializers(proto, shapes: dict) -> None:
+    """Give each extra_* input an empty default of its own name (an overridable initializer)."""
+    from onnx import numpy_helper
+
+    inputs = {x.name for x in proto.graph.input}
+    for name, (tail, dtype) in shapes.items():
+        if name not in inputs:
+            raise ExportError(f"base graph: the exporter dropped input {name} (unused?)")
+        proto.graph.initializer.append(numpy_helper.from_array(np.zeros((0, *tail), dtype), name))
+
+
+def export_split_layers(run_dir, out_dir, *, opset: int = MIN_OPSET, times=PARITY_TIMES,
+                        tol: float = PARITY_TOL) -> SplitReport:
+    """Write base.onnx, layer_1.bin, ... and manifest.json for the layered RUN into `out_dir`
+    (created; existing files of those names are replaced). Raises ExportError, writing nothing,
+    when the run has no layers or a check fails."""
+    from nehad.config import config_from_dict
+    from nehad.trainer import load_run
+
+    run = Path(run_dir)
+    if not (run / "model.pt").is_file():
+        raise ExportError(f"{run}: not a finished training run (no model.pt)")
+    model, meta = load_run(run)
+    if meta.get("layer") is None:
+        raise ExportError(f"{run}: the run has no streaming layers (train it with --lod-levels L)")
+    cfg = config_from_dict(meta["config"]) if "config" in meta else None
+    return export_split_model(model, meta, out_dir, cfg=cfg, opset=opset, times=times, tol=tol)
+
+
+def export_split_model(model, meta: dict, out_dir, *, cfg=None, opset: int = MIN_OPSET,
+                       times=PARITY_TIMES, tol: float = PARITY_TOL) -> SplitReport:
+    """`export_split_layers` for a loaded model and its run metadata (`meta["layer"]`: the [N]
+    layer of each Gaussian, nondecreasing)."""
+    import onnx
+    import onnxruntime as ort
+
+    start = _time.perf_counter()
+    out_dir = Path(out_dir)
+    if not MIN_OPSET <= int(opset) <= MAX_OPSET:
+        raise ExportError(f"--opset {opset}: supported opsets are {MIN_OPSET}..{MAX_OPSET}")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ExportError(f"--split-layers {out_dir}: exists and is not a folder")
+    if not out_dir.parent.is_dir():
+        raise ExportError(f"--split-layers {out_dir}: parent folder {out_dir.parent} does not exist")
+    n = len(model.gaussians)
+    layer = run_layers_of(meta, n)
+    if layer is None:
+        raise ExportError("the model has no streaming layers (train it with --lod-levels L)")
+    if np.any(np.diff(layer) < 0):
+        raise ExportError(f"{run}: model.pt's layers are not stored in order")
+    sizes = np.bincount(layer, minlength=int(layer.max()) + 1).tolist()
+    sh_degree = int(meta.get("sh_degree", model.gaussians.sh_degree))
+    k = (sh_degree + 1) ** 2
+    work = closed_form_copy(model)
+    graph = SplitBaseGraph(work, sh_degree, sizes[0]).eval()
+    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+    with torch.no_grad():
+        full = canonical_arrays(work, k)
+    for name, value in full.items():
+        if not torch.isfinite(value).all():
+            raise ExportError(f"the model's {name} holds NaN or infinite values")
+    chunk_arrays = [{nm: full[nm][offsets[j]:offsets[j + 1]].detach() for nm in CHUNK_ARRAYS}
+                    for j in range(len(sizes))]
+
+    # trace with the enhancement layers as the example inputs (or one row of layer 0's)
+    example = ({nm: torch.cat([c[nm] for c in chunk_arrays[1:]], 0) for nm in CHUNK_ARRAYS}
+               if len(sizes) > 1 and sum(sizes[1:]) > 0
+               else {nm: full[nm][:1].detach() for nm in CHUNK_ARRAYS})
+    m = example["means"].shape[0]
+    ex_inputs = (torch.tensor([0.5], dtype=torch.float32), *(example[nm] for nm in CHUNK_ARRAYS),
+                 torch.ones(m, dtype=torch.int32))
+    out_names = list(OUTPUT_NAMES) + [LAYER_OUTPUT]
+    dyn = {nm: {0: "extra"} for nm in INPUT_NAMES[1:]}
+    dyn.update({nm: {0: "gaussians"} for nm in out_names})
+    buf = io.BytesIO()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            torch.onnx.export(graph, ex_inputs, buf, input_names=list(INPUT_NAMES),
+                              output_names=out_names, dynamic_axes=dyn, opset_version=int(opset),
+                              dynamo=False, do_constant_folding=True)
+    except Exception as e:
+        raise ExportError(f"torch.onnx.export failed: {' '.join(str(e).split())[:400]}") from e
+    proto = onnx.load_from_string(buf.getvalue())
+    _name_outputs(proto, out_names)
+    tails = {"means": (3,), "log_scales": (3,), "quats": (4,), "opacity_logits": (),
+             "sh": (k, 3), "mu_eq": (3,), "t_eq": (1,)}
+    _empty_initializers(proto, {**{EXTRA_PREFIX + nm: (tails[nm], np.float32)
+                                   for nm in CHUNK_ARRAYS}, EXTRA_LAYER: ((), np.int32)})
+    md = build_metadata(model, {**meta}, sh_degree, cfg)
+    md["num_gaussians"] = str(sizes[0])
+    md["fp16_weights"] = "0"
+    md["lod_layers"] = json.dumps(sizes)
+    md["lod_split"] = "1"
+    del proto.metadata_props[:]
+    for key, v in md.items():
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = key, v
+    from nehad import __version__
+
+    proto.producer_name, proto.producer_version = "nehad", __version__
+    proto.doc_string = ("NeHaD dynamic 3D Gaussians (nehad-onnx/1), streaming base: field + layer "
+                        "0; optional inputs extra_* append enhancement layers")
+    try:
+        check_graph(proto, full_check=True)
+    except ValueError as e:
+        raise ExportError(f"exported graph failed its checks: {e}") from None
+    data = proto.SerializeToString()
+
+    # parity: every prefix of layers, at every check time, against the full torch model
+    opts = ort.SessionOptions()
+    opts.log_severity_level = 3
+    sess = ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
+    parity = {nm: 0.0 for nm in out_names}
+    layer_np = layer.astype(np.int32)
+    for t in times:
+        with torch.no_grad():
+            ref = [o.detach().numpy() for o in work.gaussians_at(torch.tensor([t]))]
+        ref[4] = ref[4][:, :k]
+        ref.append(layer_np)
+        for j in range(len(sizes)):
+            feeds = {"time": np.array([t], np.float32)}
+            if j > 0:
+                for nm in CHUNK_ARRAYS:
+                    feeds[EXTRA_PREFIX + nm] = np.concatenate(
+                        [c[nm].numpy() for c in chunk_arrays[1:j + 1]], 0)
+                feeds[EXTRA_LAYER] = layer_np[sizes[0]:offsets[j + 1]]
+            got = sess.run(None, feeds)
+            end = offsets[j + 1]
+            for nm, a, b in zip(out_names, got, ref):
+                if not np.isfinite(a).all():
+                    raise ExportError(f"base graph: output {nm} at time {t} holds NaN/inf")
+                parity[nm] = max(parity[nm], parity_error(a, b[:end]))
+    worst = max(parity.values())
+    if not worst <= tol:
+        raise ExportError(f"base graph does not match the torch model: max error {worst:.3g} > "
+                          f"{tol:g} ({parity})")
+
+    # write: chunks first, base, then the manifest (a reader never sees a manifest whose files
+    # are not all there yet)
+    out_dir.mkdir(exist_ok=True)
+    blobs = [(BASE_FILE, data)] + [
+        (chunk_file_name(j), encode_chunk(j, {nm: c[nm].numpy() for nm in CHUNK_ARRAYS}))
+        for j, c in enumerate(chunk_arrays) if j > 0]
+    per_gaussian = 4 * (3 + 3 + 4 + 1 + 3 * k + 3 + 1)
+    entries, cum_b, cum_n = [], 0, 0
+    for j, (name, blob) in enumerate(blobs):
+        cum_b += len(blob)
+        cum_n += sizes[j]
+        entries.append({"layer": j, "file": name, "bytes": len(blob), "sha256": sha256_of(blob),
+                        "gaussians": int(sizes[j]), "cumulative_bytes": cum_b,
+                        "cumulative_gaussians": cum_n})
+    lod = meta.get("lod") or {}
+    manifest = {
+        "format": MANIFEST_FORMAT, "base": BASE_FILE, "sh_degree": sh_degree,
+        "time_range": json.loads(md["time_range"]), "background": json.loads(md["background"]),
+        "bytes_per_gaussian": per_gaussian,
+        "field_bytes": len(data) - sizes[0] * per_gaussian,
+        "train_downscales": list(lod.get("downscales", [])),
+        "layers": entries,
+    }
+    for name, blob in blobs:
+        atomic_write(out_dir / name, blob)
+    for stale in sorted(out_dir.glob("layer_*.bin")):
+        if stale.name not in {b[0] for b in blobs}:
+            stale.unlink()
+    atomic_write(out_dir / MANIFEST, (json.dumps(manifest, indent=1) + "\n").encode())
+    return SplitReport(out_dir, manifest, parity, _time.perf_counter() - start)
+
+
+__all__ = ["INPUT_NAMES", "SplitBaseGraph", "SplitReport", "canonical_arrays", "deform_arrays",
+           "export_split_layers", "export_split_model"]

@@ -1,0 +1,431 @@
+"""`nehad report RUN -o report.html`: one self-contained HTML page about a training run.
+
+Sections: summary; training curves (loss, PSNR, Gaussian count from RUN/metrics.jsonl, PNG plots
+drawn by :mod:`nehad.viz.plots`); metrics table (RUN/eval_*/metrics.json, written by
+`nehad eval`); test renders beside ground truth with their PSNR and an error map; Gaussian
+trajectories; the BED static/dynamic split (weight renders, dynamic fraction over time, score
+against the moving objects); the resolved config.
+
+Every image is an inline ``data:image/png;base64`` URI: the page needs no other file and no
+network. A tiny inline script records, once the page has loaded, how many images the browser
+decoded (``<html data-images-total=.. data-images-ok=..>``) so that a headless browser check can
+read it from the DOM (scripts/check_report_browser.sh). A section whose inputs are missing (no
+eval yet, dataset moved, no ground truth) says so instead of failing the report.
+"""
+
+from __future__ import annotations
+
+import base64
+import datetime as _dt
+import html
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from . import VizError
+from .plots import PALETTE, colormap, ema, encode_png, line_plot, to_uint8
+
+_CSS = """
+body{font-family:system-ui,-apple-system,Segoe UI,Roboto,Helvetica,Arial,sans-serif;margin:0;
+ color:#222;background:#fafafa}
+main{max-width:1180px;margin:0 auto;padding:16px 24px 48px}
+h1{font-size:1.6em;margin:.4em 0 .1em}h2{font-size:1.25em;margin:1.6em 0 .5em;
+ border-bottom:1px solid #ddd;padding-bottom:.2em}
+.sub{color:#666;margin:0 0 1em}
+table{border-collapse:collapse;margin:.5em 0;font-size:.92em;background:#fff}
+th,td{border:1px solid #ddd;padding:4px 9px;text-align:right}
+th{background:#f0f0f0}td.l,th.l{text-align:left}
+.grid{display:flex;flex-wrap:wrap;gap:14px;align-items:flex-start}
+figure{margin:0;background:#fff;border:1px solid #e3e3e3;padding:6px}
+figure img{display:block;max-width:100%;height:auto;image-rendering:auto}
+figcaption{font-size:.85em;color:#555;margin-top:4px;max-width:640px}
+.note{color:#8a5a00;background:#fff7e6;border:1px solid #f0d9a8;padding:6px 10px;
+ display:inline-block}
+pre{background:#fff;border:1px solid #e3e3e3;padding:10px;overflow:auto;font-size:.85em}
+.row{display:flex;gap:4px}
+"""
+
+_SCRIPT = """
+window.addEventListener('load', function () {
+  var imgs = document.images, ok = 0;
+  for (var i = 0; i < imgs.length; i++) {
+    if (imgs[i].complete && imgs[i].naturalWidth > 0) ok++;
+  }
+  document.documentElement.setAttribute('data-images-total', String(imgs.length));
+  document.documentElement.setAttribute('data-images-ok', String(ok));
+});
+"""
+
+
+def _e(x) -> str:
+    return html.escape(str(x), quote=True)
+
+
+def img_tag(image, alt: str, max_side: int | None = None, min_height: int = 0) -> str:
+    """An <img> with the PNG inlined (float [0, 1] or uint8 RGB), downsized to `max_side`; an
+    image lower than `min_height` is shown enlarged by an integer factor (pixelated, the PNG
+    keeps its pixels)."""
+    a = to_uint8(image)
+    if max_side is not None and max(a.shape[:2]) > max_side:
+        import cv2
+
+        f = max_side / max(a.shape[:2])
+        a = cv2.resize(a, (max(1, round(a.shape[1] * f)), max(1, round(a.shape[0] * f))),
+                       interpolation=cv2.INTER_AREA)
+    data = base64.b64encode(encode_png(a)).decode("ascii")
+    h, w = a.shape[:2]
+    k = max(1, -(-int(min_height) // h)) if min_height else 1
+    style = (f' style="width:{w * k}px;height:{h * k}px;image-rendering:pixelated"'
+             if k > 1 else "")
+    return (f'<img src="data:image/png;base64,{data}" alt="{_e(alt)}" width="{w}" '
+            f'height="{h}"{style}>')
+
+
+def figure(image, caption: str, alt: str | None = None, max_side: int | None = None,
+           min_height: int = 0) -> str:
+    return (f"<figure>{img_tag(image, alt or caption, max_side, min_height)}"
+            f"<figcaption>{_e(caption)}</figcaption></figure>")
+
+
+def table(header, rows, left_cols: int = 1) -> str:
+    def cell(tag, v, i):
+        cls = ' class="l"' if i < left_cols else ""
+        return f"<{tag}{cls}>{_e(v)}</{tag}>"
+
+    out = ["<table><tr>" + "".join(cell("th", h, i) for i, h in enumerate(header)) + "</tr>"]
+    for r in rows:
+        out.append("<tr>" + "".join(cell("td", v, i) for i, v in enumerate(r)) + "</tr>")
+    out.append("</table>")
+    return "".join(out)
+
+
+def note(text: str) -> str:
+    return f'<p class="note">{_e(text)}</p>'
+
+
+def _fmt(v, digits: int = 3) -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "n/a"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    return f"{float(v):.{digits}f}"
+
+
+def read_log(run: Path) -> list[dict]:
+    """The records of RUN/metrics.jsonl (bad lines, e.g. a torn last line, are skipped)."""
+    path = Path(run) / "metrics.jsonl"
+    if not path.is_file():
+        return []
+    out = []
+    for line in path.read_text().splitlines():
+        try:
+            rec = json.loads(line)
+        except ValueError:
+            continue
+        if isinstance(rec, dict) and "step" in rec:
+            out.append(rec)
+    return out
+
+
+def training_plots(records: list[dict], fine_start: int | None) -> list[tuple[str, np.ndarray]]:
+    """(caption, image) for loss, PSNR and Gaussian count over the logged steps."""
+    if not records:
+        return []
+    steps = np.array([r["step"] for r in records], np.float64)
+    col = lambda k: np.array([float(r.get(k, np.nan)) for r in records], np.float64)
+    vl = [(fine_start, "fine stage")] if fine_start else []
+    alpha = min(1.0, 20.0 / max(len(records), 1))
+    loss, psnr, count = col("loss"), col("psnr"), col("gaussians")
+    grey = (175, 175, 175)
+    out = [("Training loss (0.8 L1 + 0.2 D-SSIM + regularisers) of the logged steps; log scale",
+            line_plot([{"x": steps, "y": loss, "label": "loss", "color": grey, "width": 1},
+                       {"x": steps, "y": ema(loss, alpha), "label": "loss (EMA)",
+                        "color": PALETTE[1]}],
+                      title="Loss", xlabel="step", ylabel="loss", logy=True, vlines=vl)),
+           ("PSNR of the training view(s) of each logged step (not a held-out score)",
+            line_plot([{"x": steps, "y": psnr, "label": "train PSNR", "color": grey, "width": 1},
+                       {"x": steps, "y": ema(psnr, alpha), "label": "train PSNR (EMA)",
+                        "color": PALETTE[0]}],
+                      title="PSNR", xlabel="step", ylabel="PSNR (dB)", vlines=vl))]
+    if np.isfinite(count).any():
+        out.append(("Number of Gaussians (densification and pruning)",
+                    line_plot([{"x": steps, "y": count, "label": "Gaussians", "color": PALETTE[2]}],
+                              title="Gaussians", xlabel="step", ylabel="count", vlines=vl)))
+    return out
+
+
+def _eval_results(run: Path) -> list[dict]:
+    out = []
+    for p in sorted(Path(run).glob("eval_*/metrics.json")):
+        try:
+            out.append(json.loads(p.read_text()))
+        except (OSError, ValueError):
+            continue
+    return out
+
+
+def metrics_section(run: Path) -> str:
+    results = _eval_results(run)
+    if not results:
+        return note(f"No evaluation yet: run `nehad eval {run}` for PSNR, SSIM, MS-SSIM, D-SSIM, "
+                    f"LPIPS and FPS.")
+    keys = (("psnr", "PSNR", 2), ("ssim", "SSIM", 4), ("ms_ssim", "MS-SSIM", 4),
+            ("d_ssim", "D-SSIM", 4), ("lpips_alex", "LPIPS-alex", 4), ("lpips_vgg", "LPIPS-vgg", 4))
+    rows = []
+    for r in results:
+        m = r.get("mean", {})
+        res = r.get("resolution") or ["?", "?"]
+        threads = (r.get("fps_threads") or {}).get("numba")
+        rows.append([r.get("split", "?"), r.get("frames", "?"), f"{res[0]}x{res[1]}"]
+                    + [_fmt(m.get(k), d) for k, _, d in keys]
+                    + [f"{_fmt(r.get('fps'), 1)}" + (f" ({threads} thr)" if threads else "")])
+    parts = [table(["split", "frames", "size"] + [lab for _, lab, _ in keys] + ["FPS"], rows, 1)]
+    lp = results[0].get("lpips_input")
+    if lp:
+        parts.append(f"<p class=sub>LPIPS input: {_e(lp)}. From RUN/eval_SPLIT/metrics.json.</p>")
+    for r in results:
+        pf = r.get("per_frame") or []
+        if pf:
+            rows = [[p.get("file", p.get("frame")), _fmt(p.get("time"), 3)]
+                    + [_fmt(p.get(k), d) for k, _, d in keys] for p in pf]
+            parts.append(f"<details><summary>per frame ({_e(r.get('split'))}, {len(pf)})</summary>"
+                         + table(["file", "t"] + [lab for _, lab, _ in keys], rows, 1)
+                         + "</details>")
+    return "".join(parts)
+
+
+def _psnr(a, b) -> float:
+    mse = float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
+    return float("inf") if mse == 0 else -10.0 * math.log10(mse)
+
+
+def _error_map(render, gt) -> np.ndarray:
+    err = np.abs(np.asarray(render, np.float32) - np.asarray(gt, np.float32)).mean(-1)
+    scale = max(float(np.percentile(err, 99.5)), 1e-3)
+    return colormap(np.clip(err / scale, 0, 1).reshape(-1), "inferno").reshape(err.shape + (3,))
+
+
+def _pick(n_total: int, n: int) -> list[int]:
+    if n <= 0 or n_total <= 0:
+        return []
+    if n >= n_total:
+        return list(range(n_total))
+    return sorted({int(round(i)) for i in np.linspace(0, n_total - 1, n)})
+
+
+def build_report(run_dir, output, data_dir=None, frames: int = 4, score: bool = True,
+                 max_side: int = 480, track_count: int = 300, log=None) -> dict:
+    """Write the report of `run_dir` to `output` (atomically). Returns {"bytes", "images",
+    "sections", "skipped": {section: reason}}."""
+    from nehad import __version__
+    from nehad.config import config_from_dict
+    from nehad.data.dnerf import DatasetError, load_dnerf
+    from nehad.runtime.images import atomic_path
+    from nehad.runtime.raster import render
+    from nehad.trainer import RunError, cloud_at, load_run
+
+    from .masks import (bed_status, bed_weights, dynamic_fraction, format_scores, fraction_plot,
+                        render_weights, score_run, truth_image, weight_image)
+    from .trajectories import compute_tracks, track_times, trajectory_image
+
+    say = log or (lambda m: None)
+    run = Path(run_dir)
+    model, meta = load_run(run)
+    cfg = config_from_dict(meta["config"])
+    degree = int(meta["sh_degree"])
+    bg = tuple(float(v) for v in meta["background"])
+    lo, hi = (float(v) for v in meta["time_range"])
+    n_gauss = len(model.gaussians)
+    records = read_log(run)
+    sections: list[tuple[str, str, str]] = []  # (id, title, html)
+    skipped: dict[str, str] = {}
+    expected = (VizError, DatasetError, RunError, OSError)
+
+    def gaussians_at(t):
+        return cloud_at(model, float(t), degree)
+
+    def fit(cam):  # pictures rendered with the longest side max_side (up or down)
+        s = max(cam.width, cam.height)
+        return cam.with_size(max(1, round(cam.width * max_side / s)),
+                             max(1, round(cam.height * max_side / s)))
+
+    # -- summary
+    last = records[-1] if records else {}
+    evals = _eval_results(run)
+    rows = [["run", str(run.resolve())], ["dataset", meta.get("data_dir", "?")],
+            ["preset", cfg.preset], ["decoder", cfg.field.decoder],
+            ["steps", f"{meta.get('steps', '?')} ({cfg.coarse.iterations} coarse + "
+                      f"{cfg.fine.iterations} fine)"],
+            ["Gaussians", str(n_gauss)], ["SH degree", str(degree)],
+            ["time range", f"[{lo:g}, {hi:g}]"], ["background", ",".join(f"{v:g}" for v in bg)]]
+    if last:
+        rows.append(["last logged train PSNR", f"{_fmt(last.get('psnr'), 2)} dB (step "
+                                               f"{last.get('step')})"])
+        if "seconds" in last:
+            rows.append(["training time", f"{float(last['seconds']) / 60:.1f} min"])
+    for r in evals:
+        m = r.get("mean", {})
+        rows.append([f"{r.get('split')} PSNR / SSIM / LPIPS-alex",
+                     f"{_fmt(m.get('psnr'), 2)} dB / {_fmt(m.get('ssim'), 4)} / "
+                     f"{_fmt(m.get('lpips_alex'), 4)}"])
+    sections.append(("summary", "Summary", table(["", ""], rows, 2)))
+
+    # -- curves
+    say("report: training curves")
+    plots = training_plots(records, cfg.coarse.iterations if cfg.fine.iterations else None)
+    if plots:
+        body = '<div class="grid">' + "".join(figure(img, cap) for cap, img in plots) + "</div>"
+    else:
+        body = note(f"{run}/metrics.jsonl has no records")
+        skipped["curves"] = "no metrics.jsonl records"
+    sections.append(("curves", "Training curves", body))
+
+    # -- metrics
+    sections.append(("metrics", "Metrics", metrics_section(run)))
+    if not evals:
+        skipped["metrics"] = "no eval_*/metrics.json"
+
+    # -- test renders
+    test_frames, first_cam = [], None
+    try:
+        from .masks import default_data_dir
+
+        data = default_data_dir(meta, data_dir)
+        scene = load_dnerf(data, splits=("test",), background=bg, downscale=cfg.data.downscale)
+        test_frames = scene.frames["test"]
+        first_cam = test_frames[0].camera if test_frames else None
+    except expected as e:
+        skipped["renders"] = str(e)
+    if test_frames:
+        say("report: test renders")
+        figs, psnrs = [], []
+        for i in _pick(len(test_frames), frames):
+            fr = test_frames[i]
+            rgb = render(gaussians_at(fr.camera.time), fr.camera, background=bg).rgb
+            p = _psnr(rgb, fr.image)
+            psnrs.append(p)
+            trio = np.concatenate([fr.image, np.ones((fr.image.shape[0], 4, 3), np.float32),
+                                   rgb, np.ones((fr.image.shape[0], 4, 3), np.float32),
+                                   _error_map(rgb, fr.image)], axis=1)
+            figs.append(figure(trio, f"{fr.path.name}, t = {fr.camera.time:.3f}: ground truth | "
+                                     f"render | |error| (inferno, 99.5th pct = top); "
+                                     f"PSNR {p:.2f} dB", max_side=3 * max_side,
+                               min_height=min(200, max_side)))
+        body = ('<div class="grid">' + "".join(figs) + "</div>"
+                + f"<p class=sub>{len(figs)} of {len(test_frames)} test frames at "
+                  f"{test_frames[0].camera.width}x{test_frames[0].camera.height}; mean PSNR of "
+                  f"these {np.mean(psnrs):.2f} dB.</p>")
+    else:
+        body = note(f"No test renders: {skipped.get('renders', 'the test split is empty')}")
+    sections.append(("renders", "Test renders beside ground truth", body))
+
+    # -- trajectories
+    cam = fit(first_cam) if first_cam is not None else None
+    if cam is not None:
+        say("report: trajectories")
+        try:
+            times = track_times((lo, hi), 32)
+            tracks = compute_tracks(gaussians_at, cam, times, count=track_count)
+            img = trajectory_image(gaussians_at, cam, tracks, bg)
+            pl = tracks.path_length
+            still = (" No tracked Gaussian moves (a coarse-only run, or a field that learned no "
+                     "motion)." if float(pl.max()) == 0.0 else "")
+            body = figure(img, f"{len(tracks)} Gaussians (favouring those that move) tracked at "
+                               f"{len(times)} times in [{lo:g}, {hi:g}], over the render at "
+                               f"t = {lo:g}; colour = time (blue early, red late), dot = final "
+                               f"position. Path length median {np.median(pl):.3g}, max "
+                               f"{pl.max():.3g} world units.{still}")
+        except expected as e:
+            body = note(f"No trajectories: {e}")
+            skipped["trajectories"] = str(e)
+    else:
+        body = note("No trajectories: no camera (the dataset's test split was not found)")
+        skipped["trajectories"] = "no camera"
+    sections.append(("trajectories", "Gaussian trajectories", body))
+
+    # -- BED masks
+    why = bed_status(model)
+    if why is not None:
+        body = note(f"No BED split: {why}.")
+        skipped["masks"] = why
+    else:
+        say("report: BED masks")
+        parts = []
+        if cam is not None:
+            figs = []
+            for t in (lo, 0.5 * (lo + hi), hi):
+                w = bed_weights(model, t)
+                wmap, alpha = render_weights(gaussians_at(t), w, cam)
+                figs.append(figure(weight_image(wmap, alpha, bg),
+                                   f"t = {t:g}: {float((w > 0.5).mean()):.1%} of the Gaussians "
+                                   f"dynamic (w > 0.5)"))
+            parts.append('<div class="grid">' + "".join(figs) + "</div>")
+        times = track_times((lo, hi), 41)
+        frac = dynamic_fraction(model, times)
+        mean_w = dynamic_fraction(model, times, weighted=True)
+        parts.append('<div class="grid">' + figure(
+            fraction_plot(times, frac, 0.5, mean_w),
+            "Fraction of Gaussians with BED weight w = 1 - M_pos > 0.5, and the mean weight, over "
+            "time") + "</div>")
+        if score and test_frames:
+            say("report: scoring the split against the moving objects")
+            try:
+                res = score_run(run, "test", data_dir, model=model, meta=meta, keep_maps=2)
+                s = res["summary"]
+                parts.append(table(
+                    ["IoU", "precision", "recall", "AUC", "mean w (moving)", "mean w (static fg)",
+                     "frames"],
+                    [[_fmt(s["iou"]), _fmt(s["precision"]), _fmt(s["recall"]), _fmt(s["auc"]),
+                      _fmt(s["mean_weight_moving"]), _fmt(s["mean_weight_static"]),
+                      res["frames"]]], 0))
+                parts.append(f"<pre>{_e(format_scores(res))}</pre>")
+                figs = []
+                for m in res.get("maps", []):
+                    fr = m["frame"]
+                    pair = np.concatenate([truth_image(m["moving"], m["static"], bg),
+                                           np.ones((m["moving"].shape[0], 4, 3), np.float32),
+                                           weight_image(m["weight_map"], m["alpha"], bg,
+                                                        legend=False)], axis=1)
+                    figs.append(figure(pair, f"{fr.path.name}, t = {fr.camera.time:.3f}: ground "
+                                             f"truth (red moving objects, blue static foreground)"
+                                             f" | BED weight render", max_side=2 * max_side,
+                                       min_height=min(200, max_side)))
+                parts.append('<div class="grid">' + "".join(figs) + "</div>")
+            except expected as e:
+                parts.append(note(f"No score: {e}"))
+                skipped["score"] = str(e)
+        elif score:
+            skipped["score"] = "no test frames"
+        body = "".join(parts)
+    sections.append(("masks", "BED static/dynamic split", body))
+
+    # -- config
+    cfg_path = run / "config.yaml"
+    cfg_text = cfg_path.read_text() if cfg_path.is_file() else json.dumps(meta["config"], indent=1)
+    sections.append(("config", "Config", f"<details open><summary>{_e(cfg_path.name)}</summary>"
+                                         f"<pre>{_e(cfg_text)}</pre></details>"))
+
+    # -- page
+    now = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
+    nav = " · ".join(f'<a href="#{sid}">{_e(title)}</a>' for sid, title, _ in sections)
+    body = "".join(f'<section id="{sid}"><h2>{_e(title)}</h2>{content}</section>'
+                   for sid, title, content in sections)
+    page = (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+            f"<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
+            f"<title>NeHaD report: {_e(run.name)}</title><style>{_CSS}</style>"
+            f"<script>{_SCRIPT}</script></head><body><main>"
+            f"<h1>NeHaD report: {_e(run.name)}</h1>"
+            f"<p class=sub>nehad {_e(__version__)}, written {_e(now)}. {nav}</p>"
+            f"{body}</main></body></html>\n")
+    data = page.encode("utf-8")
+    output = Path(output)
+    with atomic_path(output, VizError) as tmp:
+        Path(tmp).write_bytes(data)
+    return {"bytes": len(data), "images": page.count("<img "),
+            "sections": [sid for sid, _, _ in sections], "skipped": skipped}
+
+
+__all__ = ["build_report", "figure", "img_tag", "metrics_section", "read_log", "table",
+           "training_plots"]

@@ -1,0 +1,475 @@
+"""`nehad batch jobs.yaml`: many videos and still renders from one file (issue 5, SPEC section 10).
+
+::
+
+    # jobs.yaml -- relative paths are relative to this file's folder
+    workers: 2                    # optional: local pool size (the CLI's --workers wins)
+    # scheduler: tcp://host:8786  # optional: a Dask cluster instead (the CLI's --scheduler wins)
+    defaults:                     # optional: keys every job gets unless it sets them
+      model: model.onnx
+      size: 400x400
+    jobs:
+      - name: orbit               # optional (default job1, job2, ...)
+        output: out/orbit.mp4     # .mp4: a video job
+        path: orbit:elevation=30
+        frames: 120
+        fps: 30
+        time: 0:1
+      - name: test-views
+        output: out/test.mp4
+        path: data/scene:test
+        side_by_side: true
+      - name: still
+        output: out/still.png     # an image suffix: an image job
+        view: data/scene/transforms_test.json:0
+        time: 0.5
+
+Keys of a video job: ``name, type, model, output, path, time, frames, fps, size, background,
+frames_dir, frame_format, side_by_side, crf, extrapolate``; of an image job: ``name, type, model,
+output, view, time, size, background, extrapolate``. ``type`` (video or image) follows from the
+output's suffix when absent. ``time`` is a number (freeze), ``"A:B"`` or ``[A, B]`` (sweep) or
+``own``; ``size`` is ``"WxH"`` or ``[W, H]``; ``background`` is ``[R, G, B]`` or ``"R,G,B"``.
+
+:func:`load_batch` checks the whole file before anything runs and raises :class:`BatchError`
+naming the job and the key. :func:`run_batch` runs the jobs one after the other on one backend (a
+pool or a Dask client shared by all jobs, so each worker loads a model once); a failing job is
+reported and the others go on.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import re
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+__all__ = ["BatchError", "BatchSpec", "BatchJob", "JobResult", "load_batch", "run_batch",
+           "format_summary", "VIDEO_KEYS", "IMAGE_KEYS", "TOP_KEYS"]
+
+TOP_KEYS = ("jobs", "defaults", "workers", "scheduler", "threads")
+VIDEO_KEYS = ("name", "type", "model", "output", "path", "time", "frames", "fps", "size",
+              "background", "frames_dir", "frame_format", "side_by_side", "crf", "extrapolate")
+IMAGE_KEYS = ("name", "type", "model", "output", "view", "time", "size", "background",
+              "extrapolate")
+ALL_KEYS = tuple(dict.fromkeys(VIDEO_KEYS + IMAGE_KEYS))
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff")
+
+
+class BatchError(ValueError):
+    """A jobs file that cannot be used; the message names the file, the job and the key."""
+
+
+@dataclass
+class BatchJob:
+    """One checked job: `type` video or image, `settings` its keys with values converted."""
+
+    index: int
+    name: str
+    type: str
+    settings: dict
+
+
+@dataclass
+class BatchSpec:
+    path: Path
+    jobs: list[BatchJob]
+    workers: int | None = None
+    scheduler: str | None = None
+    threads: int | None = None
+
+
+@dataclass
+class JobResult:
+    job: BatchJob
+    ok: bool
+    frames: int = 0
+    rendered: int = 0
+    seconds: float = 0.0
+    output: str = ""
+    error: str = ""
+    details: dict = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------------------------------------
+# loading and checking
+
+
+def _suggest(key: str, allowed) -> str:
+    close = difflib.get_close_matches(key, list(allowed), n=1)
+    return f"; did you mean {close[0]!r}?" if close else f" (allowed: {', '.join(allowed)})"
+
+
+class _Where:
+    def __init__(self, source: str, index: int | None, name: str | None):
+        self.source, self.index, self.name = source, index, name
+
+    def err(self, key: str | None, problem: str) -> BatchError:
+        if self.index is None:
+            where = f"{self.source}: defaults"
+        else:
+            label = f"job {self.name!r} (jobs[{self.index}])" if self.name else f"jobs[{self.index}]"
+            where = f"{self.source}: {label}"
+        return BatchError(f"{where}: {key}: {problem}" if key else f"{where}: {problem}")
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_num(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _convert(key: str, value, w: _Where, base: Path):
+    """The value of one job key, checked and converted (paths made absolute against `base`)."""
+    from .paths import PathError, parse_time_spec
+
+    def path_value():
+        if not isinstance(value, str) or not value.strip():
+            raise w.err(key, f"expected a file path, got {value!r}")
+        p = Path(value).expanduser()
+        return p if p.is_absolute() else base / p
+
+    if key in ("name", "type"):
+        if not isinstance(value, str) or not value.strip():
+            raise w.err(key, f"expected a non-empty string, got {value!r}")
+        if key == "type" and value not in ("video", "image"):
+            raise w.err(key, f"expected video or image, got {value!r}")
+        return value.strip()
+    if key in ("model", "output", "frames_dir"):
+        return path_value()
+    if key in ("path", "view"):
+        if not isinstance(value, str) or not value.strip():
+            raise w.err(key, f"expected a camera path string, got {value!r}")
+        return _resolve_spec(value.strip(), base)
+    if key == "time":
+        if isinstance(value, (list, tuple)):
+            if len(value) != 2 or not all(_is_num(v) for v in value):
+                raise w.err(key, f"expected [A, B] with two numbers, got {value!r}")
+            return f"{float(value[0])!r}:{float(value[1])!r}"
+        if _is_num(value):
+            return repr(float(value))
+        if isinstance(value, str):
+            try:
+                parse_time_spec(value)
+            except PathError as e:
+                raise w.err(key, str(e)) from None
+            return value
+        raise w.err(key, f"expected a time T, a sweep 'A:B' or [A, B], or own; got {value!r}")
+    if key == "frames":
+        if not _is_int(value) or value < 1:
+            raise w.err(key, f"expected a whole number >= 1, got {value!r}")
+        return int(value)
+    if key == "fps":
+        if not _is_num(value) or not 0 < value <= 1000:
+            raise w.err(key, f"expected a number in (0, 1000], got {value!r}")
+        return float(value)
+    if key == "crf":
+        if not _is_int(value) or not 0 <= value <= 51:
+            raise w.err(key, f"expected a whole number in 0..51, got {value!r}")
+        return int(value)
+    if key == "size":
+        if isinstance(value, (list, tuple)):
+            if len(value) != 2 or not all(_is_int(v) for v in value):
+                raise w.err(key, f"expected [W, H] in pixels, got {value!r}")
+            value = f"{value[0]}x{value[1]}"
+        if not isinstance(value, str):
+            raise w.err(key, f"expected WxH (e.g. 400x400), got {value!r}")
+        try:
+            return parse_size(value)
+        except ValueError as e:
+            raise w.err(key, str(e)) from None
+    if key == "background":
+        if _is_num(value):
+            value = [value] * 3
+        if isinstance(value, (list, tuple)):
+            if len(value) != 3 or not all(_is_num(v) for v in value):
+                raise w.err(key, f"expected [R, G, B] in [0, 1], got {value!r}")
+            value = ",".join(repr(float(v)) for v in value)
+        if not isinstance(value, str):
+            raise w.err(key, f"expected [R, G, B] in [0, 1], got {value!r}")
+        try:
+            return parse_background(value)
+        except ValueError as e:
+            raise w.err(key, str(e)) from None
+    if key == "frame_format":
+        if value not in ("png", "exr"):
+            raise w.err(key, f"expected png or exr, got {value!r}")
+        return value
+    if key in ("side_by_side", "extrapolate"):
+        if not isinstance(value, bool):
+            raise w.err(key, f"expected true or false, got {value!r}")
+        return value
+    raise w.err(key, "unknown key" + _suggest(key, ALL_KEYS))  # pragma: no cover
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``"WxH"`` in pixels (1..32768 each)."""
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", str(text))
+    if not m or not all(1 <= int(v) <= 32768 for v in m.groups()):
+        raise ValueError(f"{text!r}: expected WIDTHxHEIGHT in pixels (1..32768), e.g. 400x400")
+    return int(m.group(1)), int(m.group(2))
+
+
+def parse_background(text: str) -> tuple[float, float, float]:
+    """``"R,G,B"``, each in [0, 1]."""
+    parts = [p.strip() for p in str(text).split(",")]
+    try:
+        values = tuple(float(p) for p in parts)
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) and 0 <= v <= 1 for v in values):
+        raise ValueError(f"{text!r}: expected three values R,G,B in [0, 1]")
+    return values
+
+
+def _resolve_spec(spec: str, base: Path) -> str:
+    """Make the file paths inside a camera-path spec absolute against `base`."""
+    kind = spec.partition(":")[0].lower()
+    if kind in ("orbit", "spiral"):
+        def fix(m):
+            p = Path(m.group(2)).expanduser()
+            return m.group(1) + str(p if p.is_absolute() else base / p)
+
+        return re.sub(r"(\bfrom=)([^,\]]+)", fix, spec)
+    if spec.lower() == "default":
+        return spec
+    p = Path(spec).expanduser()
+    return str(p if p.is_absolute() else base / p)
+
+
+def _job_type(settings: dict, w: _Where) -> str:
+    if "type" in settings:
+        return settings["type"]
+    out = settings.get("output")
+    if out is not None:
+        suffix = Path(out).suffix.lower()
+        if suffix == ".mp4":
+            return "video"
+        if suffix in IMAGE_SUFFIXES:
+            return "image"
+        raise w.err("output", f"{out.name}: expected a .mp4 video or an image "
+                              f"({', '.join(IMAGE_SUFFIXES)}), or give type")
+    if "frames_dir" in settings:
+        return "video"
+    raise w.err("output", "missing (a .mp4 video or an image file)")
+
+
+def load_batch(path) -> BatchSpec:
+    """Read and check a jobs file (module doc); raises :class:`BatchError`."""
+    import yaml
+
+    path = Path(path)
+    source = str(path)
+    if not path.is_file():
+        raise BatchError(f"{source}: no such jobs file")
+    try:
+        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
+        problem = getattr(e, "problem", None) or str(e)
+        raise BatchError(f"{source}: malformed YAML{where}: {problem}") from None
+    except (OSError, UnicodeDecodeError) as e:
+        raise BatchError(f"{source}: cannot read ({e})") from None
+    if not isinstance(doc, dict):
+        raise BatchError(f"{source}: expected a mapping with a 'jobs' list at the top level")
+    for key in doc:
+        if key not in TOP_KEYS:
+            raise BatchError(f"{source}: unknown top-level key {key!r}" + _suggest(str(key), TOP_KEYS))
+    base = path.parent.absolute()
+    workers = doc.get("workers")
+    if workers is not None and (not _is_int(workers) or workers < 1):
+        raise BatchError(f"{source}: workers: expected a whole number >= 1, got {workers!r}")
+    threads = doc.get("threads")
+    if threads is not None and (not _is_int(threads) or threads < 1):
+        raise BatchError(f"{source}: threads: expected a whole number >= 1, got {threads!r}")
+    scheduler = doc.get("scheduler")
+    if scheduler is not None and (not isinstance(scheduler, str) or "://" not in scheduler):
+        raise BatchError(f"{source}: scheduler: expected an address like tcp://HOST:8786, got "
+                         f"{scheduler!r}")
+    defaults_raw = doc.get("defaults") or {}
+    if not isinstance(defaults_raw, dict):
+        raise BatchError(f"{source}: defaults: expected a mapping of job keys")
+    wd = _Where(source, None, None)
+    defaults = {}
+    for key, value in defaults_raw.items():
+        if key not in ALL_KEYS or key in ("name", "type", "output"):
+            allowed = [k for k in ALL_KEYS if k not in ("name", "type", "output")]
+            raise wd.err(str(key), "not a key defaults can set" + _suggest(str(key), allowed))
+        defaults[key] = _convert(key, value, wd, base)
+    jobs_raw = doc.get("jobs")
+    if not isinstance(jobs_raw, list) or not jobs_raw:
+        raise BatchError(f"{source}: jobs: expected a non-empty list of jobs")
+    jobs, names, outputs = [], {}, {}
+    for i, raw in enumerate(jobs_raw):
+        name = raw.get("name") if isinstance(raw, dict) else None
+        w = _Where(source, i, name if isinstance(name, str) else None)
+        if not isinstance(raw, dict):
+            raise w.err(None, f"expected a mapping of keys, got {type(raw).__name__}")
+        settings = {}
+        for key, value in raw.items():
+            if not isinstance(key, str) or key not in ALL_KEYS:
+                raise w.err(str(key), "unknown key" + _suggest(str(key), ALL_KEYS))
+            settings[key] = _convert(key, value, w, base)
+        kind = _job_type({**defaults, **settings}, w)
+        allowed = VIDEO_KEYS if kind == "video" else IMAGE_KEYS
+        for key in settings:
+            if key not in allowed:
+                raise w.err(key, f"does not apply to {'an image' if kind == 'image' else 'a video'} job"
+                            + _suggest(key, allowed))
+        merged = {k: v for k, v in defaults.items() if k in allowed}
+        merged.update(settings)
+        if "model" not in merged:
+            raise w.err("model", "missing (set it in the job or in defaults)")
+        if kind == "image" and "output" not in merged:
+            raise w.err("output", "missing (the image to write)")
+        if kind == "video" and "output" not in merged and "frames_dir" not in merged:
+            raise w.err("output", "missing (a .mp4, or frames_dir for frames only)")
+        if kind == "video" and "output" in merged and merged["output"].suffix.lower() != ".mp4":
+            raise w.err("output", f"{merged['output'].name}: a video job writes a .mp4")
+        if kind == "image" and merged["output"].suffix.lower() not in IMAGE_SUFFIXES:
+            raise w.err("output", f"{merged['output'].name}: an image job writes "
+                                  f"{', '.join(IMAGE_SUFFIXES)}")
+        if kind == "video" and merged.get("side_by_side") and "path" not in merged:
+            raise w.err("side_by_side", "needs a dataset path with ground truth (path: DATA:test)")
+        name = merged.pop("name", None) or f"job{i + 1}"
+        merged.pop("type", None)
+        if name in names:
+            raise w.err("name", f"{name!r} is also the name of jobs[{names[name]}]")
+        names[name] = i
+        for key in ("output", "frames_dir"):
+            if key in merged:
+                target = str(merged[key])
+                if target in outputs:
+                    raise w.err(key, f"{merged[key]} is also written by job {outputs[target]!r}")
+                outputs[target] = name
+        jobs.append(BatchJob(i, name, kind, merged))
+    return BatchSpec(path, jobs, workers, scheduler, threads)
+
+
+# ---------------------------------------------------------------------------------------------
+# running
+
+
+def _video_job(job: BatchJob):
+    from .video import VideoJob
+
+    s = job.settings
+    return VideoJob(model=s["model"], output=s.get("output"), path=s.get("path", "orbit"),
+                    time=s.get("time"), frames=s.get("frames"), size=s.get("size"),
+                    fps=s.get("fps", 30.0), frames_dir=s.get("frames_dir"),
+                    frame_format=s.get("frame_format", "png"),
+                    side_by_side=s.get("side_by_side", False), background=s.get("background"),
+                    extrapolate=s.get("extrapolate", False), crf=s.get("crf", 18), name=job.name)
+
+
+def _image_task(job: BatchJob, resume: bool, threads):
+    """The FrameTask of an image job (one camera at one time)."""
+    from .cameras import load_view
+    from .distribute import FrameTask
+    from .paths import PathError, check_time, parse_path_spec, parse_time_spec
+    from .video import VideoError, scene_reference
+
+    s = job.settings
+    out = Path(s["output"])
+    if not out.parent.is_dir():
+        raise VideoError(f"output {out}: folder {out.parent} does not exist")
+    view = s.get("view", "default")
+    spec = parse_path_spec(view)
+    ref, default_bg = scene_reference(s["model"])
+    if spec.kind == "default":
+        if ref.default_camera is None:
+            raise PathError(f"view {view}: the scene has no default camera; give a camera file")
+        cam = ref.default_camera
+    elif spec.kind == "file":
+        cam = load_view(spec.file)
+        if isinstance(cam, list):
+            if len(cam) != 1:
+                raise PathError(f"view {view}: holds {len(cam)} cameras; pick one with FILE:K")
+            cam = cam[0]
+    else:
+        raise PathError(f"view {view}: an image job needs one camera (a camera file, FILE:K or "
+                        f"default)")
+    t = None
+    if ref.time_range is not None:
+        tspec = parse_time_spec(s["time"]) if "time" in s else None
+        if tspec is not None and tspec.mode == "sweep":
+            raise PathError(f"time {s['time']}: an image job renders one time T")
+        t = tspec.start if tspec is not None and tspec.mode == "freeze" else cam.time
+        if t is None:
+            raise PathError(f"view {view}: the camera has no time; give time: T")
+        t = check_time(t, ref, s.get("extrapolate", False), "time", "extrapolate: true")
+    if s.get("size") is not None:
+        cam = cam.with_size(*s["size"])
+    bg = tuple(s.get("background") or default_bg)
+    return FrameTask(str(Path(s["model"]).absolute()), 0, cam, t, bg, str(out.absolute()),
+                     None, threads, skip_existing=resume)
+
+
+def _one_line(e: BaseException) -> str:
+    return " ".join(str(e).split()) or type(e).__name__
+
+
+def run_batch(spec: BatchSpec, backend, resume: bool = False, progress: bool = True,
+              on_job=None) -> list[JobResult]:
+    """Run every job of `spec` on `backend`; a job's failure is recorded and the next one runs.
+    `on_job(result)` is called after each job. KeyboardInterrupt stops the batch."""
+    from .cameras import CameraError
+    from .distribute import RenderError
+    from .images import ImageError
+    from .onnx_model import OnnxModelError
+    from .paths import PathError
+    from .ply import PlyError
+    from .video import VideoError, run_video
+
+    user_errors = (VideoError, PathError, CameraError, RenderError, ImageError, OnnxModelError,
+                   PlyError, OSError)
+    results = []
+    for job in spec.jobs:
+        start = time.perf_counter()
+        try:
+            if job.type == "video":
+                rep = run_video(_video_job(job), backend, resume=resume, progress=progress)
+                out = str(rep.output) if rep.output is not None else f"{rep.frames_dir}/"
+                res = JobResult(job, True, rep.frames, rep.rendered,
+                                time.perf_counter() - start, out)
+            else:
+                task = _image_task(job, resume, None)
+                r = backend.run([task])[0]
+                res = JobResult(job, True, 1, 0 if r.skipped else 1, time.perf_counter() - start,
+                                r.path)
+        except user_errors as e:
+            res = JobResult(job, False, seconds=time.perf_counter() - start, error=_one_line(e))
+        except Exception as e:  # a bug in one job must not stop the others
+            res = JobResult(job, False, seconds=time.perf_counter() - start,
+                            error=f"internal error: {type(e).__name__}: {_one_line(e)}")
+        results.append(res)
+        if on_job:
+            on_job(res)
+    return results
+
+
+def format_summary(results: list[JobResult], cwd: Path | None = None) -> str:
+    """The table `nehad batch` prints: one row per job."""
+    cwd = (cwd or Path.cwd()).absolute()
+
+    def short(p: str) -> str:
+        try:
+            return str(Path(p).relative_to(cwd)) + ("/" if p.endswith("/") else "")
+        except ValueError:
+            return p
+
+    rows = [("job", "type", "frames", "rendered", "seconds", "status", "output / error")]
+    for r in results:
+        rows.append((r.job.name, r.job.type, str(r.frames) if r.ok else "-",
+                     str(r.rendered) if r.ok else "-", f"{r.seconds:.1f}",
+                     "ok" if r.ok else "FAILED", short(r.output) if r.ok else r.error))
+    widths = [max(len(row[c]) for row in rows) for c in range(6)]
+    lines = ["  ".join(row[c].ljust(widths[c]) for c in range(6)) + "  " + row[6] for row in rows]
+    failed = sum(1 for r in results if not r.ok)
+    lines.append(f"{len(results) - failed} of {len(results)} jobs done"
+                 + (f", {failed} failed" if failed else ""))
+    return "\n".join(lines)

@@ -1,0 +1,381 @@
+"""Layered progressive optimisation and streaming export (SPEC 7-8; nehad.lod, nehad.export.layers,
+nehad.runtime.layers): per-layer resolutions, frozen lower layers, opacity threshold, resume
+inside a layer, the `layer` output, ONNX parity of every prefix of layers, chunk checks and the
+fall back to the layers that arrived intact, and `nehad render --lod`."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+onnx = pytest.importorskip("onnx")
+ort = pytest.importorskip("onnxruntime")
+
+from click.testing import CliRunner  # noqa: E402
+
+from nehad.cli.main import main  # noqa: E402
+from nehad.export.onnx_export import export_run, parity_error  # noqa: E402
+from nehad.runtime.layers import (LayeredModel, LayerError, decode_chunk,  # noqa: E402
+                                  encode_chunk)
+from torch_blocker import blocked_torch_env  # noqa: E402
+
+OUTPUTS = ("means", "scales", "quats", "opacities", "sh")
+SETS = ["lod.levels=3", "lod.iterations=12", "coarse.iterations=12", "fine.iterations=12",
+        "densify.start=4", "densify.interval=4", "train.sh_degree_interval=10",
+        "train.checkpoint_interval=1000", "lod.opacity_threshold=0.02"]
+
+
+def _config(extra=()):
+    from nehad.config import build_config
+
+    return build_config("test", None, SETS + list(extra))
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    from nehad.data.synth import synthesize_scene
+
+    root = tmp_path_factory.mktemp("lod")
+    synthesize_scene(root / "scene", resolution=32, frames=8, points=300, seed=1)
+    return root / "scene"
+
+
+@pytest.fixture(scope="module")
+def trained(scene, tmp_path_factory):
+    """A 3-layer run stepped by hand, with snapshots at each layer end; then its model.pt with a
+    clearly non-identity field (random adapters) for the export tests."""
+    from nehad.checkpoint import atomic_torch_save, load_state
+    from nehad.lod import LodTrainer
+
+    run = tmp_path_factory.mktemp("lodrun") / "run"
+    tr = LodTrainer(_config(), scene, run, progress=False)
+    snaps, fields, records = {}, {}, []
+    while tr.step < tr.total_steps:
+        records.append(tr.train_step(tr.step))
+        tr.step += 1
+        for layer in range(tr.levels):
+            if tr.step == tr.layer_end(layer):
+                g = tr.model.gaussians
+                snaps[layer] = {n: getattr(g, n).detach().clone() for n in g.NAMES}
+                fields[layer] = {k: v.clone() for k, v in tr.model.field.state_dict().items()}
+    atomic_torch_save(tr.model_state(), run / "model.pt")
+    state = load_state(run / "model.pt")
+    gen = torch.Generator().manual_seed(3)
+    for name, p in state["field"].items():
+        if name.startswith("adapters."):
+            state["field"][name] = torch.randn(p.shape, generator=gen) * 0.3
+    gs = state["gaussians"]
+    gs["t_eq"] = torch.rand(gs["t_eq"].shape, generator=gen)
+    randomised = run.parent / "random_field"
+    randomised.mkdir()
+    atomic_torch_save(state, randomised / "model.pt")
+    return {"trainer": tr, "run": run, "snaps": snaps, "fields": fields, "records": records,
+            "export_run": randomised}
+
+
+def test_layer_downscales_and_views(trained):
+    from nehad.lod import layer_downscales, layer_ids
+
+    assert layer_downscales(3, 2) == [8, 4, 2] and layer_downscales(1, 1) == [1]
+    assert layer_ids([2, 0, 3]).tolist() == [0, 0, 2, 2, 2]
+    tr = trained["trainer"]
+    sizes = [tr.views_of(k).images[0].shape[:2] for k in range(3)]
+    assert sizes == [(8, 8), (16, 16), (32, 32)]  # 32 px scene: 1/4, 1/2, full
+    # each step trained on its layer's resolution, and the layers follow each other
+    assert [r["layer"] for r in trained["records"]] == [0] * 24 + [1] * 12 + [2] * 12
+    assert tr.total_steps == 48
+
+
+def test_lower_layers_frozen_and_field_shared(trained):
+    tr, snaps = trained["trainer"], trained["snaps"]
+    sizes = tr.layer_sizes
+    assert len(sizes) == 3 and all(n > 0 for n in sizes)
+    print(f"layer sizes {sizes}")
+    g = tr.model.gaussians
+    for layer in (0, 1):
+        n = sum(sizes[:layer + 1])
+        for name in g.NAMES:  # bit-identical after the later layers trained
+            assert torch.equal(getattr(g, name)[:n], snaps[layer][name][:n]), (layer, name)
+    # the field trained in layer 0 only (lod.train_field false)
+    for k, v in trained["fields"][0].items():
+        assert torch.equal(v, trained["fields"][2][k]), k
+    # every kept Gaussian of every layer is at or above the opacity threshold
+    opac = torch.sigmoid(g.opacity_logits.detach())
+    assert float(opac.min()) >= 0.02
+    assert tr.strategy.frozen == len(g) == sum(sizes)
+
+
+def test_model_pt_layers(trained):
+    from nehad.checkpoint import load_state
+
+    state = load_state(trained["run"] / "model.pt")
+    layer = state["layer"]
+    assert layer.dtype == torch.int32 and layer.shape == (len(state["gaussians"]["means"]),)
+    assert np.all(np.diff(layer.numpy()) >= 0)
+    assert np.bincount(layer.numpy()).tolist() == state["lod"]["layer_sizes"]
+    assert state["lod"]["downscales"] == [4, 2, 1] and state["lod"]["levels"] == 3
+
+
+def test_opacity_threshold_controls_layer_size(scene, tmp_path):
+    from nehad.lod import LodTrainer
+
+    def run(thr, name):
+        tr = LodTrainer(_config([f"lod.opacity_threshold={thr}", "lod.levels=2"]), scene,
+                        tmp_path / name, progress=False, log=None)
+        tr.train()
+        return tr
+
+    loose = run(0.0, "loose")
+    n0 = loose.layer_sizes[0]
+    opac0 = torch.sigmoid(loose.model.gaussians.opacity_logits.detach()[:n0])
+    thr = float(opac0.median())  # layer 0 ends identically in both runs (deterministic)
+    tight = run(thr, "tight")
+    print(f"layer sizes: threshold 0 {loose.layer_sizes}, threshold {thr:.4f} {tight.layer_sizes}")
+    assert tight.layer_sizes[0] == int((opac0 >= thr).sum()) < n0
+    assert tight.layer_sizes[1] < loose.layer_sizes[1]
+    # a threshold above every opacity keeps the layer whole instead of emptying it
+    assert run(0.99, "all").layer_sizes[0] == n0
+
+
+def test_resume_inside_an_enhancement_layer(scene, tmp_path, trained):
+    from nehad.checkpoint import save_checkpoint
+    from nehad.lod import LodTrainer
+
+    run = tmp_path / "r"
+    tr = LodTrainer(_config(), scene, run, progress=False)
+    while tr.step < 30:  # 6 steps into layer 1
+        tr.train_step(tr.step)
+        tr.step += 1
+    save_checkpoint(run, tr.step, tr.checkpoint_state(), 2)
+    del tr
+    resumed = LodTrainer(_config(), scene, run, resume=True, progress=False)
+    assert resumed.step == 30 and resumed.layer_sizes == trained["trainer"].layer_sizes[:1]
+    assert resumed.strategy.frozen == resumed.layer_sizes[0]
+    resumed.train()
+    ref = trained["trainer"].model.gaussians
+    got = resumed.model.gaussians
+    assert resumed.layer_sizes == trained["trainer"].layer_sizes
+    for name in got.NAMES:
+        assert torch.allclose(getattr(got, name), getattr(ref, name), atol=1e-6), name
+
+
+def test_export_layer_output_parity(trained, tmp_path):
+    from nehad.trainer import load_run
+
+    run = trained["export_run"]
+    path = tmp_path / "m.onnx"
+    rep = export_run(run, path)
+    proto = onnx.load(str(path))
+    assert [o.name for o in proto.graph.output] == list(OUTPUTS) + ["layer"]
+    md = {p.key: p.value for p in proto.metadata_props}
+    model, meta = load_run(run)
+    assert json.loads(md["lod_layers"]) == meta["lod"]["layer_sizes"]
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    worst = 0.0
+    for t in (0.0, 0.4, 1.0):
+        got = sess.run(None, {"time": np.array([t], np.float32)})
+        with torch.no_grad():
+            ref = [o.numpy() for o in model.gaussians_at(t)]
+        ref[4] = ref[4][:, :got[4].shape[1]]
+        for a, b in zip(got[:5], ref):
+            worst = max(worst, parity_error(a, b))
+        assert got[5].dtype == np.int32 and np.array_equal(got[5], meta["layer"].numpy())
+    print(f"layered export parity {worst:.3g} (report {rep.parity})")
+    assert worst <= 1e-5
+    m0 = sess.run(["means"], {"time": np.array([0.0], np.float32)})[0]
+    m1 = sess.run(["means"], {"time": np.array([1.0], np.float32)})[0]
+    assert np.abs(m0 - m1).max() > 1e-2  # the deformation is not the identity
+
+
+@pytest.fixture(scope="module")
+def split(trained, tmp_path_factory):
+    folder = tmp_path_factory.mktemp("split") / "layers"
+    res = CliRunner().invoke(main, ["export", str(trained["export_run"]), "--split-layers",
+                                    str(folder)])
+    assert res.exit_code == 0, res.output
+    print(res.output)
+    return folder
+
+
+def test_split_manifest_and_chunks(split, trained):
+    import hashlib
+
+    man = json.loads((split / "manifest.json").read_text())
+    sizes = trained["trainer"].layer_sizes
+    assert [e["gaussians"] for e in man["layers"]] == sizes
+    assert [e["file"] for e in man["layers"]] == ["base.onnx", "layer_1.bin", "layer_2.bin"]
+    for e in man["layers"]:
+        data = (split / e["file"]).read_bytes()
+        assert len(data) == e["bytes"] and hashlib.sha256(data).hexdigest() == e["sha256"]
+    assert man["layers"][-1]["cumulative_bytes"] == sum(e["bytes"] for e in man["layers"])
+    # a chunk is the layer's canonical Gaussians: 4 bytes x (3+3+4+1+3K+3+1) each + header
+    k = (man["sh_degree"] + 1) ** 2
+    assert man["bytes_per_gaussian"] == 4 * (15 + 3 * k)
+    header, arrays = decode_chunk((split / "layer_2.bin").read_bytes())
+    assert header["count"] == sizes[2] and arrays["sh"].shape == (sizes[2], k, 3)
+    assert 0 < man["layers"][2]["bytes"] - sizes[2] * man["bytes_per_gaussian"] < 2048
+    # the base model is a normal nehad-onnx/1 file: layer 0 alone, time as its only input
+    proto = onnx.load(str(split / "base.onnx"))
+    from nehad.export.checks import check_graph
+
+    check_graph(proto)
+    opts = ort.SessionOptions()
+    opts.log_severity_level = 3  # (the extra_* inputs are initializers too: ORT would say so)
+    sess = ort.InferenceSession(str(split / "base.onnx"), opts,
+                                providers=["CPUExecutionProvider"])
+    assert [i.name for i in sess.get_inputs()] == ["time"]
+    assert len(sess.run(None, {"time": np.array([0.5], np.float32)})[0]) == sizes[0]
+
+
+def test_split_prefixes_match_torch(split, trained):
+    from nehad.trainer import load_run
+
+    model, meta = load_run(trained["export_run"])
+    sizes = trained["trainer"].layer_sizes
+    worst = 0.0
+    for k in range(3):
+        lm = LayeredModel(split, max_layer=k)
+        assert lm.loaded_layers == k + 1 and lm.problems == []
+        n = sum(sizes[:k + 1])
+        for t in (0.0, 0.7, 1.0):
+            out = lm.outputs(t)
+            with torch.no_grad():
+                ref = [o.numpy()[:n] for o in model.gaussians_at(t)]
+            ref[4] = ref[4][:, :out["sh"].shape[1]]
+            for name, b in zip(OUTPUTS, ref):
+                assert out[name].shape == b.shape
+                worst = max(worst, parity_error(out[name], b))
+            assert np.array_equal(out["layer"], meta["layer"].numpy()[:n])
+    print(f"split layers parity vs torch prefixes {worst:.3g}")
+    assert worst <= 1e-5
+
+
+def test_missing_or_corrupt_chunk_falls_back(split, tmp_path):
+    sizes = json.loads((split / "manifest.json").read_text())["layers"]
+    cases = {
+        "missing2": lambda d: (d / "layer_2.bin").unlink(),
+        "flipped1": lambda d: _flip(d / "layer_1.bin", 200),
+        "truncated2": lambda d: (d / "layer_2.bin").write_bytes((d / "layer_2.bin").read_bytes()[:-7]),
+    }
+    expect = {"missing2": (2, "missing"), "flipped1": (1, "sha256"), "truncated2": (2, "bytes")}
+    for name, damage in cases.items():
+        d = tmp_path / name
+        shutil.copytree(split, d)
+        damage(d)
+        lm = LayeredModel(d)
+        layers, needle = expect[name]
+        assert lm.loaded_layers == layers, name
+        assert len(lm.problems) == 1 and needle in lm.problems[0], lm.problems
+        assert f"rendering layers 0..{layers - 1}" in lm.problems[0]
+        assert len(lm.gaussians(0.5)) == sum(e["gaussians"] for e in sizes[:layers])
+    # the chunk arrives later: refresh picks it up
+    d = tmp_path / "missing2"
+    shutil.copy(split / "layer_2.bin", d / "layer_2.bin")
+    lm = LayeredModel(d)
+    assert lm.loaded_layers == 3 and lm.problems == []
+    # a damaged base cannot be rendered at all: an error naming it
+    d = tmp_path / "badbase"
+    shutil.copytree(split, d)
+    _flip(d / "base.onnx", 100)
+    with pytest.raises(LayerError, match="base.onnx does not match its sha256"):
+        LayeredModel(d)
+
+
+def _flip(path, offset):
+    data = bytearray(path.read_bytes())
+    data[offset] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+def test_chunk_codec_rejects_garbage():
+    arrays = {"means": np.ones((2, 3)), "log_scales": np.zeros((2, 3)), "quats": np.ones((2, 4)),
+              "opacity_logits": np.zeros(2), "sh": np.zeros((2, 4, 3)), "mu_eq": np.ones((2, 3)),
+              "t_eq": np.full((2, 1), 0.5)}
+    blob = encode_chunk(1, arrays)
+    header, back = decode_chunk(blob)
+    assert header["layer"] == 1 and header["count"] == 2
+    assert np.array_equal(back["quats"], np.ones((2, 4), np.float32))
+    for bad, needle in ((b"garbage" * 4, "magic"), (blob[:20], "truncated"),
+                        (blob[:-8], "outside")):
+        with pytest.raises(LayerError, match=needle):
+            decode_chunk(bad, "x.bin")
+
+
+def test_render_lod_cli(split, trained, tmp_path):
+    from nehad.runtime.images import read_image
+
+    run = trained["export_run"]
+    onnx_path = tmp_path / "full.onnx"
+    export_run(run, onnx_path)
+    cam = f"{trained['trainer'].data_dir / 'transforms_test.json'}:0"
+    runner = CliRunner()
+    images = {}
+    for k in (0, 2):
+        for name, src in (("run", run), ("onnx", onnx_path), ("split", split)):
+            out = tmp_path / f"{name}{k}.exr"
+            res = runner.invoke(main, ["render", str(src), "--view", cam, "--time", "0.3",
+                                       "--lod", str(k), "-o", str(out)])
+            assert res.exit_code == 0, res.output
+            assert f"layers 0..{k}" in res.output
+            images[name, k] = read_image(out).astype(np.float64)
+    for k in (0, 2):
+        for name in ("onnx", "split"):
+            mse = float(np.mean((images[name, k] - images["run", k]) ** 2))
+            psnr = 10 * np.log10(1.0 / max(mse, 1e-30))
+            print(f"--lod {k}: {name} vs torch render PSNR {psnr:.1f} dB")
+            assert psnr > 60.0
+    assert float(np.abs(images["run", 0] - images["run", 2]).max()) > 0.05  # layers add detail
+    # bad --lod values: one line, non-zero exit, no traceback
+    for src in (run, onnx_path, split):
+        res = runner.invoke(main, ["render", str(src), "--view", cam, "--time", "0.3", "--lod",
+                                   "3", "-o", str(tmp_path / "x.png")])
+        assert res.exit_code != 0 and "has 3 layer(s), 0..2" in res.output, res.output
+        assert "Traceback" not in res.output
+    # a corrupt chunk: a warning, the render of the layers before it, exit 0
+    d = tmp_path / "corrupt"
+    shutil.copytree(split, d)
+    _flip(d / "layer_2.bin", 300)
+    res = runner.invoke(main, ["render", str(d), "--view", cam, "--time", "0.3", "-o",
+                               str(tmp_path / "c.exr")])
+    assert res.exit_code == 0 and "warning: layer 2:" in res.output, res.output
+    assert "layers 0..1 of 3" in res.output
+
+
+def test_split_export_refuses_runs_without_layers(scene, tmp_path):
+    from nehad.trainer import Trainer
+
+    run = tmp_path / "plain"
+    Trainer(_config(["lod.levels=1", "coarse.iterations=2", "fine.iterations=2"]), scene, run,
+            progress=False).train()
+    res = CliRunner().invoke(main, ["export", str(run), "--split-layers", str(tmp_path / "s")])
+    assert res.exit_code != 0 and "no streaming layers" in res.output
+    assert "Traceback" not in res.output and not (tmp_path / "s").exists()
+    res = CliRunner().invoke(main, ["export", str(run)])
+    assert res.exit_code != 0 and "--split-layers" in res.output
+    # without layers the file is exactly SPEC 7's: no `layer` output, no lod metadata
+    export_run(run, tmp_path / "plain.onnx")
+    proto = onnx.load(str(tmp_path / "plain.onnx"))
+    assert [o.name for o in proto.graph.output] == list(OUTPUTS)
+    assert [i.name for i in proto.graph.input] == ["time"]
+    assert "lod_layers" not in {p.key for p in proto.metadata_props}
+    res = CliRunner().invoke(main, ["render", str(tmp_path / "plain.onnx"), "--view",
+                                    f"{scene / 'transforms_test.json'}:0", "--lod", "1", "-o",
+                                    str(tmp_path / "x.png")])
+    assert res.exit_code != 0 and "has 1 layer(s), 0..0" in res.output, res.output
+
+
+def test_layered_runtime_without_torch(split, tmp_path):
+    code = ("import sys; from nehad.runtime.layers import LayeredModel; "
+            f"m = LayeredModel({str(split)!r}); c = m.gaussians(0.5); "
+            "assert 'torch' not in sys.modules; print(m.loaded_layers, len(c))")
+    res = subprocess.run([sys.executable, "-c", code], env=blocked_torch_env(tmp_path),
+                         capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    man = json.loads((split / "manifest.json").read_text())
+    assert res.stdout.split() == ["3", str(man["layers"][-1]["cumulative_gaussians"])]

@@ -1,0 +1,32 @@
+"""A tiny exported model shared by the video, distribution and batch tests (issue 5).
+
+`tiny_model(tmp_path_factory)` trains a `--preset test` run on a 32 px synthetic scene and exports
+it, once per pytest session (the files live in the session's base temp folder, so every test
+module that asks gets the same model). Needs torch and onnx: the tests that use it skip without.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+
+def tiny_model(tmp_path_factory) -> tuple[Path, Path]:
+    """(model.onnx, scene folder): 2000 Gaussians, SH degree 1, default camera 32x32."""
+    root = tmp_path_factory.getbasetemp() / "nehad-video-model"
+    model, scene = root / "model.onnx", root / "scene"
+    if model.is_file():
+        return model, scene
+    pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    from nehad.config import build_config
+    from nehad.data.synth import synthesize_scene
+    from nehad.export.onnx_export import export_run
+    from nehad.trainer import Trainer
+
+    root.mkdir(exist_ok=True)
+    synthesize_scene(scene, resolution=32, frames=20, points=500, seed=0)
+    Trainer(build_config("test", None, []), scene, root / "run", progress=False).train()
+    export_run(root / "run", model)
+    return model, scene

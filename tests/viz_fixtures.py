@@ -1,0 +1,45 @@
+"""A tiny trained run shared by the visualisation tests (issue 8): `nehad synth` at 32 px with 8
+frames, trained with the `test` preset (seconds). Imported by test_viz.py, test_report.py and
+test_splat.py; session-scoped, so it is trained once per pytest run."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+MUJOCO = Path(__file__).resolve().parents[2] / "shared" / "data" / "mujoco"
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory):
+    """(dataset folder, run folder) of a finished tiny training run."""
+    pytest.importorskip("torch")
+    from nehad.config import build_config
+    from nehad.data.synth import synthesize_scene
+    from nehad.trainer import Trainer
+
+    root = tmp_path_factory.mktemp("viz")
+    data = synthesize_scene(root / "data", resolution=32, frames=8, seed=0)
+    run = root / "run"
+    Trainer(build_config("test"), data, run, progress=False).train()
+    return data, run
+
+
+@pytest.fixture(scope="session")
+def tiny_model(tiny_run):
+    """(model, meta) of the tiny run, loaded once."""
+    from nehad.trainer import load_run
+
+    return load_run(tiny_run[1])
+
+
+@pytest.fixture(scope="session")
+def tiny_onnx(tiny_run, tmp_path_factory):
+    """The tiny run exported to .onnx (needs onnx)."""
+    pytest.importorskip("onnx")
+    from nehad.export.onnx_export import export_run
+
+    out = tmp_path_factory.mktemp("viz_onnx") / "model.onnx"
+    export_run(tiny_run[1], out)
+    return out
