@@ -26,6 +26,8 @@ def closed_form_copy(model) -> nn.Module:
     the caller's model is left untouched."""
     model = copy.deepcopy(model).eval()
     model.field.set_grad_mode("closed_form")
+    if getattr(model.field.cfg, "mipmap", False):  # SPEC 8: pyramids as initializers
+        model.field.hexplane.freeze_pyramids_for_export()
     for p in model.parameters():
         p.requires_grad_(False)
     return model

@@ -184,6 +184,19 @@ class HexPlane(nn.Module):
             out.append(min(n, self.mipmap_levels) if self.mipmap_levels > 0 else n)
         return out
 
+    @torch.no_grad()
+    def freeze_pyramids_for_export(self) -> None:
+        """Build every plane's mip pyramid table once, as plain tensors that a graph capture
+        records as constants (initializers) instead of pooling the planes in every run of the
+        exported graph; used only while capturing. Call on an export copy (the tables do not
+        follow later changes of the planes)."""
+        from nehad.field.mipmap import PlanePyramid, build_pyramid
+
+        self._export_pyramids = [
+            [PlanePyramid(build_pyramid(p.detach().clone(), l_max, pool_height=c != 3))
+             for p, (_, c) in zip(scale, PLANE_AXES)]
+            for scale, l_max in zip(self.planes, self.mip_levels())]
+
     def _forward_mipmap(self, x: torch.Tensor, t: torch.Tensor,
                         sigma: torch.Tensor) -> torch.Tensor:
         """Scale-aware anisotropic mipmapping (SPEC 8): per scale, the level l_hat of each point
@@ -194,14 +207,17 @@ class HexPlane(nn.Module):
         n = x.shape[0]
         u = torch.cat([x, t.expand(n, 1).to(x.dtype)], dim=1)  # (N, 4)
         sigma = sigma.detach()
+        frozen = getattr(self, "_export_pyramids", None) if is_capturing() else None
         feats = []
-        for scale, res, l_max in zip(self.planes, self.resolutions(), self.mip_levels()):
+        for i, (scale, res, l_max) in enumerate(zip(self.planes, self.resolutions(),
+                                                    self.mip_levels())):
             cells = torch.tensor([(r - 1) * 0.5 for r in res[:3]], dtype=x.dtype,
                                  device=x.device)
             level = mip_level(sigma * cells, l_max)  # (N,)
             f = None
-            for plane, (a, c) in zip(scale, PLANE_AXES):
-                pyr = PlanePyramid(build_pyramid(plane, l_max, pool_height=c != 3))
+            for k, (plane, (a, c)) in enumerate(zip(scale, PLANE_AXES)):
+                pyr = (frozen[i][k] if frozen is not None
+                       else PlanePyramid(build_pyramid(plane, l_max, pool_height=c != 3)))
                 s = pyr.sample_trilinear(u[:, [a, c]], level)
                 f = s if f is None else f * s
             feats.append(f)
