@@ -389,6 +389,22 @@ def _check_background(background) -> np.ndarray:
     return bg
 
 
+def check_scene_args(root, splits, known=None, layout: str = "") -> tuple[Path, tuple]:
+    """The arguments every reader shares: `root` must be a folder, `splits` one name or a
+    non-empty sequence of names (each in `known`, when given). Returns (Path, tuple)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise DatasetError(f"{root}: scene folder not found")
+    splits = (splits,) if isinstance(splits, str) else tuple(splits)
+    if not splits:
+        raise ValueError("splits: expected at least one split name")
+    for s in splits:
+        if known is not None and s not in known:
+            raise ValueError(f"splits: unknown split {s!r} for a {layout} scene "
+                             f"(one of {', '.join(known)})")
+    return root, splits
+
+
 def load_dnerf(root, splits=SPLITS, background=(1.0, 1.0, 1.0), downscale: int = 1) -> DNeRFScene:
     """Load a D-NeRF scene folder (see the module docstring for the format).
 
@@ -397,14 +413,7 @@ def load_dnerf(root, splits=SPLITS, background=(1.0, 1.0, 1.0), downscale: int =
     are area-averaged over ``downscale x downscale`` blocks and the cameras scaled to match.
     Raises :class:`DatasetError` (a ValueError) naming the file and field on bad data.
     """
-    root = Path(root)
-    if not root.is_dir():
-        raise DatasetError(f"{root}: scene folder not found")
-    if isinstance(splits, str):
-        splits = (splits,)
-    splits = tuple(splits)
-    if not splits:
-        raise ValueError("splits: expected at least one split name")
+    root, splits = check_scene_args(root, splits)
     if isinstance(downscale, bool) or int(downscale) != downscale or int(downscale) < 1:
         raise ValueError(f"downscale: expected an integer >= 1, got {downscale!r}")
     downscale = int(downscale)

@@ -51,7 +51,7 @@ import numpy as np
 
 from nehad.data.common import (check_background, check_downscale, check_rotation, check_stride,
                                find_point_cloud, read_points, read_rgb)
-from nehad.data.dnerf import (DatasetError, DNeRFScene, Frame, _area_downscale,
+from nehad.data.dnerf import (DatasetError, DNeRFScene, Frame, _area_downscale, check_scene_args,
                               _downscale_camera)
 from nehad.runtime.cameras import Camera, CameraError
 
@@ -205,18 +205,7 @@ def load_dynerf(root, splits=("train", "test"), background=(0.0, 0.0, 0.0), down
     per video (300, as 4DGS). Videos of the loaded cameras are decoded and cached on first use.
     Returns the same scene object as the D-NeRF reader; DatasetError names the file on bad data.
     """
-    root = Path(root)
-    if not root.is_dir():
-        raise DatasetError(f"{root}: scene folder not found")
-    if isinstance(splits, str):
-        splits = (splits,)
-    splits = tuple(splits)
-    if not splits:
-        raise ValueError("splits: expected at least one split name")
-    for s in splits:
-        if s not in SPLITS:
-            raise ValueError(f"splits: unknown split {s!r} for a DyNeRF scene "
-                             f"(one of {', '.join(SPLITS)})")
+    root, splits = check_scene_args(root, splits, SPLITS, "DyNeRF")
     downscale = check_downscale(downscale)
     frame_stride = check_stride(frame_stride)
     if isinstance(max_frames, bool) or int(max_frames) < 1:

@@ -54,7 +54,8 @@ import numpy as np
 from nehad.data.common import (check_background, check_downscale, check_rotation, check_stride,
                                find_point_cloud, number, read_json, read_points, read_rgb, remap,
                                undistortion_maps, vector)
-from nehad.data.dnerf import DatasetError, DNeRFScene, Frame, _area_downscale, _downscale_camera
+from nehad.data.dnerf import (DatasetError, DNeRFScene, Frame, _area_downscale,
+                              _downscale_camera, check_scene_args)
 from nehad.runtime.cameras import Camera
 
 __all__ = ["load_hypernerf", "read_hypernerf_camera", "HyperNeRFCamera", "POINT_FILES",
@@ -244,18 +245,7 @@ def load_hypernerf(root, splits=("train", "test"), background=(0.0, 0.0, 0.0),
     skewed images into pinhole ones (True) or refuse them (False). Returns the same scene object
     as the D-NeRF reader. Raises DatasetError (a ValueError) naming the file on bad data.
     """
-    root = Path(root)
-    if not root.is_dir():
-        raise DatasetError(f"{root}: scene folder not found")
-    if isinstance(splits, str):
-        splits = (splits,)
-    splits = tuple(splits)
-    if not splits:
-        raise ValueError("splits: expected at least one split name")
-    for s in splits:
-        if s not in SPLIT_ALIASES:
-            raise ValueError(f"splits: unknown split {s!r} for a HyperNeRF scene "
-                             f"(one of {', '.join(SPLIT_ALIASES)})")
+    root, splits = check_scene_args(root, splits, SPLIT_ALIASES, "HyperNeRF")
     downscale = check_downscale(downscale)
     frame_stride = check_stride(frame_stride)
     bg = check_background(background)
