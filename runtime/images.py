@@ -52,6 +52,13 @@ def atomic_path(path, error=OSError):
         raise
 
 
+def atomic_write_bytes(path, data: bytes, error=OSError) -> None:
+    """Write `data` to `path` atomically (through :func:`atomic_path`)."""
+    with atomic_path(path, error) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(data)
+
+
 def read_image(path) -> np.ndarray:
     """Read an image as float32 (H, W, C): PNG/JPEG scaled to [0, 1], EXR values as stored.
 

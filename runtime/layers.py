@@ -36,12 +36,12 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import struct
-import tempfile
 from pathlib import Path
 
 import numpy as np
+
+from nehad.runtime.images import atomic_write_bytes as atomic_write
 
 MANIFEST = "manifest.json"
 MANIFEST_FORMAT = "nehad-layers/1"
@@ -127,21 +127,6 @@ def decode_chunk(data: bytes, source: str = "chunk") -> tuple[dict, dict[str, np
     if missing:
         raise LayerError(f"{source}: lacks arrays {missing}")
     return header, arrays
-
-
-def atomic_write(path: Path, data: bytes) -> None:
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        mask = os.umask(0o022)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def read_manifest(folder) -> dict:

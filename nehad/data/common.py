@@ -9,14 +9,12 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from nehad.data.dnerf import DatasetError, _area_downscale, _read_ply_points
-from nehad.runtime.images import _UMASK, read_image
+from nehad.runtime.images import atomic_write_bytes, read_image
 
 __all__ = ["read_json", "read_rgb", "area_downscale", "check_rotation", "find_point_cloud",
            "distort_normalized", "undistort_normalized", "undistortion_maps", "remap",
@@ -205,20 +203,6 @@ def remap(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray
 
 # --------------------------------------------------------------------------------------------
 # atomic writes (SPEC section 10)
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.chmod(tmp, 0o666 & ~_UMASK)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def atomic_write_json(path: Path, obj) -> None:
