@@ -16,8 +16,6 @@ from __future__ import annotations
 import io
 import json
 import math
-import os
-import tempfile
 import time as _time
 import warnings
 from dataclasses import dataclass, field
@@ -28,6 +26,7 @@ import torch
 
 from nehad.export.checks import FORMAT, MIN_OPSET, check_graph
 from nehad.export.graph import OUTPUT_NAMES, ExportGraph, closed_form_copy
+from nehad.runtime.images import atomic_write_bytes
 
 PARITY_TOL = 1e-5
 PARITY_TIMES = (0.0, 0.25, 0.5, 0.8, 1.0)
@@ -263,20 +262,7 @@ def export_model(model, meta: dict, out_path, *, opset: int = MIN_OPSET, fp16_we
         raise ExportError(f"exported graph does not match the torch model: max error "
                           f"{worst:.3g} > {tol:g} ({parity})")
 
-    fd, tmp = tempfile.mkstemp(prefix=f".{out_path.stem}.", suffix=".tmp.onnx", dir=out_path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        mask = os.umask(0o022)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)
-        os.replace(tmp, out_path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    atomic_write_bytes(out_path, data, ExportError)
     return ExportReport(out_path, len(model.gaussians), int(sh_degree), int(opset), len(data),
                         _time.perf_counter() - start, dict(ops), parity,
                         vs32 if fp16_weights else {}, md)
