@@ -2,14 +2,21 @@
 
 For 10k, 100k and 1M Gaussians with the D-NeRF field (hex-plane 64^3 x 25, multires (1, 2),
 W = 64, HNN decoder with randomised adapters so the deformation is not the identity): export
-with `nehad.export.onnx_export.export_model`, then time
+with `nehad.export.onnx_export.export_model` (its SPEC 7 parity check against the torch model
+included, at t = 0 and 1), then time, back to back at each thread count of --threads:
   torch:       NeHaDModel.gaussians_at(t) under torch.no_grad (the HNN gradient by autograd,
-               create_graph=False), torch on --threads threads
-  onnxruntime: OnnxModel session.run for `time` (no cache), intra-op threads = --threads
-Median of --repeats calls at random times after a warm-up. Target: onnxruntime <= 0.5x torch at
-100k.
+               create_graph=False), torch.set_num_threads(threads)
+  onnxruntime: session.run for `time` (CPU provider, default optimisation level), intra-op
+               threads = threads
+Median of --repeats calls at random times after a warm-up. `load s` is the onnxruntime session
+creation (it folds the time-independent part of the graph once). Target: onnxruntime <= 0.5x
+torch at 100k.
 
-    python bench/deform.py [--sizes 10000,100000,1000000] [--threads 2] [--repeats 7]
+The Gaussians are built directly (random means, rotations, SH, equilibrium parameters), not with
+`GaussianParameters.random_in_box`, whose nearest-neighbour scale initialisation takes minutes
+at 200k and did not finish at 1M.
+
+    python bench/deform.py [--sizes 10000,100000,1000000] [--threads 1,2] [--repeats 7]
 """
 
 from __future__ import annotations
@@ -25,7 +32,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 
-def build_model(n: int, seed: int = 0):
+def build_model(n: int, seed: int = 0, **field_options):
     import torch
 
     from nehad.field.config import FieldConfig
@@ -34,12 +41,17 @@ def build_model(n: int, seed: int = 0):
     from nehad.trainer import NeHaDModel
 
     torch.manual_seed(seed)
-    gaussians = GaussianParameters.random_in_box(n, sh_degree=3, seed=seed)
-    with torch.no_grad():
-        gaussians.log_scales.fill_(np.log(0.01))
-        gaussians.t_eq.uniform_(0.0, 1.0)
+    rng = np.random.default_rng(seed)
+    means = rng.uniform(-1.3, 1.3, (n, 3)).astype(np.float32)
+    quats = rng.normal(size=(n, 4)).astype(np.float32)
+    gaussians = GaussianParameters(
+        means, np.full((n, 3), np.log(0.01), np.float32), quats,
+        rng.normal(size=n).astype(np.float32), rng.normal(0, 0.5, (n, 1, 3)).astype(np.float32),
+        rng.normal(0, 0.1, (n, 15, 3)).astype(np.float32),
+        mu_eq=means + rng.normal(0, 0.05, (n, 3)).astype(np.float32),
+        t_eq=rng.uniform(0, 1, (n, 1)).astype(np.float32))
     aabb = torch.tensor([[-1.3] * 3, [1.3] * 3])
-    field = DeformationField(FieldConfig(), aabb, extent=2.6)
+    field = DeformationField(FieldConfig(**field_options), aabb, extent=2.6)
     g = torch.Generator().manual_seed(seed + 1)
     with torch.no_grad():
         for name, p in field.named_parameters():
@@ -61,7 +73,7 @@ def median_ms(fn, times, repeats: int) -> float:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--sizes", default="10000,100000,1000000")
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", default="1,2", help="comma-separated thread counts")
     ap.add_argument("--repeats", type=int, default=7)
     args = ap.parse_args()
 
@@ -70,37 +82,42 @@ def main() -> None:
 
     from nehad.export.onnx_export import export_model
 
-    torch.set_num_threads(args.threads)
     times = np.random.default_rng(0).uniform(0, 1, 64)
-    print(f"threads: torch {torch.get_num_threads()}, onnxruntime intra-op {args.threads}")
-    print(f"{'gaussians':>9} {'torch ms':>9} {'onnxrt ms':>9} {'ratio':>6} {'file MB':>8} "
-          f"{'export s':>8}")
+    print(f"onnxruntime {ort.__version__}, torch {torch.__version__}")
+    print(f"{'gaussians':>9} {'threads':>7} {'torch ms':>9} {'onnxrt ms':>9} {'ratio':>6} "
+          f"{'file MB':>8} {'export s':>8} {'load s':>6} {'parity':>8}")
     for n in (int(s) for s in args.sizes.split(",")):
         model = build_model(n)
         meta = {"sh_degree": 3, "time_range": (0.0, 1.0), "background": (1.0, 1.0, 1.0)}
         with tempfile.TemporaryDirectory() as tmp:
             path = Path(tmp) / "model.onnx"
             t0 = time.perf_counter()
-            export_model(model, meta, path, times=(0.0, 1.0))
+            report = export_model(model, meta, path, times=(0.0, 1.0))
             export_s = time.perf_counter() - t0
             size_mb = path.stat().st_size / 1e6
-            opts = ort.SessionOptions()
-            opts.intra_op_num_threads = args.threads
-            opts.inter_op_num_threads = 1
-            sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+            for threads in (int(s) for s in args.threads.split(",")):
+                torch.set_num_threads(threads)
+                opts = ort.SessionOptions()
+                opts.intra_op_num_threads = threads
+                opts.inter_op_num_threads = 1
+                t0 = time.perf_counter()
+                sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+                load_s = time.perf_counter() - t0
 
-            def run_ort(t):
-                sess.run(None, {"time": np.array([t], np.float32)})
+                def run_ort(t):
+                    sess.run(None, {"time": np.array([t], np.float32)})
 
-            def run_torch(t):
-                with torch.no_grad():
-                    model.gaussians_at(t)
+                def run_torch(t):
+                    with torch.no_grad():
+                        model.gaussians_at(t)
 
-            t_torch = median_ms(run_torch, times, args.repeats)
-            t_ort = median_ms(run_ort, times, args.repeats)
-        print(f"{n:>9} {t_torch:>9.1f} {t_ort:>9.1f} {t_ort / t_torch:>6.2f} {size_mb:>8.1f} "
-              f"{export_s:>8.1f}", flush=True)
-        del model, sess
+                t_torch = median_ms(run_torch, times, args.repeats)
+                t_ort = median_ms(run_ort, times, args.repeats)
+                print(f"{n:>9} {threads:>7} {t_torch:>9.1f} {t_ort:>9.1f} "
+                      f"{t_ort / t_torch:>6.2f} {size_mb:>8.1f} {export_s:>8.1f} {load_s:>6.1f} "
+                      f"{max(report.parity.values()):>8.1e}", flush=True)
+                del sess
+        del model
 
 
 if __name__ == "__main__":

@@ -1,21 +1,26 @@
 """The module that is traced into the `nehad-onnx/1` graph (SPEC 7).
 
-`ExportGraph(model, sh_degree)(time)` computes exactly what `NeHaDModel.gaussians_at(t)` computes
+`ExportGraph(model, sh_degree)(time)` computes what `NeHaDModel.gaussians_at(t)` computes
 (activated means, scales, unit wxyz quats, opacities, SH truncated to `sh_degree`), but takes the
 time as a float32 tensor of shape [1] instead of a Python float, so that the time stays a graph
 input instead of being baked in as a constant. The canonical Gaussians (with mu_eq, t_eq) and the
 field's weights are the model's parameters and buffers: they become initializers.
 
-The HNN gradient is taken in closed form (SPEC 4.4), never with autograd: the field's grad mode is
-switched to "closed_form" by :func:`closed_form_copy`.
+The deformation is written as :class:`nehad.export.deform_graph.FastDeform`: the same function,
+rearranged for onnxruntime (time-independent parts as constant subgraphs, linear maps
+precomposed), with the HNN gradient in closed form (SPEC 4.4), never with autograd. The export
+checks it against the torch model's own `gaussians_at` (SPEC 7 parity).
 """
 
 from __future__ import annotations
 
 import copy
 
+import numpy as np
 import torch
 from torch import nn
+
+from nehad.export.deform_graph import FastDeform
 
 OUTPUT_NAMES = ("means", "scales", "quats", "opacities", "sh")
 LAYER_OUTPUT = "layer"  # SPEC 7: with LOD layers, each Gaussian's layer [N] int32
@@ -42,6 +47,7 @@ class ExportGraph(nn.Module):
         if not 0 <= int(sh_degree) <= model.gaussians.sh_degree:
             raise ValueError(f"ExportGraph: sh_degree {sh_degree} outside 0..{model.gaussians.sh_degree}")
         self.model = model
+        self.deform = FastDeform(model, sh_degree)
         self.sh_degree = int(sh_degree)
         self.k = (self.sh_degree + 1) ** 2
         self.with_layer = layer is not None
@@ -53,11 +59,24 @@ class ExportGraph(nn.Module):
         return OUTPUT_NAMES + ((LAYER_OUTPUT,) if self.with_layer else ())
 
     def forward(self, time: torch.Tensor):
-        # exactly NeHaDModel.gaussians_at, with the time kept a tensor (a graph input)
-        means, scales, quats, opacities, sh = self.model.gaussians_at(time.reshape(1))
-        if self.with_layer:
-            return means, scales, quats, opacities, sh[:, :self.k], self.layer
-        return means, scales, quats, opacities, sh[:, :self.k]
+        # NeHaDModel.gaussians_at, with the time kept a tensor (a graph input)
+        g = self.model.gaussians
+        out = self.deform(g.means, g.log_scales, g.quats, g.opacity_logits,
+                          torch.cat([g.sh_dc, g.sh_rest], 1), g.mu_eq, g.t_eq, time)
+        return out + (self.layer,) if self.with_layer else out
 
 
-__all__ = ["ExportGraph", "LAYER_OUTPUT", "OUTPUT_NAMES", "closed_form_copy"]
+def reference_outputs(model, t: float, sh_degree: int, layer=None) -> list:
+    """The torch model's own outputs at time t (`gaussians_at`, SH truncated to `sh_degree`, the
+    layer column when given) as NumPy arrays: what the exported graph must match (SPEC 7)."""
+    k = (int(sh_degree) + 1) ** 2
+    with torch.no_grad():
+        out = [o.detach().cpu().numpy()
+               for o in model.gaussians_at(torch.tensor([t], dtype=torch.float32))]
+    out[4] = out[4][:, :k]
+    if layer is not None:
+        out.append(np.asarray(layer, np.int32).reshape(-1))
+    return out
+
+
+__all__ = ["ExportGraph", "LAYER_OUTPUT", "OUTPUT_NAMES", "closed_form_copy", "reference_outputs"]

@@ -4,10 +4,12 @@ docs/streaming.md).
 
 The base graph (`SplitBaseGraph`) holds the field and layer 0's canonical Gaussians as
 initializers and takes the enhancement layers' canonical Gaussians as optional inputs whose
-defaults are empty; it appends them to layer 0's and deforms all of them with the same code as
-`NeHaDModel.gaussians_at` (called on the concatenated arrays). Before anything is written, the
-graph passes the SPEC 7 checks and is run with onnxruntime with no extra inputs and with every
-prefix of layers, against the torch model's outputs for the same Gaussians (1e-5).
+defaults are empty; it appends them to layer 0's and deforms all of them with
+`nehad.export.deform_graph.FastDeform` (the function of `NeHaDModel.gaussians_at` arranged for
+onnxruntime; the means are graph inputs here, so the spatial planes are sampled in every run).
+Before anything is written, the graph passes the SPEC 7 checks and is run with onnxruntime with
+no extra inputs and with every prefix of layers, against the torch model's outputs for the same
+Gaussians (1e-5).
 """
 
 from __future__ import annotations
@@ -15,7 +17,6 @@ from __future__ import annotations
 import io
 import json
 import time as _time
-import types
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -25,6 +26,7 @@ import torch
 from torch import nn
 
 from nehad.export.checks import MIN_OPSET, check_graph
+from nehad.export.deform_graph import FastDeform
 from nehad.export.graph import LAYER_OUTPUT, OUTPUT_NAMES, closed_form_copy
 from nehad.export.onnx_export import (MAX_OPSET, PARITY_TIMES, PARITY_TOL, ExportError,
                                       _name_outputs, build_metadata, parity_error, run_layers_of)
@@ -44,24 +46,6 @@ def canonical_arrays(model, sh_coeffs: int, rows=slice(None)) -> dict[str, torch
             "mu_eq": g.mu_eq[rows], "t_eq": g.t_eq[rows].reshape(-1, 1)}
 
 
-class _Canonical:
-    """Duck-typed GaussianParameters over plain tensors (for `NeHaDModel.gaussians_at`)."""
-
-    def __init__(self, a: dict):
-        self.means, self.log_scales, self.quats = a["means"], a["log_scales"], a["quats"]
-        self.opacity_logits = a["opacity_logits"]
-        self.sh_dc, self.sh_rest = a["sh"][:, :1], a["sh"][:, 1:]
-        self.mu_eq, self.t_eq = a["mu_eq"], a["t_eq"]
-
-
-def deform_arrays(model, arrays: dict, t: torch.Tensor):
-    """`NeHaDModel.gaussians_at(t)` for Gaussians given as canonical arrays (row-independent)."""
-    from nehad.trainer import NeHaDModel
-
-    proxy = types.SimpleNamespace(gaussians=_Canonical(arrays), field=model.field)
-    return NeHaDModel.gaussians_at(proxy, t)
-
-
 class SplitBaseGraph(nn.Module):
     """forward(time [1], extra_means [M,3], ..., extra_layer [M]) -> the SPEC 7 outputs and
     `layer` for layer 0's Gaussians followed by the M extra ones."""
@@ -69,6 +53,7 @@ class SplitBaseGraph(nn.Module):
     def __init__(self, model, sh_degree: int, n0: int):
         super().__init__()
         self.model = model
+        self.deform = FastDeform(model, sh_degree, constant_means=False)
         self.k = (int(sh_degree) + 1) ** 2
         with torch.no_grad():
             base = canonical_arrays(model, self.k, slice(0, n0))
@@ -80,9 +65,8 @@ class SplitBaseGraph(nn.Module):
         extra = dict(zip(CHUNK_ARRAYS, (means, log_scales, quats, opacity_logits, sh, mu_eq,
                                         t_eq)))
         arrays = {n: torch.cat([getattr(self, f"base_{n}"), extra[n]], 0) for n in CHUNK_ARRAYS}
-        out = deform_arrays(self.model, arrays, time.reshape(1))
-        means_, scales_, quats_, opac_, sh_ = out
-        return means_, scales_, quats_, opac_, sh_[:, :self.k], torch.cat([self.base_layer, layer])
+        out = self.deform(*(arrays[n] for n in CHUNK_ARRAYS), time)
+        return out + (torch.cat([self.base_layer, layer]),)
 
 
 @dataclass
@@ -263,5 +247,5 @@ def export_split_model(model, meta: dict, out_dir, *, cfg=None, opset: int = MIN
     return SplitReport(out_dir, manifest, parity, _time.perf_counter() - start)
 
 
-__all__ = ["INPUT_NAMES", "SplitBaseGraph", "SplitReport", "canonical_arrays", "deform_arrays",
+__all__ = ["INPUT_NAMES", "SplitBaseGraph", "SplitReport", "canonical_arrays",
            "export_split_layers", "export_split_model"]

@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from nehad.export.checks import FORMAT, MIN_OPSET, check_graph
-from nehad.export.graph import OUTPUT_NAMES, ExportGraph, closed_form_copy
+from nehad.export.graph import OUTPUT_NAMES, ExportGraph, closed_form_copy, reference_outputs
 from nehad.runtime.images import atomic_write_bytes
 
 PARITY_TOL = 1e-5
@@ -60,11 +60,6 @@ def parity_error(got: np.ndarray, ref: np.ndarray) -> float:
     if got.size == 0:
         return 0.0
     return float(np.max(np.abs(got - ref) / np.maximum(1.0, np.abs(ref))))
-
-
-def torch_outputs(graph: ExportGraph, t: float) -> list[np.ndarray]:
-    with torch.no_grad():
-        return [o.detach().cpu().numpy() for o in graph(torch.tensor([t], dtype=torch.float32))]
 
 
 def _default_camera(meta: dict):
@@ -244,18 +239,17 @@ def export_model(model, meta: dict, out_path, *, opset: int = MIN_OPSET, fp16_we
     names = [o.name for o in sess.get_outputs()]
     if names != list(names_out):
         raise ExportError(f"exported graph outputs {names}, expected {list(names_out)}")
-    original = (ExportGraph(closed_form_copy(model), sh_degree, layer).eval() if fp16_weights
-                else None)
+    original = closed_form_copy(model) if fp16_weights else None
     parity = {n: 0.0 for n in names_out}
     vs32 = {n: 0.0 for n in names_out}
     for t in times:
         got = sess.run(None, {"time": np.array([t], np.float32)})
-        for n, a, b in zip(names_out, got, torch_outputs(graph, t)):
+        for n, a, b in zip(names_out, got, reference_outputs(work, t, sh_degree, layer)):
             if not np.isfinite(a).all():
                 raise ExportError(f"exported graph: output {n} at time {t} holds NaN/inf")
             parity[n] = max(parity[n], parity_error(a, b))
         if original is not None:
-            for n, a, b in zip(names_out, got, torch_outputs(original, t)):
+            for n, a, b in zip(names_out, got, reference_outputs(original, t, sh_degree, layer)):
                 vs32[n] = max(vs32[n], parity_error(a, b))
     worst = max(parity.values())
     if not worst <= tol:

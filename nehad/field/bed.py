@@ -25,9 +25,10 @@ def safe_norm(x: torch.Tensor, eps: float = 1e-12, dim: int = -1,
 
 def position_mask(mu: torch.Tensor, mu_eq: torch.Tensor, t: torch.Tensor, t_eq: torch.Tensor, *,
                   sigma_s: float, sigma_t: float, beta: float = 1.0, gamma: float = 0.05,
-                  lam: float = 0.5, eps: float = 1e-12) -> torch.Tensor:
-    """M_pos (N, 1) from mu, mu_eq (N, 3), t (N, 1) or broadcastable, t_eq (N, 1)."""
-    dd = safe_norm(mu - mu_eq, eps) / sigma_s
+                  lam: float = 0.5, eps: float = 1e-12, dim: int = -1) -> torch.Tensor:
+    """M_pos (N, 1) from mu, mu_eq (N, 3), t (N, 1) or broadcastable, t_eq (N, 1). `dim` is the
+    xyz axis of mu (the export passes (3, N) columns with dim=0 and gets (1, N))."""
+    dd = safe_norm(mu - mu_eq, eps, dim=dim) / sigma_s
     dtau = (t - t_eq) / sigma_t
     e_st = 0.5 * (dd * dd + dtau * dtau) + lam * dd * dtau
     return (1.0 - gamma) * torch.exp(-beta * e_st) + gamma

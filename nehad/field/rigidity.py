@@ -19,21 +19,21 @@ import torch
 from nehad.field.bed import safe_norm
 
 
-def quat_multiply(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
-    """Hamilton product a (x) b of (..., 4) quaternions (w, x, y, z)."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
+def quat_multiply(a: torch.Tensor, b: torch.Tensor, dim: int = -1) -> torch.Tensor:
+    """Hamilton product a (x) b of (..., 4) quaternions (w, x, y, z) (components along `dim`)."""
+    aw, ax, ay, az = a.unbind(dim)
+    bw, bx, by, bz = b.unbind(dim)
     return torch.stack([
         aw * bw - ax * bx - ay * by - az * bz,
         aw * bx + ax * bw + ay * bz - az * by,
         aw * by - ax * bz + ay * bw + az * bx,
         aw * bz + ax * by - ay * bx + az * bw,
-    ], dim=-1)
+    ], dim=dim)
 
 
-def safe_normalize(q: torch.Tensor, eps: float = 1e-12) -> torch.Tensor:
-    """N(q) = q / sqrt(|q|^2 + eps) along the last axis."""
-    return q / safe_norm(q, eps)
+def safe_normalize(q: torch.Tensor, eps: float = 1e-12, dim: int = -1) -> torch.Tensor:
+    """N(q) = q / sqrt(|q|^2 + eps) along `dim` (the last axis by default)."""
+    return q / safe_norm(q, eps, dim=dim)
 
 
 def atan2_positive_y(y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -53,15 +53,17 @@ class RotationDelta(NamedTuple):
     phi_clamped: torch.Tensor  # (N, 1) phi' = phi_max tanh(phi / phi_max) < phi_max
 
 
-def clamp_rotation_delta(q: torch.Tensor, phi_max: float, eps: float = 1e-12) -> RotationDelta:
+def clamp_rotation_delta(q: torch.Tensor, phi_max: float, eps: float = 1e-12,
+                         dim: int = -1) -> RotationDelta:
     """Rigidity clamp of a (not necessarily unit) quaternion delta q (N, 4) -> unit dr'.
-    phi depends only on q's direction (scale-invariant)."""
-    dw, dg = q[..., :1], q[..., 1:]
-    g_norm = safe_norm(dg, eps)
+    phi depends only on q's direction (scale-invariant). `dim` is the quaternion axis (the
+    export passes (4, N) columns with dim=0)."""
+    dw, dg = q.narrow(dim, 0, 1), q.narrow(dim, 1, 3)
+    g_norm = safe_norm(dg, eps, dim=dim)
     phi = 2.0 * atan2_positive_y(g_norm, dw)
     phi_c = phi_max * torch.tanh(phi / phi_max)
     half = 0.5 * phi_c
-    dr = torch.cat([torch.cos(half), torch.sin(half) * dg / g_norm], dim=-1)
+    dr = torch.cat([torch.cos(half), torch.sin(half) * dg / g_norm], dim=dim)
     return RotationDelta(dr, phi, phi_c)
 
 
