@@ -7,7 +7,9 @@
 Scenes are looked up in ../shared/data/mujoco (400x400 with the cpu preset's downscale 2) and
 ../shared/data/dnerf_lego_100 (100x100, black background, downscale 1). Prints one row per
 (scene, decoder): test PSNR / SSIM / LPIPS-vgg / training minutes / Gaussians / render FPS, and
-writes the rows to OUT/results.json. Runs already finished are reused (delete them to redo).
+writes the rows to OUT/results_*.json (one file per invocation, so several invocations, e.g. one
+per core with OMP_NUM_THREADS=1, can share OUT). Runs already finished are reused, and their
+scores (RUN/bench_row.json) too (delete a run to redo it).
 """
 
 from __future__ import annotations
@@ -57,11 +59,16 @@ def train_and_eval(data: Path, run: Path, preset: str, sets: list[str]) -> dict:
         (run / "train_minutes.txt").write_text(f"{minutes:.2f}\n")
     elif (run / "train_minutes.txt").exists():
         minutes = float((run / "train_minutes.txt").read_text())
+    row_file = run / "bench_row.json"
+    if row_file.exists() and minutes is None:
+        return json.loads(row_file.read_text())
     result = evaluate_run(run, "test", data, lpips=True, progress=True)
     m = result["mean"]
-    return {"psnr": m["psnr"], "ssim": m["ssim"], "lpips_vgg": m["lpips_vgg"],
-            "minutes": minutes, "gaussians": result["gaussians"], "fps": result["fps"],
-            "resolution": result["resolution"]}
+    row = {"psnr": m["psnr"], "ssim": m["ssim"], "lpips_vgg": m["lpips_vgg"],
+           "minutes": minutes, "gaussians": result["gaussians"], "fps": result["fps"],
+           "resolution": result["resolution"]}
+    row_file.write_text(json.dumps(row, indent=1))
+    return row
 
 
 def print_rows(rows: list[dict]) -> None:
@@ -80,6 +87,8 @@ def main() -> None:
     ap.add_argument("--decoders", default="hnn,mlp")
     ap.add_argument("--ablation", default=None, metavar="SCENE",
                     help="run the component ablation on this scene instead")
+    ap.add_argument("--variants", default=None,
+                    help="comma-separated subset of the ablation variants (default: all)")
     ap.add_argument("--preset", default="cpu")
     ap.add_argument("--set", dest="sets", action="append", default=[])
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "quality")
@@ -88,8 +97,17 @@ def main() -> None:
     rows = []
     if args.ablation:
         data, scene_sets = scene_path(args.ablation)
-        for variant, extra in ABLATIONS.items():
-            run = args.out / f"ablation_{args.ablation}_{variant.replace(' ', '_')}"
+        wanted = args.variants.split(",") if args.variants else list(ABLATIONS)
+        for variant in wanted:
+            if variant not in ABLATIONS:
+                sys.exit(f"--variants: unknown variant {variant!r} (choose from "
+                         f"{', '.join(ABLATIONS)})")
+            extra = ABLATIONS[variant]
+            # The full model and the baseline are the main table's runs of that scene.
+            shared = {"full NeHaD": "hnn", "MLP decoder (4DGS)": "mlp"}.get(variant)
+            run = (args.out / f"{args.ablation}_{shared}" if shared else
+                   args.out / f"ablation_{args.ablation}_{variant.replace(' ', '_')}")
+            extra = extra if shared is None else [f"field.decoder={shared}"]
             rows.append({"scene": args.ablation, "variant": variant,
                          **train_and_eval(data, run, args.preset, scene_sets + args.sets + extra)})
             print_rows(rows[-1:])
@@ -104,7 +122,11 @@ def main() -> None:
                 print_rows(rows[-1:])
     print()
     print_rows(rows)
-    (args.out / "results.json").write_text(json.dumps(rows, indent=1))
+    # One file per invocation: several invocations (e.g. one per core) may share --out.
+    tag = args.ablation or "_".join(args.scenes.split(",")) + "_" + "_".join(
+        args.decoders.split(","))
+    (args.out / f"results_{'ablation_' if args.ablation else ''}{tag}.json").write_text(
+        json.dumps(rows, indent=1))
 
 
 if __name__ == "__main__":
