@@ -111,8 +111,11 @@ def main() -> None:
                     with torch.no_grad():
                         model.gaussians_at(t)
 
-                t_torch = median_ms(run_torch, times, args.repeats)
+                # onnxruntime first: torch's OpenMP workers keep spinning for a while after a
+                # call and, on a 2-core machine, slowed a following onnxruntime run at 2 threads
+                # from 91 to 131 ms at 100k (onnxruntime's own workers spin less long).
                 t_ort = median_ms(run_ort, times, args.repeats)
+                t_torch = median_ms(run_torch, times, args.repeats)
                 print(f"{n:>9} {threads:>7} {t_torch:>9.1f} {t_ort:>9.1f} "
                       f"{t_ort / t_torch:>6.2f} {size_mb:>8.1f} {export_s:>8.1f} {load_s:>6.1f} "
                       f"{max(report.parity.values()):>8.1e}", flush=True)
