@@ -8,12 +8,12 @@ objects (OpenCV axes, pixel (i, j) centred at (i + 0.5, j + 0.5)); images are fl
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 
 import numpy as np
 
-from nehad.data.dnerf import DatasetError, _area_downscale, _read_ply_points
+from nehad.data.dnerf import (DatasetError, _area_downscale, _number, _read_json,
+                               _read_ply_points)
 from nehad.runtime.images import atomic_write_bytes, read_image
 
 __all__ = ["read_json", "read_rgb", "area_downscale", "check_rotation", "find_point_cloud",
@@ -24,28 +24,8 @@ __all__ = ["read_json", "read_rgb", "area_downscale", "check_rotation", "find_po
 ROTATION_TOLERANCE = 1e-4
 
 area_downscale = _area_downscale
-
-
-def read_json(path: Path, what: str) -> object:
-    """Parsed JSON of `path`; a missing or malformed file is a DatasetError naming it."""
-    path = Path(path)
-    if not path.is_file():
-        raise DatasetError(f"{path}: {what} not found")
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: malformed JSON ({exc})") from None
-
-
-def number(value, path: Path, field: str, positive: bool = False) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise DatasetError(f"{path}: field '{field}': expected a number, got {value!r}")
-    x = float(value)
-    if not math.isfinite(x):
-        raise DatasetError(f"{path}: field '{field}': expected a finite number, got {x}")
-    if positive and x <= 0:
-        raise DatasetError(f"{path}: field '{field}': expected a positive number, got {x:g}")
-    return x
+read_json = _read_json
+number = _number
 
 
 def vector(value, n: int, path: Path, field: str) -> np.ndarray:

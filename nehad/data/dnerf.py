@@ -119,13 +119,20 @@ class DNeRFScene:
 # transforms files
 
 
-def _read_transforms(path: Path) -> dict:
+def _read_json(path: Path, what: str) -> object:
+    """Parsed JSON of `path`; a missing or malformed file is a DatasetError naming it (shared by
+    every reader as `nehad.data.common.read_json`)."""
+    path = Path(path)
     if not path.is_file():
-        raise DatasetError(f"{path}: transforms file not found")
+        raise DatasetError(f"{path}: {what} not found")
     try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
+        return json.loads(path.read_text(encoding="utf-8"))
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{path}: malformed JSON ({exc})") from None
+
+
+def _read_transforms(path: Path) -> dict:
+    doc = _read_json(path, "transforms file")
     if not isinstance(doc, dict):
         raise DatasetError(f"{path}: expected a JSON object at the top level, got {type(doc).__name__}")
     frames = doc.get("frames")
@@ -139,6 +146,8 @@ def _read_transforms(path: Path) -> dict:
 
 
 def _number(value, path: Path, field_name: str, positive: bool = False) -> float:
+    """A finite (optionally positive) number from a dataset file, else a DatasetError naming the
+    file and field (shared by every reader as `nehad.data.common.number`)."""
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise DatasetError(f"{path}: field '{field_name}': expected a number, got {value!r}")
     x = float(value)
