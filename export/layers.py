@@ -25,11 +25,12 @@ import numpy as np
 import torch
 from torch import nn
 
-from nehad.export.checks import MIN_OPSET, check_graph
+from nehad.export.checks import MIN_OPSET
 from nehad.export.deform_graph import FastDeform
 from nehad.export.graph import LAYER_OUTPUT, OUTPUT_NAMES, closed_form_copy
 from nehad.export.onnx_export import (MAX_OPSET, PARITY_TIMES, PARITY_TOL, ExportError,
-                                      _name_outputs, build_metadata, parity_error, run_layers_of)
+                                      _name_outputs, _seal_and_open, build_metadata, parity_error,
+                                      run_layers_of)
 from nehad.runtime.layers import (BASE_FILE, CHUNK_ARRAYS, EXTRA_LAYER, EXTRA_PREFIX, MANIFEST,
                                   MANIFEST_FORMAT, atomic_write, chunk_file_name, encode_chunk,
                                   sha256_of)
@@ -111,7 +112,6 @@ def export_split_model(model, meta: dict, out_dir, *, cfg=None, opset: int = MIN
     """`export_split_layers` for a loaded model and its run metadata (`meta["layer"]`: the [N]
     layer of each Gaussian, nondecreasing)."""
     import onnx
-    import onnxruntime as ort
 
     start = _time.perf_counter()
     out_dir = Path(out_dir)
@@ -171,25 +171,10 @@ def export_split_model(model, meta: dict, out_dir, *, cfg=None, opset: int = MIN
     md["fp16_weights"] = "0"
     md["lod_layers"] = json.dumps(sizes)
     md["lod_split"] = "1"
-    del proto.metadata_props[:]
-    for key, v in md.items():
-        entry = proto.metadata_props.add()
-        entry.key, entry.value = key, v
-    from nehad import __version__
-
-    proto.producer_name, proto.producer_version = "nehad", __version__
-    proto.doc_string = ("NeHaD dynamic 3D Gaussians (nehad-onnx/1), streaming base: field + layer "
-                        "0; optional inputs extra_* append enhancement layers")
-    try:
-        check_graph(proto, full_check=True)
-    except ValueError as e:
-        raise ExportError(f"exported graph failed its checks: {e}") from None
-    data = proto.SerializeToString()
-
     # parity: every prefix of layers, at every check time, against the full torch model
-    opts = ort.SessionOptions()
-    opts.log_severity_level = 3
-    sess = ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
+    _, data, sess = _seal_and_open(
+        proto, md, "NeHaD dynamic 3D Gaussians (nehad-onnx/1), streaming base: field + layer 0; "
+        "optional inputs extra_* append enhancement layers")
     parity = {nm: 0.0 for nm in out_names}
     layer_np = layer.astype(np.int32)
     for t in times:

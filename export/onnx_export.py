@@ -161,6 +161,30 @@ def _trace(graph: ExportGraph, opset: int) -> bytes:
     return buf.getvalue()
 
 
+def _seal_and_open(proto, md: dict[str, str], doc: str):
+    """Write the metadata `md` (replacing any), producer and `doc` into `proto`, run the SPEC 7
+    graph checks (full_check) and open the serialized graph with onnxruntime for the parity
+    check: (operator types, serialized bytes, session). Shared by the single-file and the
+    split-layer exports."""
+    import onnxruntime as ort
+    from nehad import __version__
+
+    del proto.metadata_props[:]
+    for k, v in md.items():
+        entry = proto.metadata_props.add()
+        entry.key, entry.value = k, v
+    proto.producer_name, proto.producer_version = "nehad", __version__
+    proto.doc_string = doc
+    try:
+        ops = check_graph(proto, full_check=True)
+    except ValueError as e:
+        raise ExportError(f"exported graph failed its checks: {e}") from None
+    data = proto.SerializeToString()
+    opts = ort.SessionOptions()
+    opts.log_severity_level = 3
+    return ops, data, ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
+
+
 def run_layers_of(meta: dict, n: int):
     """The [n] layer of each Gaussian when the run was trained with LOD layers (SPEC 8), else
     None (then the file has no `layer` output)."""
@@ -180,7 +204,6 @@ def export_model(model, meta: dict, out_path, *, opset: int = MIN_OPSET, fp16_we
     """Export `model` (a NeHaDModel) with run metadata `meta` (as returned by load_run) to
     `out_path`. Raises ExportError (nothing written) when a check fails."""
     import onnx
-    import onnxruntime as ort
 
     start = _time.perf_counter()
     out_path = Path(out_path)
@@ -217,25 +240,9 @@ def export_model(model, meta: dict, out_path, *, opset: int = MIN_OPSET, fp16_we
     if layer is not None:  # SPEC 8: Gaussians per layer, layer 0 first
         md["lod_layers"] = json.dumps(np.bincount(layer, minlength=int(layer.max()) + 1
                                                   if len(layer) else 1).tolist())
-    del proto.metadata_props[:]
-    for k, v in md.items():
-        entry = proto.metadata_props.add()
-        entry.key, entry.value = k, v
-    proto.producer_name = "nehad"
-    from nehad import __version__
-
-    proto.producer_version = __version__
-    proto.doc_string = "NeHaD dynamic 3D Gaussians (nehad-onnx/1): time [1] -> activated Gaussians"
-    try:
-        ops = check_graph(proto, full_check=True)
-    except ValueError as e:
-        raise ExportError(f"exported graph failed its checks: {e}") from None
-    data = proto.SerializeToString()
-
     # Parity against the torch model before writing.
-    opts = ort.SessionOptions()
-    opts.log_severity_level = 3
-    sess = ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
+    ops, data, sess = _seal_and_open(
+        proto, md, "NeHaD dynamic 3D Gaussians (nehad-onnx/1): time [1] -> activated Gaussians")
     names = [o.name for o in sess.get_outputs()]
     if names != list(names_out):
         raise ExportError(f"exported graph outputs {names}, expected {list(names_out)}")
