@@ -25,15 +25,13 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from nehad.runtime.cameras import Camera
-from nehad.runtime.images import write_image
+from nehad.runtime.images import atomic_write_bytes, write_image
 
 __all__ = [
     "SCENES", "BOUND", "Sphere", "Box", "scene_objects", "orbit_camera_to_world",
@@ -286,18 +284,6 @@ def _surface_points(objects, n: int, rng: np.random.Generator):
     return np.concatenate(pts).astype(np.float32), np.concatenate(cols).astype(np.uint8)
 
 
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix, dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def _ply_bytes(points: np.ndarray, colours: np.ndarray) -> bytes:
     header = ("ply\nformat binary_little_endian 1.0\n"
               f"element vertex {len(points)}\n"
@@ -372,10 +358,10 @@ def synthesize_scene(out_dir, scene: str = "spheres", resolution: int = 64, fram
             records.append({"file_path": f"./{split}/{name}", "time": t,
                             "transform_matrix": [[float(x) for x in row] for row in c2w]})
         doc = {"camera_angle_x": angle_x, "frames": records}
-        _atomic_write_bytes(out / f"transforms_{split}.json",
+        atomic_write_bytes(out / f"transforms_{split}.json",
                             (json.dumps(doc, indent=2) + "\n").encode("utf-8"))
     if points > 0:
         t_pts = 0.5 if fixed_time is None else fixed_time
         pts, cols = _surface_points(scene_objects(scene, t_pts), int(points), rng_pts)
-        _atomic_write_bytes(out / "points3d.ply", _ply_bytes(pts, cols))
+        atomic_write_bytes(out / "points3d.ply", _ply_bytes(pts, cols))
     return out

@@ -38,7 +38,7 @@ from nehad.data.dynerf import camera_to_world_to_llff
 from nehad.data.synth import (SCENES, _ply_bytes, _surface_points, orbit_camera_to_world,
                               render_view, scene_objects, synthesize_scene)
 from nehad.runtime.cameras import Camera
-from nehad.runtime.images import write_image
+from nehad.runtime.images import atomic_path, write_image
 
 __all__ = ["FORMATS", "synthesize_format", "planned_images", "write_dnerf_twin"]
 
@@ -220,16 +220,11 @@ def _npy_bytes(arr: np.ndarray) -> bytes:
 
 
 def _write_video(path: Path, frames_u8: list[np.ndarray], fps: int = 30) -> None:
-    """Lossless H.264 (libx264rgb, crf 0) in an mp4, atomically (temp file + rename)."""
-    import os
-    import tempfile
-
+    """Lossless H.264 (libx264rgb, crf 0) in an mp4, atomically (`runtime.images.atomic_path`)."""
     import av
 
     h, w = frames_u8[0].shape[:2]
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".mp4", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         with av.open(tmp, "w", format="mp4") as container:
             stream = container.add_stream("libx264rgb", rate=fps)
             stream.width, stream.height, stream.pix_fmt = w, h, "rgb24"
@@ -239,11 +234,6 @@ def _write_video(path: Path, frames_u8: list[np.ndarray], fps: int = 30) -> None
                     container.mux(pkt)
             for pkt in stream.encode():
                 container.mux(pkt)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
 
 
 def _write_dynerf(out: Path, scene, size, frames, seed, fixed_time, points, progress, bg, twin,
