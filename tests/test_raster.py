@@ -253,3 +253,23 @@ def test_hidden_gaussians_get_exactly_zero_gradient():
         for a in (grads.means2d, grads.conics, grads.colors, grads.opacities):
             assert np.isfinite(a).all()
         assert np.all(grads.colors[n_wall:] == 0) and np.all(grads.opacities[n_wall:] == 0)
+
+
+@pytest.mark.skipif(not __import__("sys").platform.startswith("linux"), reason="glibc only")
+def test_heap_keeps_freed_frame_buffers():
+    """Importing the rasterizer raises glibc's mmap/trim thresholds (runtime/raster/heap.py): a
+    16 MB array then comes from the heap (below the program break) instead of fresh mmap pages;
+    with NEHAD_KEEP_HEAP=0 the allocator is left alone and the same array is an mmap."""
+    import subprocess
+    import sys
+
+    probe = ("import ctypes, numpy as np; import nehad.runtime.raster as r; "
+             "from nehad.runtime.raster.heap import keep_freed_memory as k; "
+             "libc = ctypes.CDLL('libc.so.6'); libc.sbrk.restype = ctypes.c_void_p; "
+             "a = np.empty(16 << 20, np.uint8); brk = libc.sbrk(0); "
+             "print(k(), a.ctypes.data < brk)")
+    on = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    off = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True,
+                         env={**__import__("os").environ, "NEHAD_KEEP_HEAP": "0"})
+    assert on.stdout.split() == ["True", "True"], on.stdout + on.stderr
+    assert off.stdout.split() == ["False", "False"], off.stdout + off.stderr

@@ -13,11 +13,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from .binning import TileBins, bin_gaussians
-from .kernels import backward_kernel, forward_kernel, sum_entry_grads
+from .heap import keep_freed_memory
+from .kernels import TILES_PER_TASK, backward_kernel, forward_kernel, sum_entry_grads
 from .projection import Projected, project_gaussians
+
+keep_freed_memory()  # frame buffers are reused instead of page-faulted in each frame (heap.py)
 
 __all__ = ["RasterOutput", "ScreenGradients", "TileBins", "Projected", "bin_gaussians",
            "project_gaussians", "rasterize", "rasterize_backward", "render"]
@@ -61,8 +65,9 @@ def rasterize(means2d, conics, colors, opacities, depths, radii, width, height,
     final_t = np.empty((height, width), np.float32)
     depth = np.empty((height, width), np.float32)
     stop = np.empty((height, width), np.int32)
-    forward_kernel(bins.tile_offsets, bins.gauss_ids, bins.packed, width, height,
-                   _f32(background), rgb, final_t, depth, stop)
+    with numba.parallel_chunksize(TILES_PER_TASK):
+        forward_kernel(bins.tile_offsets, bins.gauss_ids, bins.packed, width, height,
+                       _f32(background), rgb, final_t, depth, stop)
     return RasterOutput(rgb, 1.0 - final_t, depth, final_t, stop, bins)
 
 
@@ -76,8 +81,9 @@ def rasterize_backward(out: RasterOutput, grad_rgb, grad_alpha=None) -> ScreenGr
     n = bins.packed.shape[0]
     # zeros: the kernel skips the entries behind a tile's last stopping pixel (no gradient)
     entry = np.zeros((bins.gauss_ids.shape[0], 9), np.float32)
-    backward_kernel(bins.tile_offsets, bins.gauss_ids, bins.packed, w, h, out.rgb, out.final_t,
-                    out.stop, _f32(grad_rgb), _f32(grad_alpha), entry)
+    with numba.parallel_chunksize(TILES_PER_TASK):
+        backward_kernel(bins.tile_offsets, bins.gauss_ids, bins.packed, w, h, out.rgb,
+                        out.final_t, out.stop, _f32(grad_rgb), _f32(grad_alpha), entry)
     g = sum_entry_grads(bins.gauss_ids, entry, n)
     return ScreenGradients(g[:, 0:2], g[:, 2:5], g[:, 5:8], g[:, 8])
 

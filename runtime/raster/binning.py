@@ -3,7 +3,8 @@
 A Gaussian belongs to every tile its 3-sigma box overlaps (the 3DGS rule), intersected with the
 tiles where its alpha can reach 1/255 at all: the ellipse d^T conic d <= 2 ln(255 opacity). The
 intersection changes no pixel: outside that ellipse alpha < 1/255 and is skipped anyway.
-The same ellipse gives each Gaussian the pixel rows it can touch, which the kernels use to skip rows.
+The same ellipse's bounding box gives each Gaussian the pixel rows and columns it can touch, which
+the kernels use to skip rows and 8-pixel half rows.
 """
 
 from __future__ import annotations
@@ -20,23 +21,21 @@ ALPHA_MIN = 1.0 / 255.0
 # Slack on the opacity-aware ellipse so that float32 rounding in the kernels never reaches past it.
 _EXTENT_SLACK_REL = 1e-3
 _EXTENT_SLACK_PX = 0.05
-_REACH_SLACK = 1e-3
 
 
 # Columns of the packed per-Gaussian record: everything the kernels read about one Gaussian sits
 # in one 64-byte cache line (with seven separate arrays, cache misses dominated the frame time).
-# The row-span coefficients give, for a row at offset dy from the mean, the columns inside the
-# ellipse d^T conic d <= reach: centre mx - SPAN_SHEAR dy, half-width sqrt(SPAN_W2 - SPAN_CURVE dy^2).
-P_MX, P_MY, P_CA, P_CB, P_CC, P_OP, P_R, P_G, P_B, P_Z, P_ROW0, P_ROW1 = range(12)
-P_SPAN_W2, P_SPAN_CURVE, P_SPAN_SHEAR = 12, 13, 14
+# ROW0..ROW1 and COL0..COL1 are the image pixels whose centres lie in the bounding box of the
+# ellipse d^T conic d <= 2 ln(255 opacity) (with slack), outside which alpha < 1/255.
+P_MX, P_MY, P_CA, P_CB, P_CC, P_OP, P_R, P_G, P_B, P_Z, P_ROW0, P_ROW1, P_COL0, P_COL1 = range(14)
 PACKED_WIDTH = 16
 
 
 @dataclass
 class TileBins:
     """tile_offsets (n_tiles + 1,) int64; gauss_ids (M,) int32, each tile's run sorted by depth;
-    packed (N, 16) float32 records: mean2d, conic, opacity, colour, depth, the first and last
-    pixel row the Gaussian can touch, and its row-span coefficients for the ellipse
+    packed (N, 16) float32 records: mean2d, conic, opacity, colour, depth, and the first and
+    last pixel row and column the Gaussian can touch: the bounding box of the ellipse
     d^T conic d <= 2 ln(255 opacity) (with slack), outside which alpha < 1/255."""
 
     tile_offsets: np.ndarray
@@ -112,12 +111,10 @@ def _tile_rects(means2d, conics, colors, opacities, depths, radii, width, height
         rec[P_G] = colors[i, 1]
         rec[P_B] = colors[i, 2]
         rec[P_Z] = depths[i]
-        reach = two_tau * (1.0 + _EXTENT_SLACK_REL) + _REACH_SLACK
-        rec[P_SPAN_W2] = reach / a
-        rec[P_SPAN_CURVE] = det / (a * a)
-        rec[P_SPAN_SHEAR] = b / a
         rec[P_ROW0] = j0
         rec[P_ROW1] = j1
+        rec[P_COL0] = i0
+        rec[P_COL1] = i1
 
 
 @numba.njit(parallel=True, cache=True)
