@@ -78,8 +78,8 @@ def layers(args) -> None:
     from nehad.runtime.layers import LayeredModel
 
     run = args.run[0]
-    folder = run / "layers"
-    rep = export_split_layers(run, folder)
+    folder = run / ("layers_fp16" if args.fp16_field else "layers")
+    rep = export_split_layers(run, folder, fp16_field=args.fp16_field)
     frames, bg = _test_frames(run)
     man = rep.manifest
     rows = []
@@ -96,7 +96,8 @@ def layers(args) -> None:
            "resolution": [frames[0].camera.width, frames[0].camera.height],
            "field_bytes": man["field_bytes"], "bytes_per_gaussian": man["bytes_per_gaussian"],
            "train_downscales": man["train_downscales"], "threads": _threads(args), "rows": rows}
-    out = args.out or run / "streaming.json"
+    res["fp16_field"] = bool(args.fp16_field)
+    out = args.out or run / ("streaming_fp16.json" if args.fp16_field else "streaming.json")
     out.write_text(json.dumps(res, indent=1))
     total_g, total_b = rows[-1]["gaussians"], rows[-1]["bytes"]
     print(f"\n{run}: {len(frames)} test views at {res['resolution'][0]}x{res['resolution'][1]}; "
@@ -143,6 +144,9 @@ def main() -> None:
     ap.add_argument("run", type=Path, nargs="+")
     ap.add_argument("--threads", type=int, default=1, help="onnxruntime intra-op threads")
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--fp16-field", action="store_true",
+                    help="layers: export the field's weights as float16 (nehad export "
+                         "--split-layers DIR --fp16-weights)")
     args = ap.parse_args()
     {"layers": layers, "zoom": zoom}[args.what](args)
 

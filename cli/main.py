@@ -292,7 +292,8 @@ def render(scene, view, output, depth, alpha, background, size, sh_degree, time_
               help="ONNX opset (17..20).")
 @click.option("--fp16-weights", is_flag=True,
               help="Store the weights as float16 (a smaller file); the torch model is rounded "
-                   "the same way for the parity check.")
+                   "the same way for the parity check. With --split-layers: the field's weights "
+                   "only (the Gaussians of every layer stay float32).")
 @click.option("--split-layers", "split_dir", default=None,
               type=click.Path(file_okay=False, path_type=Path),
               help="For a run trained with --lod-levels: write DIR/base.onnx (field + layer 0), "
@@ -308,11 +309,9 @@ def export_(run, output, opset, fp16_weights, split_dir):
     """
     if output is None and split_dir is None:
         raise click.UsageError("give -o MODEL.onnx, --split-layers DIR, or both")
-    if split_dir is not None and fp16_weights:
-        raise click.UsageError("--fp16-weights applies to -o only; --split-layers writes float32")
     with user_errors():
         if split_dir is not None:
-            _export_split(run, split_dir, opset)
+            _export_split(run, split_dir, opset, fp16_weights)
         if output is None:
             return
         if output.suffix.lower() != ".onnx":
@@ -335,7 +334,7 @@ def export_(run, output, opset, fp16_weights, split_dir):
                f"exported in {rep.seconds:.1f} s")
 
 
-def _export_split(run: Path, folder: Path, opset: int) -> None:
+def _export_split(run: Path, folder: Path, opset: int, fp16_field: bool = False) -> None:
     """`nehad export --split-layers`: base model, chunks and manifest (SPEC 8)."""
     if not (run / "model.pt").is_file():
         raise InputError(f"{run}: not a finished training run (no model.pt)")
@@ -345,10 +344,11 @@ def _export_split(run: Path, folder: Path, opset: int) -> None:
         raise InputError(f"--split-layers {folder}: parent folder {folder.parent} does not exist")
     from nehad.export.layers import export_split_layers
 
-    rep = export_split_layers(run, folder, opset=opset)
+    rep = export_split_layers(run, folder, opset=opset, fp16_field=fp16_field)
     worst = max(rep.parity.values()) if rep.parity else 0.0
     click.echo(f"{folder}/: {len(rep.manifest['layers'])} layers, parity vs torch {worst:.2g} "
-               f"(every prefix), exported in {rep.seconds:.1f} s")
+               f"(every prefix), field {rep.manifest['field_bytes'] / 1e6:.2f} MB"
+               f"{' (float16)' if fp16_field else ''}, exported in {rep.seconds:.1f} s")
     for e in rep.manifest["layers"]:
         click.echo(f"  layer {e['layer']}: {e['file']:<12} {e['gaussians']:>8} Gaussians "
                    f"{e['bytes']:>11} bytes  (layers 0..{e['layer']}: "

@@ -29,8 +29,8 @@ from nehad.export.checks import MIN_OPSET
 from nehad.export.deform_graph import FastDeform
 from nehad.export.graph import LAYER_OUTPUT, OUTPUT_NAMES, closed_form_copy
 from nehad.export.onnx_export import (MAX_OPSET, PARITY_TIMES, PARITY_TOL, ExportError,
-                                      _name_outputs, _seal_and_open, build_metadata, parity_error,
-                                      run_layers_of)
+                                      _name_outputs, _seal_and_open, _to_fp16_initializers,
+                                      build_metadata, parity_error, run_layers_of)
 from nehad.runtime.layers import (BASE_FILE, CHUNK_ARRAYS, EXTRA_LAYER, EXTRA_PREFIX, MANIFEST,
                                   MANIFEST_FORMAT, atomic_write, chunk_file_name, encode_chunk,
                                   sha256_of)
@@ -89,8 +89,8 @@ def _empty_initializers(proto, shapes: dict) -> None:
         proto.graph.initializer.append(numpy_helper.from_array(np.zeros((0, *tail), dtype), name))
 
 
-def export_split_layers(run_dir, out_dir, *, opset: int = MIN_OPSET, times=PARITY_TIMES,
-                        tol: float = PARITY_TOL) -> SplitReport:
+def export_split_layers(run_dir, out_dir, *, opset: int = MIN_OPSET, fp16_field: bool = False,
+                        times=PARITY_TIMES, tol: float = PARITY_TOL) -> SplitReport:
     """Write base.onnx, layer_1.bin, ... and manifest.json for the layered RUN into `out_dir`
     (created; existing files of those names are replaced). Raises ExportError, writing nothing,
     when the run has no layers or a check fails."""
@@ -104,13 +104,20 @@ def export_split_layers(run_dir, out_dir, *, opset: int = MIN_OPSET, times=PARIT
     if meta.get("layer") is None:
         raise ExportError(f"{run}: the run has no streaming layers (train it with --lod-levels L)")
     cfg = config_from_dict(meta["config"]) if "config" in meta else None
-    return export_split_model(model, meta, out_dir, cfg=cfg, opset=opset, times=times, tol=tol)
+    return export_split_model(model, meta, out_dir, cfg=cfg, opset=opset, fp16_field=fp16_field,
+                              times=times, tol=tol)
 
 
 def export_split_model(model, meta: dict, out_dir, *, cfg=None, opset: int = MIN_OPSET,
-                       times=PARITY_TIMES, tol: float = PARITY_TOL) -> SplitReport:
+                       fp16_field: bool = False, times=PARITY_TIMES,
+                       tol: float = PARITY_TOL) -> SplitReport:
     """`export_split_layers` for a loaded model and its run metadata (`meta["layer"]`: the [N]
-    layer of each Gaussian, nondecreasing)."""
+    layer of each Gaussian, nondecreasing).
+
+    `fp16_field`: store the deformation field's weights (hex-plane and networks) as float16 in
+    base.onnx, halving the part of the first download that does not shrink with the layers; the
+    Gaussians (layer 0 and the chunks) stay float32. The parity check then compares against the
+    model with its field rounded the same way."""
     import onnx
 
     start = _time.perf_counter()
@@ -131,6 +138,10 @@ def export_split_model(model, meta: dict, out_dir, *, cfg=None, opset: int = MIN
     sh_degree = int(meta.get("sh_degree", model.gaussians.sh_degree))
     k = (sh_degree + 1) ** 2
     work = closed_form_copy(model)
+    if fp16_field:
+        with torch.no_grad():
+            for p in work.field.parameters():
+                p.copy_(p.to(torch.float16).to(torch.float32))
     graph = SplitBaseGraph(work, sh_degree, sizes[0]).eval()
     offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
     with torch.no_grad():
@@ -162,13 +173,15 @@ def export_split_model(model, meta: dict, out_dir, *, cfg=None, opset: int = MIN
         raise ExportError(f"torch.onnx.export failed: {' '.join(str(e).split())[:400]}") from e
     proto = onnx.load_from_string(buf.getvalue())
     _name_outputs(proto, out_names)
+    if fp16_field:  # only the rounded field is exactly representable: the Gaussians stay float32
+        _to_fp16_initializers(proto)
     tails = {"means": (3,), "log_scales": (3,), "quats": (4,), "opacity_logits": (),
              "sh": (k, 3), "mu_eq": (3,), "t_eq": (1,)}
     _empty_initializers(proto, {**{EXTRA_PREFIX + nm: (tails[nm], np.float32)
                                    for nm in CHUNK_ARRAYS}, EXTRA_LAYER: ((), np.int32)})
     md = build_metadata(model, {**meta}, sh_degree, cfg)
     md["num_gaussians"] = str(sizes[0])
-    md["fp16_weights"] = "0"
+    md["fp16_weights"] = "field" if fp16_field else "0"
     md["lod_layers"] = json.dumps(sizes)
     md["lod_split"] = "1"
     # parity: every prefix of layers, at every check time, against the full torch model

@@ -65,6 +65,7 @@ class DensifyConfig:
     prune_interval: int = 8000  # D-NeRF: large-Gaussian pruning only every this many iterations
     max_screen_size: int = 20  # prune Gaussians larger than this (pixels) at prune_interval
     max_gaussians: int = 0  # 0 = no cap; otherwise densification stops adding past this count
+    # (of trainable Gaussians: in a layered run, --lod-levels, it caps each layer on its own)
 
 
 @dataclass
@@ -99,6 +100,8 @@ class LodConfig:
     # dropped: a higher threshold makes each layer smaller (fewer bytes, less detail)
     spawn_opacity: float = 0.05  # opacity of the Gaussians that seed an enhancement layer (one
     # child per Gaussian of the layers below, drawn from its parent, half its size)
+    base_max_gaussians: int = 0  # cap on layer 0, the first download (0: densify.max_gaussians);
+    # a small base layer beside large enhancement layers makes the first fetch a small share
     train_field: bool = False  # also train the shared field during enhancement layers (it then
     # changes how the frozen lower layers move: a layer-0-only render drifts from what it was)
 
@@ -143,6 +146,8 @@ class Config:
             raise ConfigError("lod.iterations: must be >= 0 (0 = fine.iterations)")
         if not 0.0 <= self.lod.opacity_threshold < 1.0:
             raise ConfigError("lod.opacity_threshold: must lie in [0, 1)")
+        if self.lod.base_max_gaussians < 0:
+            raise ConfigError("lod.base_max_gaussians: must be >= 0 (0 = densify.max_gaussians)")
         if not 0.0 < self.lod.spawn_opacity < 1.0:
             raise ConfigError("lod.spawn_opacity: must lie in (0, 1)")
         return self

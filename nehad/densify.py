@@ -128,7 +128,8 @@ class DensifyStrategy:
         max_scale = torch.exp(params.log_scales).max(dim=1).values
         hot = grads >= cfg.grad_threshold
         if cfg.max_gaussians > 0:
-            room = max(cfg.max_gaussians - n, 0)
+            # the cap counts the trainable Gaussians: in a layered run, those of this layer
+            room = max(cfg.max_gaussians - (n - self.frozen), 0)
             if int(hot.sum()) > room:
                 # keep the hottest ones within the cap (a split adds one net Gaussian, a clone one)
                 order = torch.argsort(grads, descending=True)

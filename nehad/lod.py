@@ -26,6 +26,7 @@ and downscales). Checkpoints hold the per-layer counts, so a run resumes inside 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -72,6 +73,8 @@ class LodTrainer(Trainer):
         #: Gaussian counts of the finished (frozen) layers, in order.
         self.layer_sizes: list[int] = [int(v) for v in saved.get("layer_sizes", [])]
         self.strategy.frozen = sum(self.layer_sizes)
+        self._densify_cfg = self.strategy.cfg
+        self._apply_layer_cap(self.layer_of(self.step))
         self._snapshot = self._take_snapshot()
         self._current_step = self.step
         self.optimizer.register_step_pre_hook(self._zero_frozen_grads)
@@ -110,6 +113,15 @@ class LodTrainer(Trainer):
                                  frame_stride=cfg.data.frame_stride)
             self._layer_views[layer] = _views(scene, cfg.data.train_split)
         return self._layer_views[layer]
+
+    def _apply_layer_cap(self, layer: int) -> None:
+        """Densification cap of `layer`: `lod.base_max_gaussians` for layer 0 when set, else
+        `densify.max_gaussians` (which counts only the trainable Gaussians, i.e. this layer's)."""
+        base_cap = int(self.cfg.lod.base_max_gaussians)
+        if layer == 0 and base_cap > 0:
+            self.strategy.cfg = dataclasses.replace(self._densify_cfg, max_gaussians=base_cap)
+        else:
+            self.strategy.cfg = self._densify_cfg
 
     # -- freezing -----------------------------------------------------------------------------
     def _gaussian_groups(self):
@@ -161,6 +173,7 @@ class LodTrainer(Trainer):
         new["opacity_logits"] = torch.full_like(new["opacity_logits"], math.log(p / (1.0 - p)))
         append_gaussians(g, self.optimizer, new)
         self.strategy.reset(len(g))
+        self._apply_layer_cap(layer)
         self.log_event(f"layer {layer}: {f} frozen Gaussians, {f} spawned, images at 1/"
                        f"{self.downscales[layer]}")
 

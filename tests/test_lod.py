@@ -143,6 +143,30 @@ def test_opacity_threshold_controls_layer_size(scene, tmp_path):
     assert run(0.99, "all").layer_sizes[0] == n0
 
 
+def test_layer_caps(scene, tmp_path):
+    """lod.base_max_gaussians caps layer 0; densify.max_gaussians caps each enhancement layer
+    on its own (it counts the trainable Gaussians, not the frozen ones below)."""
+    from nehad.lod import LodTrainer
+
+    free = LodTrainer(_config(["lod.levels=2", "lod.opacity_threshold=0",
+                               "densify.max_gaussians=0"]), scene,
+                      tmp_path / "free", progress=False, log=None)
+    free.train()
+    n0, n1 = free.layer_sizes
+    base_cap = n0 - 40
+    layer_cap = n0 + 5  # below what layer 1 grows to, above the n0 children it starts with
+    assert n1 > layer_cap, free.layer_sizes
+    capped = LodTrainer(_config(["lod.levels=2", "lod.opacity_threshold=0",
+                                 f"lod.base_max_gaussians={base_cap}",
+                                 f"densify.max_gaussians={layer_cap}"]), scene,
+                        tmp_path / "capped", progress=False, log=None)
+    capped.train()
+    c0, c1 = capped.layer_sizes
+    print(f"layers without caps {free.layer_sizes}, with caps {capped.layer_sizes}")
+    assert c0 <= base_cap < n0
+    assert c0 < c1 <= layer_cap  # layer 1 grew past its c0 children, up to its own cap
+
+
 def test_resume_inside_an_enhancement_layer(scene, tmp_path, trained):
     from nehad.checkpoint import save_checkpoint
     from nehad.lod import LodTrainer
@@ -253,6 +277,43 @@ def test_split_prefixes_match_torch(split, trained):
                 worst = max(worst, parity_error(out[name], b))
             assert np.array_equal(out["layer"], meta["layer"].numpy()[:n])
     print(f"split layers parity vs torch prefixes {worst:.3g}")
+    assert worst <= 1e-5
+
+
+def test_split_fp16_field(split, trained, tmp_path):
+    """--fp16-weights with --split-layers: the field is stored as float16 (the base file
+    shrinks), the Gaussians stay float32 (chunks byte-identical), and every prefix matches the
+    torch model with its field rounded to float16."""
+    from nehad.export.layers import export_split_layers
+    from nehad.trainer import load_run
+
+    rep = export_split_layers(trained["export_run"], tmp_path / "half", fp16_field=True)
+    man32 = json.loads((split / "manifest.json").read_text())
+    man16 = rep.manifest
+    model, meta = load_run(trained["export_run"])
+    plane_values = sum(p.numel() for n, p in model.field.named_parameters()
+                       if n.startswith("hexplane."))
+    print(f"field bytes float32 {man32['field_bytes']}, float16 field {man16['field_bytes']}; "
+          f"{plane_values} hex-plane values")
+    # every hex-plane value is stored in 2 bytes instead of 4
+    assert man32["field_bytes"] - man16["field_bytes"] >= 2 * plane_values
+    for e32, e16 in zip(man32["layers"][1:], man16["layers"][1:]):
+        assert e16["sha256"] == e32["sha256"]
+    proto = onnx.load(str(tmp_path / "half" / "base.onnx"))
+    assert {p.key: p.value for p in proto.metadata_props}["fp16_weights"] == "field"
+    with torch.no_grad():
+        for p in model.field.parameters():
+            p.copy_(p.half().float())
+    n_all = sum(trained["trainer"].layer_sizes)
+    lm = LayeredModel(tmp_path / "half")
+    assert lm.loaded_layers == 3
+    worst = 0.0
+    for t in (0.0, 0.7):
+        out = lm.outputs(t)
+        with torch.no_grad():
+            ref = [o.numpy()[:n_all] for o in model.gaussians_at(t)]
+        ref[4] = ref[4][:, :out["sh"].shape[1]]
+        worst = max(worst, *(parity_error(out[nm], b) for nm, b in zip(OUTPUTS, ref)))
     assert worst <= 1e-5
 
 
