@@ -261,9 +261,9 @@ def test_hidden_gaussians_get_exactly_zero_gradient():
 
 @pytest.mark.skipif(not __import__("sys").platform.startswith("linux"), reason="glibc only")
 def test_heap_keeps_freed_frame_buffers():
-    """Importing the rasterizer raises glibc's mmap/trim thresholds (runtime/raster/heap.py): a
-    16 MB array then comes from the heap (below the program break) instead of fresh mmap pages;
-    with NEHAD_KEEP_HEAP=0 the allocator is left alone and the same array is an mmap."""
+    """With NEHAD_KEEP_HEAP=1, importing the rasterizer raises glibc's mmap/trim thresholds
+    (runtime/raster/heap.py): a 16 MB array then comes from the heap (below the program break)
+    instead of fresh mmap pages; by default the allocator is left alone."""
     import subprocess
     import sys
 
@@ -272,8 +272,10 @@ def test_heap_keeps_freed_frame_buffers():
              "libc = ctypes.CDLL('libc.so.6'); libc.sbrk.restype = ctypes.c_void_p; "
              "a = np.empty(16 << 20, np.uint8); brk = libc.sbrk(0); "
              "print(k(), a.ctypes.data < brk)")
-    on = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    env = {k: v for k, v in __import__("os").environ.items() if k != "NEHAD_KEEP_HEAP"}
+    on = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True,
+                        env={**env, "NEHAD_KEEP_HEAP": "1"})
     off = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True,
-                         env={**__import__("os").environ, "NEHAD_KEEP_HEAP": "0"})
+                         env=env)
     assert on.stdout.split() == ["True", "True"], on.stdout + on.stderr
     assert off.stdout.split() == ["False", "False"], off.stdout + off.stderr

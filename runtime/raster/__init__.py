@@ -21,7 +21,7 @@ from .heap import keep_freed_memory
 from .kernels import TILES_PER_TASK, backward_kernel, forward_kernel, sum_entry_grads
 from .projection import Projected, project_gaussians
 
-keep_freed_memory()  # frame buffers are reused instead of page-faulted in each frame (heap.py)
+keep_freed_memory()  # opt-in (NEHAD_KEEP_HEAP=1): reuse frame buffers instead of new pages (heap.py)
 
 __all__ = ["RasterOutput", "ScreenGradients", "TileBins", "Projected", "bin_gaussians",
            "project_gaussians", "rasterize", "rasterize_backward", "render"]

@@ -3,9 +3,14 @@
 A frame allocates tens of MB of short-lived arrays (the tile lists, the packed records, the
 output images: about 28 MB at 100k Gaussians and 800x800). glibc serves blocks that large with
 fresh mmap pages by default and returns them on free, so every frame paid for page faults and
-zero-filling: 63 ms instead of 51 ms for that frame on a 2-core machine. Raising the mmap and
-trim thresholds keeps those blocks in the heap for reuse, at the price of holding up to
-`TRIM_BYTES` of freed memory. Set NEHAD_KEEP_HEAP=0 to leave the allocator alone.
+zero-filling: 57-63 ms instead of 51 ms for that frame on a 2-core machine. Raising the mmap
+and trim thresholds keeps those blocks in the heap for reuse, at the price of holding up to
+`TRIM_BYTES` of freed memory.
+
+It is OFF unless NEHAD_KEEP_HEAP=1: with it on, a 24-frame video rendered by two worker
+processes differed from the same video rendered in one process by 1/255 in one pixel of one
+frame (tests/test_distribute.py), so some stage's result depends on what the reused memory held
+or where it lies. Until that is found, bitwise-reproducible frames come first.
 """
 
 from __future__ import annotations
@@ -22,12 +27,12 @@ _done = False
 
 
 def keep_freed_memory() -> bool:
-    """Raise glibc's mmap and trim thresholds once per process; False where that does not
-    apply (not Linux/glibc, or NEHAD_KEEP_HEAP=0)."""
+    """Raise glibc's mmap and trim thresholds once per process when NEHAD_KEEP_HEAP=1; False
+    where that does not apply (not set, not Linux/glibc)."""
     global _done
     if _done:
         return True
-    if not sys.platform.startswith("linux") or os.environ.get("NEHAD_KEEP_HEAP", "1") == "0":
+    if not sys.platform.startswith("linux") or os.environ.get("NEHAD_KEEP_HEAP", "0") != "1":
         return False
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
