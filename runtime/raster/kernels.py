@@ -57,6 +57,13 @@ _SATURATION_CHECK = 16  # entries between checks for fully stopped runs
 #: split took 14.4 ms where 4 tiles per task took 9.8 ms, 20k Gaussians at 400x400, 2 threads).
 TILES_PER_TASK = 4
 
+#: Fast-math flags of the forward kernel: all of LLVM's but 'contract'. With contraction allowed,
+#: the kernel JIT-compiled in one process and the same kernel loaded from numba's cache in
+#: another fused different multiply-adds (up to 4e-7 apart, enough to flip one 8-bit pixel of a
+#: 24-frame video between a single-process render and a render by worker processes). Without
+#: it, every process computes bit-identical frames.
+_FORWARD_FASTMATH = {"nnan", "ninf", "nsz", "arcp", "afn", "reassoc"}
+
 # fields of the forward state
 _T, _R, _G, _B, _D, _STOP = 0, 1, 2, 3, 4, 5
 # fields of the backward state: running T and colour still to come, then per-pixel constants
@@ -80,7 +87,7 @@ def _box_in_tile(rec, x0, y0):
     return r0, r1, h0, h1
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True)
+@numba.njit(parallel=True, fastmath=_FORWARD_FASTMATH, cache=True)
 def forward_kernel(tile_offsets, gauss_ids, packed, width, height, background,
                    out_rgb, out_final_t, out_depth, out_stop):
     ntx = (width + TILE - 1) // TILE
