@@ -7,10 +7,10 @@ zero-filling: 57-63 ms instead of 51 ms for that frame on a 2-core machine. Rais
 and trim thresholds keeps those blocks in the heap for reuse, at the price of holding up to
 `TRIM_BYTES` of freed memory.
 
-It is OFF unless NEHAD_KEEP_HEAP=1: with it on, a 24-frame video rendered by two worker
-processes differed from the same video rendered in one process by 1/255 in one pixel of one
-frame (tests/test_distribute.py), so some stage's result depends on what the reused memory held
-or where it lies. Until that is found, bitwise-reproducible frames come first.
+It is OFF unless NEHAD_KEEP_HEAP=1. It was switched off while a cross-process difference of
+1/255 in one pixel was chased; that turned out to be the forward kernel's fused multiply-adds
+differing between JIT-compiled and cached code (fixed in kernels.py), not the heap. Making it
+the default waits for a quiet re-measurement and a decision on the memory it holds.
 """
 
 from __future__ import annotations
