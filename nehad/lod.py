@@ -73,7 +73,6 @@ class LodTrainer(Trainer):
         #: Gaussian counts of the finished (frozen) layers, in order.
         self.layer_sizes: list[int] = [int(v) for v in saved.get("layer_sizes", [])]
         self.strategy.frozen = sum(self.layer_sizes)
-        self._densify_cfg = self.strategy.cfg
         self._apply_layer_cap(self.layer_of(self.step))
         self._snapshot = self._take_snapshot()
         self._current_step = self.step
@@ -119,9 +118,9 @@ class LodTrainer(Trainer):
         `densify.max_gaussians` (which counts only the trainable Gaussians, i.e. this layer's)."""
         base_cap = int(self.cfg.lod.base_max_gaussians)
         if layer == 0 and base_cap > 0:
-            self.strategy.cfg = dataclasses.replace(self._densify_cfg, max_gaussians=base_cap)
+            self.strategy.cfg = dataclasses.replace(self.cfg.densify, max_gaussians=base_cap)
         else:
-            self.strategy.cfg = self._densify_cfg
+            self.strategy.cfg = self.cfg.densify
 
     # -- freezing -----------------------------------------------------------------------------
     def _gaussian_groups(self):
