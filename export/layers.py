@@ -30,7 +30,8 @@ from nehad.export.deform_graph import FastDeform
 from nehad.export.graph import LAYER_OUTPUT, OUTPUT_NAMES, closed_form_copy
 from nehad.export.onnx_export import (MAX_OPSET, PARITY_TIMES, PARITY_TOL, ExportError,
                                       _name_outputs, _seal_and_open, _to_fp16_initializers,
-                                      build_metadata, parity_error, run_layers_of)
+                                      build_metadata, parity_error, round_to_fp16,
+                                      run_layers_of)
 from nehad.runtime.layers import (BASE_FILE, CHUNK_ARRAYS, EXTRA_LAYER, EXTRA_PREFIX, MANIFEST,
                                   MANIFEST_FORMAT, atomic_write, chunk_file_name, encode_chunk,
                                   sha256_of)
@@ -139,9 +140,7 @@ def export_split_model(model, meta: dict, out_dir, *, cfg=None, opset: int = MIN
     k = (sh_degree + 1) ** 2
     work = closed_form_copy(model)
     if fp16_field:
-        with torch.no_grad():
-            for p in work.field.parameters():
-                p.copy_(p.to(torch.float16).to(torch.float32))
+        round_to_fp16(work.field.parameters())
     graph = SplitBaseGraph(work, sh_degree, sizes[0]).eval()
     offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
     with torch.no_grad():

@@ -106,6 +106,14 @@ def build_metadata(model, meta: dict, sh_degree: int, cfg=None) -> dict[str, str
     return md
 
 
+def round_to_fp16(params) -> None:
+    """Round torch parameters in place to the nearest float16 value (kept as float32), so that
+    `_to_fp16_initializers` can store them exactly and the parity check compares like with like."""
+    with torch.no_grad():
+        for p in params:
+            p.copy_(p.to(torch.float16).to(torch.float32))
+
+
 def _to_fp16_initializers(proto) -> int:
     """Store each float32 initializer whose values are exactly representable in float16 as
     float16 plus a Cast back to float32 (exact). Returns the number converted."""
@@ -215,9 +223,7 @@ def export_model(model, meta: dict, out_path, *, opset: int = MIN_OPSET, fp16_we
         sh_degree = int(meta.get("sh_degree", model.gaussians.sh_degree))
     work = closed_form_copy(model)
     if fp16_weights:
-        with torch.no_grad():
-            for p in work.parameters():
-                p.copy_(p.to(torch.float16).to(torch.float32))
+        round_to_fp16(work.parameters())
     layer = run_layers_of(meta, len(model.gaussians))
     graph = ExportGraph(work, sh_degree, layer).eval()
     names_out = graph.output_names
