@@ -3,7 +3,7 @@
 A frame allocates tens of MB of short-lived arrays (the tile lists, the packed records, the
 output images: about 28 MB at 100k Gaussians and 800x800). glibc serves blocks that large with
 fresh mmap pages by default and returns them on free, so every frame paid for page faults and
-zero-filling: 57-63 ms instead of 51 ms for that frame on a 2-core machine. Raising the mmap
+zero-filling: 57-66 ms instead of 51 ms for that frame on a 2-core machine. Raising the mmap
 and trim thresholds keeps those blocks in the heap for reuse, at the price of holding up to
 `TRIM_BYTES` of freed memory.
 
