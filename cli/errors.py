@@ -4,7 +4,9 @@ The library raises its own error classes for bad inputs (:class:`CameraError`, :
 :class:`ImageError`, :class:`DatasetError`, ...), each with a message that names the file and the
 field. :func:`user_errors` turns exactly those into :class:`click.ClickException` (``Error: ...``,
 exit code 1), and so is an :class:`OSError` that names a file (permission denied, disk full).
-Any other exception is a bug and keeps its traceback.
+An :class:`ImportError` of a package of the training extra (torch, onnx) is a runtime-only install
+(SPEC section 2), not a bug: one line names the command, the missing package and the extra to
+install. Any other exception is a bug and keeps its traceback.
 
 Nothing here imports the library at import time (``nehad --help`` stays fast, and a module that
 was never imported cannot have raised): the classes are looked up in ``sys.modules`` when an
@@ -38,7 +40,14 @@ USER_ERROR_CLASSES = (
     ("nehad.runtime.batch", "BatchError"),
     ("nehad.runtime.distribute", "RenderError"),
     ("nehad.runtime.layers", "LayerError"),
+    ("nehad.checkpoint", "CheckpointError"),
+    ("nehad.runtime.memory", "FrameMemoryError"),
+    ("nehad.runtime.lock", "LockError"),
 )
+
+#: Top-level packages of the `train` extra (pyproject.toml) and how to install them.
+TRAIN_EXTRA = ("torch", "onnx", "onnxscript")
+TRAIN_INSTALL = "pip install -e '.[train]' torch==2.13.0"
 
 
 class InputError(ValueError):
@@ -59,6 +68,32 @@ def _one_line(message: str) -> str:
     return " ".join(str(message).split()) or "invalid input"
 
 
+def missing_extra(e: ImportError) -> str | None:
+    """The package of the training extra whose import failed with `e`, or None.
+
+    Either the import names it (``No module named 'torch'``), or the error was raised inside the
+    package itself (an install that is broken, or blocked as in tests/torch_blocker.py)."""
+    name = (getattr(e, "name", None) or "").split(".")[0]
+    if name in TRAIN_EXTRA:
+        return name
+    tb = e.__traceback__
+    while tb is not None and tb.tb_next is not None:
+        tb = tb.tb_next
+    if tb is not None:
+        parts = tb.tb_frame.f_code.co_filename.replace("\\", "/").split("/")
+        for pkg in TRAIN_EXTRA:
+            if pkg in parts[:-1]:
+                return pkg
+    return None
+
+
+def _command() -> str:
+    ctx = click.get_current_context(silent=True)
+    if ctx is None:
+        return "this command"
+    return "nehad " + " ".join(ctx.command_path.split()[1:]) if " " in ctx.command_path else "nehad"
+
+
 @contextlib.contextmanager
 def user_errors():
     """Map the project's bad-input exceptions raised inside the block to ClickException."""
@@ -69,6 +104,10 @@ def user_errors():
     except Exception as e:
         if isinstance(e, _user_error_types()):
             raise click.ClickException(_one_line(e)) from None
+        if isinstance(e, ImportError) and (pkg := missing_extra(e)) is not None:
+            raise click.ClickException(_one_line(
+                f"{_command()} needs {pkg}, which cannot be imported here ({e}); install "
+                f"the training extra: {TRAIN_INSTALL}")) from None
         if isinstance(e, OSError) and e.filename is not None:
             # the system refused a named file (permission denied, disk full, ...): not a bug
             raise click.ClickException(_one_line(f"{e.filename}: {e.strerror or e}")) from None

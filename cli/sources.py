@@ -16,8 +16,8 @@ a directory with manifest.json  streaming layers (no torch)     supported
 (whose missing or corrupt chunks are reported in ``problems`` and skipped: the layers before
 them are rendered).
 
-Adding a source: a class with ``describe()``, ``default_background`` and ``gaussians(time)``, and
-a branch in :func:`open_source`. Heavy imports (onnxruntime, torch) belong inside the class, never
+Adding a source: a class with ``describe()``, ``default_background``, ``num_gaussians``,
+``sh_degree`` and ``gaussians(time)``, and a branch in :func:`open_source`. Heavy imports (onnxruntime, torch) belong inside the class, never
 at the top of this module: the CLI imports it for every render.
 """
 
@@ -55,6 +55,14 @@ class PlySource:
         """The Gaussians at `time` (ignored: a PLY is static)."""
         return self.load()
 
+    @property
+    def num_gaussians(self) -> int:
+        return len(self.load())
+
+    @property
+    def sh_degree(self) -> int:
+        return self.load().sh_degree
+
     def describe(self) -> str:
         cloud = self.load()
         return f"{len(cloud)} Gaussians, SH degree {cloud.sh_degree}"
@@ -87,6 +95,10 @@ class RunSource:
                 raise InputError(f"--lod {lod}: run {self.path} has {count} layer(s), "
                                  f"0..{count - 1}")
             self._keep = layers <= lod
+
+    @property
+    def num_gaussians(self) -> int:
+        return len(self.model.gaussians)
 
     def gaussians(self, time: float | None = None):
         from nehad.trainer import cloud_at
@@ -122,6 +134,7 @@ class OnnxSource:
         self.default_background = tuple(float(v) for v in self.model.background)
         self.time_range = tuple(float(v) for v in self.model.time_range)
         self.sh_degree = self.model.sh_degree
+        self.num_gaussians = self.model.num_gaussians
         self.default_camera = self.model.default_camera
         self.problems: list[str] = []
         self.lod = lod
@@ -166,6 +179,7 @@ class LayeredSource:
         self.default_background = tuple(float(v) for v in self.model.background)
         self.time_range = tuple(float(v) for v in self.model.time_range)
         self.sh_degree = self.model.sh_degree
+        self.num_gaussians = self.model.num_gaussians
         self.default_camera = self.model.default_camera
         self.problems = list(self.model.problems)
 

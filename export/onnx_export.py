@@ -170,13 +170,16 @@ def _trace(graph: ExportGraph, opset: int) -> bytes:
 
 
 def _seal_and_open(proto, md: dict[str, str], doc: str):
-    """Write the metadata `md` (replacing any), producer and `doc` into `proto`, run the SPEC 7
-    graph checks (full_check) and open the serialized graph with onnxruntime for the parity
-    check: (operator types, serialized bytes, session). Shared by the single-file and the
-    split-layer exports."""
+    """Write the metadata `md` (replacing any; `md` gets the graph's digest added), producer and
+    `doc` into `proto`, run the SPEC 7 graph checks (full_check) and open the serialized graph
+    with onnxruntime for the parity check: (operator types, serialized bytes, session). Shared
+    by the single-file and the split-layer exports."""
     import onnxruntime as ort
     from nehad import __version__
+    from nehad.runtime.onnx_model import DIGEST_KEY
+    from nehad.runtime.onnx_proto import graph_sha256
 
+    md.pop(DIGEST_KEY, None)
     del proto.metadata_props[:]
     for k, v in md.items():
         entry = proto.metadata_props.add()
@@ -187,7 +190,16 @@ def _seal_and_open(proto, md: dict[str, str], doc: str):
         ops = check_graph(proto, full_check=True)
     except ValueError as e:
         raise ExportError(f"exported graph failed its checks: {e}") from None
+    # Integrity (issue 15): the digest of the graph's bytes (operators and weights) goes into
+    # the metadata, outside the graph, and every load compares it with the file
+    digest = graph_sha256(proto.SerializeToString())
+    entry = proto.metadata_props.add()
+    entry.key, entry.value = DIGEST_KEY, digest
     data = proto.SerializeToString()
+    if graph_sha256(data) != digest:
+        raise ExportError("the serialized graph changed when its digest was added (protobuf "
+                          "serialization is not stable here); nothing written")
+    md[DIGEST_KEY] = digest
     opts = ort.SessionOptions()
     opts.log_severity_level = 3
     return ops, data, ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
@@ -219,6 +231,9 @@ def export_model(model, meta: dict, out_path, *, opset: int = MIN_OPSET, fp16_we
         raise ExportError(f"--opset {opset}: supported opsets are {MIN_OPSET}..{MAX_OPSET}")
     if not out_path.parent.is_dir():
         raise ExportError(f"{out_path}: output folder {out_path.parent} does not exist")
+    from nehad.runtime.tempfiles import remove_stale_temps
+
+    remove_stale_temps(out_path.parent, out_path.name)  # what a killed export left (issue 15)
     if sh_degree is None:
         sh_degree = int(meta.get("sh_degree", model.gaussians.sh_degree))
     work = closed_form_copy(model)

@@ -5,23 +5,43 @@ with `weights_only=True`.
     RUN/checkpoints/step_000500.pt
     RUN/model.pt           the final model (gaussians + field + what rendering needs)
     RUN/metrics.jsonl      one JSON object per log line
+
+Reading is checked (issue 15): an empty, truncated, corrupt or foreign file raises
+:class:`CheckpointError` naming the file and what is wrong with it, never torch's own advice to
+load it with ``weights_only=False`` (which would run whatever code the file holds). The zip
+archive's CRC-32 of every record is verified, so flipped bytes in the tensor data are refused
+rather than loaded. Temporary files of the atomic writes name their writer, and those a killed
+run left behind are removed by the next save or ``--resume`` (:mod:`nehad.runtime.tempfiles`).
 """
 
 from __future__ import annotations
 
 import json
 import os
-import tempfile
+import re
+import time
+import zipfile
 from pathlib import Path
 
 import torch
+
+from nehad.runtime.tempfiles import STALE_SECONDS, make_temp, remove_stale_temps
+
+#: Keys every file of a run (checkpoint or model.pt) holds.
+REQUIRED_KEYS = ("gaussians", "field", "config")
+# temporary names of atomic_torch_save before issue 15: tempfile.mkstemp(prefix=".NAME.")
+_OLD_TEMP = re.compile(r"^\.(step_\d+|model)\.pt\.[a-z0-9_]{8}$")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint or model.pt that cannot be used (the message names the file)."""
 
 
 def atomic_torch_save(obj, path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    os.close(fd)
+    remove_stale_temps(path.parent)  # a killed save's leftovers, for any step (issue 15)
+    tmp = make_temp(path)
     try:
         torch.save(obj, tmp)
         os.replace(tmp, path)
@@ -32,8 +52,97 @@ def atomic_torch_save(obj, path) -> Path:
     return path
 
 
+def remove_stale_run_temps(run) -> list[Path]:
+    """Remove the temporary files a killed run left in RUN and RUN/checkpoints (``--resume``):
+    stale ones of :mod:`nehad.runtime.tempfiles`' form, and the old-style ones (older than an
+    hour)."""
+    removed = []
+    now = time.time()
+    for folder in (Path(run), checkpoint_dir(run)):
+        removed += remove_stale_temps(folder)
+        if not folder.is_dir():
+            continue
+        for p in folder.iterdir():
+            if _OLD_TEMP.match(p.name):
+                try:
+                    if now - p.lstat().st_mtime > STALE_SECONDS:
+                        p.unlink()
+                        removed.append(p)
+                except OSError:
+                    pass
+    return removed
+
+
+def _archive_problem(path: Path) -> str | None:
+    """What is wrong with the file as a torch zip archive (None if nothing is)."""
+    size = path.stat().st_size
+    if size == 0:
+        return "the file is empty"
+    if not zipfile.is_zipfile(path):
+        return "not a torch checkpoint archive (truncated or corrupt)"
+    try:
+        with zipfile.ZipFile(path) as z:
+            bad = z.testzip()  # reads every record and checks its CRC-32
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError, NotImplementedError) as e:
+        return f"not a readable archive ({' '.join(str(e).split())[:120]})"
+    if bad is not None:
+        return f"damaged: record {bad!r} does not match its checksum"
+    return None
+
+
 def load_state(path) -> dict:
-    return torch.load(path, map_location="cpu", weights_only=True)
+    """The state dict in `path` (a checkpoint or model.pt), checked: a readable, undamaged
+    archive of tensors and plain values holding :data:`REQUIRED_KEYS`; else CheckpointError."""
+    path = Path(path)
+    source = str(path)
+    try:
+        problem = _archive_problem(path)
+    except FileNotFoundError:
+        raise CheckpointError(f"{source}: no such file") from None
+    except IsADirectoryError:
+        raise CheckpointError(f"{source}: is a folder, not a checkpoint file") from None
+    except OSError as e:
+        raise CheckpointError(f"{source}: cannot read ({e.strerror or e})") from None
+    if problem is not None:
+        raise CheckpointError(f"{source}: {problem}; it cannot be used (train again, or resume "
+                              f"from an intact checkpoint)")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except OSError as e:
+        raise CheckpointError(f"{source}: cannot read ({e.strerror or type(e).__name__})") from None
+    except Exception:
+        # torch's message would suggest weights_only=False, i.e. running code from the file
+        raise CheckpointError(f"{source}: holds something other than tensors and plain values "
+                              f"(nehad writes state dicts only); refused") from None
+    if not isinstance(state, dict):
+        raise CheckpointError(f"{source}: not a nehad run file (holds a {type(state).__name__}, "
+                              f"expected a state dict)")
+    missing = [k for k in REQUIRED_KEYS if not isinstance(state.get(k), dict)]
+    if missing:
+        raise CheckpointError(f"{source}: not a nehad run file (lacks {', '.join(missing)})")
+    _check_contents(state, source)
+    return state
+
+
+def _check_contents(state: dict, source: str) -> None:
+    """The Gaussians' tensors are all there, the field's values are tensors and the config is
+    valid: what loading the model reads first (the rest is checked by load_state_dict)."""
+    from nehad.config import config_from_dict
+    from nehad.configtools import ConfigError
+    from nehad.gaussians import GaussianParameters
+
+    g = state["gaussians"]
+    absent = [n for n in GaussianParameters.NAMES if not torch.is_tensor(g.get(n))]
+    if absent:
+        raise CheckpointError(f"{source}: not a nehad run file (its Gaussians lack "
+                              f"{', '.join(absent)})")
+    if not all(torch.is_tensor(v) for v in state["field"].values()):
+        raise CheckpointError(f"{source}: not a nehad run file (its field holds non-tensors)")
+    try:
+        config_from_dict(state["config"])
+    except (ConfigError, TypeError, ValueError) as e:
+        raise CheckpointError(f"{source}: its config is invalid "
+                              f"({' '.join(str(e).split())})") from None
 
 
 def checkpoint_dir(run: Path) -> Path:
@@ -52,6 +161,49 @@ def save_checkpoint(run: Path, step: int, state: dict, keep: int) -> Path:
     return path
 
 
+# The last step this process appended to each metrics file (see append_metrics).
+_LAST_LOGGED: dict[str, int] = {}
+
+
+def _drop_records_from(path: Path, step: int | None) -> None:
+    """Rewrite `path` (atomically) without the records of `step` and later, and without a torn
+    last line; leave it alone when there is nothing to drop."""
+    from nehad.runtime.images import atomic_write_bytes
+
+    try:
+        text = path.read_text(encoding="utf-8", errors="replace")
+    except FileNotFoundError:
+        return
+    keep, dropped = [], False
+    for line in text.splitlines():
+        try:
+            rec = json.loads(line)
+        except ValueError:
+            dropped = True
+            continue
+        s = rec.get("step") if isinstance(rec, dict) else None
+        if step is not None and isinstance(s, (int, float)) and s >= step:
+            dropped = True
+            continue
+        keep.append(line)
+    if dropped or (text and not text.endswith("\n")):
+        atomic_write_bytes(path, "".join(line + "\n" for line in keep).encode("utf-8"))
+
+
 def append_metrics(run: Path, record: dict) -> None:
-    with open(Path(run) / "metrics.jsonl", "a") as f:
+    """Append one record to RUN/metrics.jsonl.
+
+    A resumed run repeats the steps between its checkpoint and the moment the earlier run
+    stopped; their records from the earlier run are dropped when the first record of the
+    repeat arrives (any record with a step at or after it), so every step is logged once. A
+    torn last line (a kill during the append) is dropped at the same time."""
+    path = Path(run) / "metrics.jsonl"
+    key = str(path.absolute())
+    step = record.get("step")
+    last = _LAST_LOGGED.get(key)
+    if last is None or not isinstance(step, int) or step <= last:
+        _drop_records_from(path, step if isinstance(step, int) else None)
+    with open(path, "a") as f:
         f.write(json.dumps(record) + "\n")
+    if isinstance(step, int):
+        _LAST_LOGGED[key] = step

@@ -149,13 +149,31 @@ def parse_override(text: str) -> dict:
 
 
 def load_yaml(path) -> dict:
+    """The mapping in a YAML config file; a missing, binary, non-UTF-8 or malformed file raises
+    ConfigError naming it (issue 15: no traceback for any file a user can pass)."""
     path = Path(path)
     try:
-        data = yaml.safe_load(path.read_text())
+        raw = path.read_bytes()
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such config file") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: is a folder, not a config file") from None
+    except OSError as e:
+        raise ConfigError(f"{path}: cannot read ({e.strerror or e})") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not a UTF-8 text file (byte {e.start}: {raw[e.start]:#04x}); "
+                          f"expected a YAML config") from None
+    if "\x00" in text:
+        raise ConfigError(f"{path}: a binary file (holds NUL bytes); expected a YAML config")
+    try:
+        data = yaml.safe_load(text)
     except yaml.YAMLError as e:
-        raise ConfigError(f"{path}: malformed YAML ({e})") from None
+        mark = getattr(e, "problem_mark", None)
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
+        problem = getattr(e, "problem", None) or str(e)
+        raise ConfigError(f"{path}: malformed YAML{where}: {problem}") from None
     if data is None:
         return {}
     if not isinstance(data, dict):

@@ -272,8 +272,11 @@ def load_batch(path) -> BatchSpec:
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
         problem = getattr(e, "problem", None) or str(e)
         raise BatchError(f"{source}: malformed YAML{where}: {problem}") from None
-    except (OSError, UnicodeDecodeError) as e:
-        raise BatchError(f"{source}: cannot read ({e})") from None
+    except UnicodeDecodeError as e:
+        raise BatchError(f"{source}: not a UTF-8 text file (byte {e.start}: "
+                         f"{e.object[e.start]:#04x}); expected a YAML jobs file") from None
+    except OSError as e:
+        raise BatchError(f"{source}: cannot read ({e.strerror or e})") from None
     if not isinstance(doc, dict):
         raise BatchError(f"{source}: expected a mapping with a 'jobs' list at the top level")
     for key in doc:
@@ -371,7 +374,8 @@ def _image_task(job: BatchJob, resume: bool, threads):
     from .cameras import load_view
     from .distribute import FrameTask
     from .paths import PathError, check_time, parse_path_spec, parse_time_spec
-    from .video import VideoError, scene_reference
+    from .memory import check_frame_memory
+    from .video import VideoError, scene_info
 
     s = job.settings
     out = Path(s["output"])
@@ -379,7 +383,7 @@ def _image_task(job: BatchJob, resume: bool, threads):
         raise VideoError(f"output {out}: folder {out.parent} does not exist")
     view = s.get("view", "default")
     spec = parse_path_spec(view)
-    ref, default_bg = scene_reference(s["model"])
+    ref, default_bg, n_gaussians = scene_info(s["model"])
     if spec.kind == "default":
         if ref.default_camera is None:
             raise PathError(f"view {view}: the scene has no default camera; give a camera file")
@@ -404,6 +408,9 @@ def _image_task(job: BatchJob, resume: bool, threads):
         t = check_time(t, ref, s.get("extrapolate", False), "time", "extrapolate: true")
     if s.get("size") is not None:
         cam = cam.with_size(*s["size"])
+    check_frame_memory(cam.width, cam.height, n_gaussians,
+                       f"size {s['size'][0]}x{s['size'][1]}" if s.get("size") is not None
+                       else f"view {view}")
     bg = tuple(s.get("background") or default_bg)
     return FrameTask(str(Path(s["model"]).absolute()), 0, cam, t, bg, str(out.absolute()),
                      None, threads, skip_existing=resume)
@@ -420,13 +427,15 @@ def run_batch(spec: BatchSpec, backend, resume: bool = False, progress: bool = T
     from .cameras import CameraError
     from .distribute import RenderError
     from .images import ImageError
+    from .lock import LockError
+    from .memory import FrameMemoryError
     from .onnx_model import OnnxModelError
     from .paths import PathError
     from .ply import PlyError
     from .video import VideoError, run_video
 
     user_errors = (VideoError, PathError, CameraError, RenderError, ImageError, OnnxModelError,
-                   PlyError, OSError)
+                   PlyError, FrameMemoryError, LockError, OSError)
     results = []
     for job in spec.jobs:
         start = time.perf_counter()

@@ -435,7 +435,9 @@ def _parse_transforms_frame(doc: dict, index: int, base: Path, source: str) -> C
     return Camera(width, height, fx, fy, cx, cy, _rigid_inverse(c2w), time, name)
 
 
-_FRAME_SUFFIX = re.compile(r"^(.*\.json)[:#](\d+)$", re.IGNORECASE)
+# FILE.json:K; any K after the colon is taken as the index, so that `:-1` or `:x` is reported as
+# a bad index rather than as a missing file
+_FRAME_SUFFIX = re.compile(r"^(.*\.json)[:#]([^:#/\\]*)$", re.IGNORECASE)
 
 
 def _split_frame(path, frame: int | None) -> tuple[Path, int | None]:
@@ -443,7 +445,14 @@ def _split_frame(path, frame: int | None) -> tuple[Path, int | None]:
     if not os.path.exists(s):
         m = _FRAME_SUFFIX.match(s)
         if m:
-            suffix = int(m.group(2))
+            text = m.group(2).strip()
+            try:
+                suffix = int(text)
+            except ValueError:
+                if not os.path.exists(m.group(1)):
+                    return Path(m.group(1)), frame  # reported as a missing file
+                raise CameraError(f"{s}: frame index {text!r} is not a whole number (expected "
+                                  f"{m.group(1)}:K with K = 0, 1, ...)") from None
             if frame is not None and frame != suffix:
                 raise CameraError(f"{s}: frame index given twice ({suffix} in the path, {frame} as argument)")
             return Path(m.group(1)), suffix

@@ -197,6 +197,7 @@ def render_frame_image(task: FrameTask) -> np.ndarray:
     """The frame's image (H, W, 3) float32 (W doubled with a ground truth beside it)."""
     import numba
 
+    from .memory import check_frame_memory
     from .raster import render
 
     threads = _task_threads(task)
@@ -205,6 +206,10 @@ def render_frame_image(task: FrameTask) -> np.ndarray:
         if threads:  # per calling thread in Numba
             numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
         cloud = scene.gaussians(task.time)
+        cam = task.camera
+        check_frame_memory(cam.width, cam.height, len(cloud),
+                           f"frame {task.index} on {_worker_name()}",
+                           out_width=cam.width * (2 if task.ground_truth else 1))
         rgb = render(cloud, task.camera, background=task.background).rgb
         if not _CACHE.concurrent_frames:
             _CACHE.concurrent_frames = numba.threading_layer() in ("omp", "tbb")
@@ -230,7 +235,8 @@ def render_frame_task(task: FrameTask) -> FrameResult:
     image = render_frame_image(task)
     from .images import write_image
 
-    write_image(task.output, image, png_compression=PNG_COMPRESSION)
+    # the frame folder's stale temporary files were swept once by prepare_frames
+    write_image(task.output, image, png_compression=PNG_COMPRESSION, sweep=False)
     return FrameResult(task.index, task.output, time.perf_counter() - start, False, _worker_name())
 
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -30,18 +29,24 @@ _UMASK = _current_umask()
 
 
 @contextlib.contextmanager
-def atomic_path(path, error=OSError):
+def atomic_path(path, error=OSError, sweep: bool = True):
     """Yield a temporary path in `path`'s folder; on success it is renamed over `path`.
 
-    The temporary file has the same extension as `path` (format detection by extension) and gets
-    the permissions an ordinary new file would have (mkstemp makes 0600 files). On any exception
-    the temporary file is removed and nothing is left at `path` (SPEC section 10).
+    The temporary file has the same extension as `path` (format detection by extension), a name
+    that says which process wrote it (:mod:`nehad.runtime.tempfiles`) and the permissions an
+    ordinary new file would have (mkstemp makes 0600 files). On any exception the temporary file
+    is removed and nothing is left at `path` (SPEC section 10). With `sweep`, the stale
+    temporary files of the same target that a killed writer left are removed first (issue 15);
+    writers of many files into one folder (video frames) pass False and sweep the folder once.
     """
+    from .tempfiles import make_temp, remove_stale_temps
+
     path = Path(path)
     if not path.parent.is_dir():
         raise error(f"{path}: folder {path.parent} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
-    os.close(fd)
+    if sweep:
+        remove_stale_temps(path.parent, path.name)
+    tmp = make_temp(path)
     try:
         yield tmp
         os.chmod(tmp, 0o666 & ~_UMASK)
@@ -52,9 +57,9 @@ def atomic_path(path, error=OSError):
         raise
 
 
-def atomic_write_bytes(path, data: bytes, error=OSError) -> None:
+def atomic_write_bytes(path, data: bytes, error=OSError, sweep: bool = True) -> None:
     """Write `data` to `path` atomically (through :func:`atomic_path`)."""
-    with atomic_path(path, error) as tmp:
+    with atomic_path(path, error, sweep) as tmp:
         with open(tmp, "wb") as f:
             f.write(data)
 
@@ -97,7 +102,7 @@ def read_image(path) -> np.ndarray:
 
 
 def write_image(path, image: np.ndarray, bit_depth: int = 8,
-                png_compression: int | None = None) -> Path:
+                png_compression: int | None = None, sweep: bool = True) -> Path:
     """Write (H, W) or (H, W, C) data atomically; the extension picks the format.
 
     PNG/JPEG values are clipped to [0, 1] (NaN -> 0) and quantised to `bit_depth` (8, or 16 for
@@ -106,7 +111,8 @@ def write_image(path, image: np.ndarray, bit_depth: int = 8,
     colour, as a render over a black background gives; a PNG stores straight alpha, so colour is
     divided by alpha (in float, before quantisation) and :func:`read_image` multiplies it back.
     `png_compression` (0..9, zlib level) trades PNG size for speed (video frames use 1: about
-    half the write time of the default for a quarter more bytes). Returns the path.
+    half the write time of the default for a quarter more bytes). `sweep`: see
+    :func:`atomic_path`. Returns the path.
     """
     import OpenImageIO as oiio
 
@@ -140,7 +146,7 @@ def write_image(path, image: np.ndarray, bit_depth: int = 8,
                 clean[:, :, :c - 1] = np.where(a > 0, np.minimum(clean[:, :, :c - 1] / a, 1.0), 0.0)
         data = np.ascontiguousarray(np.round(clean * scale).astype(dtype))
         fmt = "uint8" if bit_depth == 8 else "uint16"
-    with atomic_path(path, ImageError) as tmp:
+    with atomic_path(path, ImageError, sweep) as tmp:
         out = oiio.ImageOutput.create(tmp)
         if out is None:
             raise ImageError(f"{path}: no writer for {ext!r} ({oiio.geterror()})")

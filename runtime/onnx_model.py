@@ -4,11 +4,13 @@
     cloud = model.gaussians(0.5)          # GaussianCloud for nehad.runtime.raster.render
     model.time_range, model.background, model.default_camera, model.aabb
 
-The file is validated when opened: the format tag and metadata, the input `time` float32 [1], the
+The file is validated when opened: the format tag and metadata, the digest of the graph (its
+operators and weights) that the export wrote into the metadata (`graph_sha256`, issue 15; a
+file exported before it has none and is not checked), the input `time` float32 [1], the
 outputs means [N,3], scales [N,3], quats [N,4], opacities [N], sh [N,K,3] (and an optional
-`layer` [N]). A foreign or truncated file, or outputs holding NaN, raise :class:`OnnxModelError`
-with a message naming the file. The deformed Gaussians of the last few times are cached, so
-several views at one time deform once.
+`layer` [N]). A foreign, truncated or damaged file, or outputs holding NaN, raise
+:class:`OnnxModelError` with a message naming the file. The deformed Gaussians of the last few
+times are cached, so several views at one time deform once.
 """
 
 from __future__ import annotations
@@ -24,11 +26,13 @@ from pathlib import Path
 import numpy as np
 
 from .gaussians import GaussianCloud
-from .onnx_proto import ModelSummary, ProtoError, summarize
+from .onnx_proto import ModelSummary, ProtoError, graph_sha256, summarize
 
 FORMAT = "nehad-onnx/1"
 OUTPUTS = ("means", "scales", "quats", "opacities", "sh")
 REQUIRED_METADATA = ("format", "sh_degree", "num_gaussians", "time_range", "background", "aabb")
+#: Metadata key of the SHA-256 of the serialized graph (runtime.onnx_proto.graph_sha256).
+DIGEST_KEY = "graph_sha256"
 
 
 class OnnxModelError(ValueError):
@@ -51,6 +55,7 @@ class ModelInfo:
     background: tuple
     aabb: np.ndarray  # (2, 3)
     default_camera: object  # runtime.cameras.Camera or None
+    digest_checked: bool = False  # the graph matched the metadata's graph_sha256
 
 
 def _json(md: dict, key: str, source: str):
@@ -95,6 +100,11 @@ def read_model_info(path) -> ModelInfo:
     missing = [k for k in REQUIRED_METADATA if k not in md]
     if missing:
         raise OnnxModelError(f"{source}: metadata lacks {', '.join(missing)}")
+    digest = md.get(DIGEST_KEY)
+    if digest is not None and graph_sha256(data, s.graph_spans) != digest:
+        raise OnnxModelError(f"{source}: damaged: its graph (operators and weights) does not match "
+                             f"the digest written at export ({DIGEST_KEY}); export the model again "
+                             f"or fetch an intact copy")
     try:
         deg, n = int(md["sh_degree"]), int(md["num_gaussians"])
     except ValueError:
@@ -117,7 +127,7 @@ def read_model_info(path) -> ModelInfo:
             raise OnnxModelError(f"{source}: metadata default_camera: {e}") from None
     opset = int(s.opsets.get("", s.opsets.get("ai.onnx", 0)))
     return ModelInfo(path, len(data), opset, dict(s.operators), dict(md), s, deg, n, (lo, hi),
-                     tuple(bg), aabb, camera)
+                     tuple(bg), aabb, camera, digest is not None)
 
 
 def _dims(arg) -> list:
@@ -283,4 +293,5 @@ def open_model(path, threads: int | None = None) -> OnnxModel:
     return OnnxModel(path, threads=threads)
 
 
-__all__ = ["FORMAT", "ModelInfo", "OnnxModel", "OnnxModelError", "open_model", "read_model_info"]
+__all__ = ["DIGEST_KEY", "FORMAT", "ModelInfo", "OnnxModel", "OnnxModelError", "open_model",
+           "read_model_info"]

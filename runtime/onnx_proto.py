@@ -89,6 +89,7 @@ class ModelSummary:
     inputs: list = field(default_factory=list)
     outputs: list = field(default_factory=list)
     has_graph: bool = False
+    graph_spans: list = field(default_factory=list)  # (start, end) of each graph field's bytes
 
 
 def _name_of_value_info(buf, span) -> str:
@@ -127,6 +128,7 @@ def summarize(data: bytes) -> ModelSummary:
             s.metadata[key] = value
         elif num == _M_GRAPH and wt == 2:
             s.has_graph = True
+            s.graph_spans.append(v)
             for n2, w2, v2 in _fields(buf, *v):
                 if w2 != 2:
                     continue
@@ -148,4 +150,20 @@ def summarize(data: bytes) -> ModelSummary:
     return s
 
 
-__all__ = ["ModelSummary", "ProtoError", "summarize"]
+def graph_sha256(data, spans=None) -> str:
+    """SHA-256 (hex) of the serialized graph of a ModelProto: its operators, initializers
+    (weights) and inputs/outputs, exactly as the bytes in the file. The metadata lives outside
+    the graph, so a file can carry this digest of itself (`graph_sha256`, issue 15). `spans`:
+    the summary's `graph_spans` when the bytes were summarized already."""
+    import hashlib
+
+    buf = memoryview(data)
+    if spans is None:
+        spans = [v for num, wt, v in _fields(buf) if num == _M_GRAPH and wt == 2]
+    h = hashlib.sha256()
+    for start, end in spans:
+        h.update(buf[start:end])
+    return h.hexdigest()
+
+
+__all__ = ["ModelSummary", "ProtoError", "graph_sha256", "summarize"]

@@ -196,7 +196,7 @@ def parse_path_spec(text) -> PathSpec:
         return PathSpec(spec, "dataset", data=Path(head), split=tail)
     if os.path.isdir(spec):
         raise PathError(f"{spec}: a dataset folder needs a split, e.g. {spec}:test")
-    m = re.match(r"^(.*\.json)[:#](\d+)$", spec, re.IGNORECASE)
+    m = re.match(r"^(.*\.json)[:#]([^:#/\\]*)$", spec, re.IGNORECASE)  # the index is checked later
     if os.path.isfile(spec) or (m and os.path.isfile(m.group(1))):
         return PathSpec(spec, "file", file=spec)
     raise PathError(f"{spec}: not a path kind (orbit, spiral, default), an existing camera file "

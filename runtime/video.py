@@ -14,7 +14,10 @@ How a video is made:
 2. :func:`prepare_frames` readies the folder: ``nehad-frames.json`` (a manifest: model hash, frame
    count, size, background, a hash of every camera and time) and, with ``resume``, the frames
    already there; a manifest that differs from the job refuses to resume and names the keys.
-   Without ``resume`` old frames are removed. Temporary files of an interrupted write are removed.
+   Without ``resume`` old frames are removed. Temporary files of an interrupted write are removed
+   (and the stale partial video of a killed encoder beside the output, issue 15). The output and
+   the frame folder are locked while a run uses them (:mod:`nehad.runtime.lock`): a second run
+   with the same ones refuses at once instead of deleting the folder under the first.
 3. The backend renders the missing frames (``frame_00000.png`` ...; PNG 8-bit or EXR float),
    each written atomically, so an interrupted run (Ctrl-C, SIGKILL, a lost server) leaves only
    whole frames and ``resume`` renders only the missing ones.
@@ -43,12 +46,15 @@ from pathlib import Path
 
 import numpy as np
 
-from .distribute import FrameResult, FrameTask
+from .distribute import FrameResult, FrameTask, PoolBackend
+from .lock import output_lock
+from .memory import check_frame_memory
 from .paths import PathError, Reference, parse_path_spec, parse_time_spec, plan_frames
 
 __all__ = ["VideoError", "VideoJob", "VideoPlan", "VideoReport", "plan_video", "prepare_frames",
-           "run_video", "encode_video", "probe_video", "scene_reference", "frame_name",
-           "video_rate", "count_frames", "VIDEO_SUFFIXES", "FRAME_FORMATS", "MANIFEST"]
+           "run_video", "encode_video", "probe_video", "scene_info", "scene_reference",
+           "frame_name", "video_rate", "count_frames", "VIDEO_SUFFIXES", "FRAME_FORMATS",
+           "MANIFEST"]
 
 VIDEO_SUFFIXES = (".mp4",)
 FRAME_FORMATS = ("png", "exr")
@@ -98,6 +104,7 @@ class VideoPlan:
     height: int
     background: tuple
     manifest: dict = field(repr=False, default_factory=dict)
+    gaussians: int = 0  # in the model (for the memory bound)
 
     def frame_path(self, index: int) -> Path:
         return self.frames_dir / frame_name(index, self.job.frame_format)
@@ -127,6 +134,12 @@ class VideoReport:
 def scene_reference(model) -> tuple[Reference, tuple]:
     """(Reference, default background) of a model file, read without an onnxruntime session:
     an exported ``.onnx`` (its metadata) or a static 3DGS ``.ply`` (no default camera, no time)."""
+    ref, bg, _ = scene_info(model)
+    return ref, bg
+
+
+def scene_info(model) -> tuple[Reference, tuple, int]:
+    """:func:`scene_reference` and the number of Gaussians (for the memory bound)."""
     p = Path(model)
     suffix = p.suffix.lower()
     if p.is_dir():
@@ -137,13 +150,13 @@ def scene_reference(model) -> tuple[Reference, tuple]:
 
         info = read_model_info(p)
         return (Reference(info.default_camera, info.aabb, tuple(info.time_range)),
-                tuple(info.background))
+                tuple(info.background), info.num_gaussians)
     if suffix == ".ply":
         from .ply import read_gaussian_ply
 
         cloud = read_gaussian_ply(p)
         aabb = np.stack([cloud.means.min(0), cloud.means.max(0)]) if len(cloud) else None
-        return Reference(None, aabb, None), (0.0, 0.0, 0.0)
+        return Reference(None, aabb, None), (0.0, 0.0, 0.0), len(cloud)
     if not p.exists():
         raise VideoError(f"{p}: no such file")
     raise VideoError(f"{p}: expected an exported .onnx model (or a static 3DGS .ply)")
@@ -217,7 +230,7 @@ def plan_video(job: VideoJob, threads: int | None = None) -> VideoPlan:
     if job.side_by_side and pspec.kind != "dataset":
         raise VideoError(f"{o('side_by_side')} needs a dataset path with ground truth (DATA:test), "
                          f"not {job.path!r}")
-    ref, default_bg = scene_reference(model)
+    ref, default_bg, n_gaussians = scene_info(model)
     bg = tuple(float(v) for v in (job.background or default_bg))
     frames = plan_frames(pspec, tspec, job.frames, job.size, ref, bg, job.extrapolate,
                          {**{k: o(k) for k in ("path", "time", "frames")},
@@ -230,6 +243,8 @@ def plan_video(job: VideoJob, threads: int | None = None) -> VideoPlan:
     if out is not None and (fw % 2 or h % 2):
         raise VideoError(f"{o('size')} {fw}x{h}: H.264 yuv420p needs an even width and height "
                          f"(give {o('size')} WxH with even numbers)")
+    # one frame must fit here: it is drawn here, or read back here to be encoded (issue 15)
+    check_frame_memory(w, h, n_gaussians, _size_input(job, o, w, h), out_width=fw)
     if job.frames_dir is not None:
         frames_dir, keep = Path(job.frames_dir), True
     else:
@@ -244,7 +259,14 @@ def plan_video(job: VideoJob, threads: int | None = None) -> VideoPlan:
                 "model_sha256": _file_sha256(model), "frames": len(frames), "width": fw,
                 "height": h, "frame_format": job.frame_format, "background": list(bg),
                 "side_by_side": bool(job.side_by_side), "plan_sha256": _plan_hash(frames)}
-    return VideoPlan(job, frames, tasks, frames_dir, keep, fw, h, bg, manifest)
+    return VideoPlan(job, frames, tasks, frames_dir, keep, fw, h, bg, manifest, n_gaussians)
+
+
+def _size_input(job: VideoJob, o, w: int, h: int) -> str:
+    """How the frame size was given, for messages: the size option, else the camera path."""
+    if job.size is not None:
+        return f"{o('size')} {job.size[0]}x{job.size[1]}"
+    return f"{o('path')} {job.path} (frames of {w}x{h})"
 
 
 def prepare_frames(plan: VideoPlan, resume: bool) -> list[int]:
@@ -427,9 +449,32 @@ def run_video(job: VideoJob, backend, resume: bool = False, progress: bool = Tru
     """Plan, render (with `backend`: a Serial/Pool/Dask backend) and encode `job`; with
     `resume`, frames already in the frame folder are kept (module doc). `on_result` is called
     with each :class:`FrameResult`; `plan` is `plan_video(job)` when the caller made it already.
-    A KeyboardInterrupt leaves the whole frames in place."""
+    A KeyboardInterrupt leaves the whole frames in place.
+
+    The output and the frame folder are locked for the run (:mod:`nehad.runtime.lock`): a second
+    run with either of them refuses at once. With a local pool, the frames the workers draw at
+    once must fit in memory together (:mod:`nehad.runtime.memory`)."""
     plan = plan if plan is not None else plan_video(job)
+    workers = min(backend.workers, len(plan.tasks)) if isinstance(backend, PoolBackend) else 1
+    if workers > 1:
+        f0 = plan.frames[0].camera
+        check_frame_memory(f0.width, f0.height, plan.gaussians,
+                           _size_input(job, lambda k: _opt(job, k), f0.width, f0.height),
+                           parallel=workers, out_width=plan.width)
+    with contextlib.ExitStack() as locks:
+        for target in ([Path(job.output)] if job.output is not None else []) + [plan.frames_dir]:
+            locks.enter_context(output_lock(target, f"nehad batch (job {job.name!r})"
+                                            if job.name else "nehad video"))
+        return _run_locked(job, plan, backend, resume, progress, on_result)
+
+
+def _run_locked(job: VideoJob, plan: VideoPlan, backend, resume: bool, progress: bool,
+                on_result) -> VideoReport:
+    from .tempfiles import remove_stale_temps
+
     n = len(plan.tasks)
+    if job.output is not None:  # a killed encoder's partial video (issue 15)
+        remove_stale_temps(Path(job.output).parent, Path(job.output).name)
     if (resume and job.output is not None and Path(job.output).is_file() and not plan.keep_frames
             and not plan.frames_dir.exists()):
         # finished by an earlier run (its work folder is gone): nothing to resume

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from ..memory import check_tile_lists
 from .projection import TILE
 
 ALPHA_MIN = 1.0 / 255.0
@@ -117,6 +118,16 @@ def _tile_rects(means2d, conics, colors, opacities, depths, radii, width, height
         rec[P_COL1] = i1
 
 
+@numba.njit(cache=True)
+def _count_pairs(rects):
+    """Number of (Gaussian, tile) entries of the tile lists (invisible Gaussians have empty
+    rectangles)."""
+    total = 0
+    for i in range(rects.shape[0]):
+        total += np.int64(rects[i, 1] - rects[i, 0]) * np.int64(rects[i, 3] - rects[i, 2])
+    return total
+
+
 @numba.njit(parallel=True, cache=True)
 def _fill_bins(order, rects, ntx, n_tiles, n_chunks):
     """Scatter depth-ordered Gaussians into per-tile runs; chunk c of `order` is handled by one
@@ -187,5 +198,7 @@ def bin_gaussians(means2d, conics, colors, opacities, depths, radii, width, heig
     ntx = (int(width) + TILE - 1) // TILE
     nty = (int(height) + TILE - 1) // TILE
     n_chunks = max(1, min(numba.get_num_threads(), order.shape[0] // 4096 + 1))
+    # the tile lists' size is known now, before they are allocated: refuse what cannot fit
+    check_tile_lists(_count_pairs(rects), width, height, n_chunks)
     offsets, ids = _fill_bins(order, rects, ntx, ntx * nty, n_chunks)
     return TileBins(offsets, ids, packed, int(width), int(height))

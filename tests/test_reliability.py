@@ -1,0 +1,715 @@
+"""Issue 15: bad inputs and kills, as a new user meets them. Every case asserts the exit code, the
+one-line message and that nothing is left in the output location.
+
+1. no traceback: corrupt/truncated/empty checkpoints and models, binary config and jobs files,
+   the torch-free install;
+2. start-up validation before anything is written (train, demo, --resume);
+3. the memory bound (render, video, batch, ply, the rasterizer's tile lists);
+4. temporary files name their writer; stale ones are removed by the rerun (SIGKILL tests);
+5. one writer per output (video, train);
+6. the exported file's digest, checked on every load;
+7. index out of range, --time with a static PLY, metrics.jsonl after resume, Ctrl-C on train.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+import zipfile
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from nehad.cli.main import main
+from nehad.runtime import tempfiles
+from nehad.runtime.images import atomic_path
+
+from torch_blocker import blocked_torch_env
+from video_model import tiny_model
+
+pytestmark = pytest.mark.slow
+ENV = {**os.environ, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory):
+    """(model.onnx, scene, run): the shared tiny exported model and its training run."""
+    onnx_path, scene = tiny_model(tmp_path_factory)
+    return onnx_path, scene, onnx_path.parent / "run"
+
+
+@pytest.fixture(scope="module")
+def static_ply(tmp_path_factory):
+    """A static 3DGS PLY of the synthetic scene (300 Gaussians)."""
+    from nehad.data.synth_gaussians import scene_gaussians
+    from nehad.runtime.ply import write_gaussian_ply
+
+    return write_gaussian_ply(tmp_path_factory.mktemp("ply") / "gaussians.ply",
+                              scene_gaussians("spheres", 0.5, 300))
+
+
+def _invoke(args, **kw):
+    return CliRunner().invoke(main, [str(a) for a in args], **kw)
+
+
+def _one_error(res, *needles) -> str:
+    """The result is a clean failure: exit 1, exactly one line `Error: ...` on stderr holding
+    every needle, no traceback, no escaped exception."""
+    assert res.exit_code == 1, (res.exit_code, res.output, res.exception)
+    assert res.exception is None or isinstance(res.exception, SystemExit), repr(res.exception)
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("Error: "), res.stderr
+    for n in needles:
+        assert n in lines[0], (n, lines[0])
+    assert "Traceback" not in res.output and "weights_only" not in res.output
+    return lines[0]
+
+
+def _run_cli(args, env=None, timeout=300, **kw):
+    return subprocess.run([sys.executable, "-m", "nehad.cli.main", *map(str, args)],
+                          env=env or ENV, capture_output=True, text=True, timeout=timeout, **kw)
+
+
+def _proc_error(proc, *needles) -> str:
+    assert proc.returncode == 1, (proc.returncode, proc.stdout, proc.stderr)
+    assert "Traceback" not in proc.stderr, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("Error: "), proc.stderr
+    for n in needles:
+        assert n in lines[0], (n, lines[0])
+    return lines[0]
+
+
+def _listing(folder: Path) -> list[str]:
+    return sorted(p.name for p in Path(folder).iterdir())
+
+
+def _dead_pid() -> int:
+    proc = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                          capture_output=True, text=True)
+    return int(proc.stdout)
+
+
+# ---------------------------------------------------------------------------------------------
+# 1. no traceback for any user input
+
+
+def _bad_model_pt(kind: str, good: Path, dest: Path) -> None:
+    data = good.read_bytes()
+    if kind == "random":
+        dest.write_bytes(os.urandom(5000))
+    elif kind == "truncated":
+        dest.write_bytes(data[:len(data) // 3])
+    elif kind == "empty":
+        dest.write_bytes(b"")
+    elif kind == "flipped":  # 4 bytes inside a tensor record: only the zip CRC tells
+        with zipfile.ZipFile(good) as z:
+            big = max(z.infolist(), key=lambda i: i.file_size)
+            start = big.header_offset + 30 + len(big.filename.encode()) + len(big.extra) + 64
+        b = bytearray(data)
+        for k in range(4):
+            b[start + k] ^= 0xFF
+        dest.write_bytes(bytes(b))
+    elif kind == "code":  # a pickle that would run code: weights_only refuses it
+        import torch
+
+        torch.save({"gaussians": {}, "field": {}, "config": _Evil()}, dest)
+    elif kind == "foreign":
+        import torch
+
+        torch.save([1, 2, 3], dest)
+
+
+class _Evil:
+    def __reduce__(self):
+        return (os.system, ("echo pwned",))
+
+
+BAD_MODELS = ("random", "truncated", "empty", "flipped", "code", "foreign")
+
+
+@pytest.fixture(scope="module")
+def bad_runs(model, tmp_path_factory):
+    _, _, run = model
+    root = tmp_path_factory.mktemp("bad_runs")
+    out = {}
+    for kind in BAD_MODELS:
+        d = root / kind
+        d.mkdir()
+        shutil.copy(run / "config.yaml", d / "config.yaml")
+        _bad_model_pt(kind, run / "model.pt", d / "model.pt")
+        out[kind] = d
+    return out
+
+
+@pytest.mark.parametrize("kind", BAD_MODELS)
+@pytest.mark.parametrize("command", ["render", "export", "eval", "ply"])
+def test_damaged_model_pt_is_one_error_line(bad_runs, model, tmp_path, kind, command):
+    _, scene, _ = model
+    run = bad_runs[kind]
+    out = tmp_path / "out"
+    out.mkdir()
+    args = {"render": ["render", run, "--view", f"{scene}/transforms_test.json:0", "--time",
+                       "0.5", "-o", out / "x.png"],
+            "export": ["export", run, "-o", out / "x.onnx"],
+            "eval": ["eval", run, "--no-lpips", "--quiet"],
+            "ply": ["ply", run, "--time", "0.5", "-o", out / "x.ply"]}[command]
+    before = _listing(run)
+    line = _one_error(_invoke(args), f"{run}/model.pt")
+    want = {"random": "truncated or corrupt", "truncated": "truncated or corrupt",
+            "empty": "empty", "flipped": "checksum", "code": "refused",
+            "foreign": "not a nehad run file"}[kind]
+    assert want in line
+    assert _listing(out) == [] and _listing(run) == before
+
+
+@pytest.mark.parametrize("content", [os.urandom(300) + b"\xff", b"\xff\xfe\x00a: 1\n",
+                                     b"a: 1\n\x00\x01binary"])
+def test_binary_config_and_jobs_files(model, tmp_path, content):
+    _, scene, _ = model
+    cfg = tmp_path / "bad.yaml"
+    cfg.write_bytes(content)
+    _one_error(_invoke(["train", scene, "-o", tmp_path / "run", "--preset", "test",
+                        "--config", cfg]), str(cfg))
+    _one_error(_invoke(["batch", cfg, "--check"]), str(cfg))
+    assert _listing(tmp_path) == ["bad.yaml"]
+
+
+TORCH_COMMANDS = {
+    "export": lambda run, scene, out: ["export", run, "-o", out / "m.onnx"],
+    "render": lambda run, scene, out: ["render", run, "--view", f"{scene}/transforms_test.json:0",
+                                       "--time", "0.5", "-o", out / "x.png"],
+    "train": lambda run, scene, out: ["train", scene, "-o", out / "run", "--preset", "test"],
+    "eval": lambda run, scene, out: ["eval", run, "--no-lpips"],
+    "demo": lambda run, scene, out: ["demo", "-o", out / "demo"],
+}
+
+
+@pytest.mark.parametrize("command", sorted(TORCH_COMMANDS))
+def test_torch_free_install_names_the_extra(model, tmp_path, command):
+    """tests/torch_blocker.py: `import torch` fails inside the package (a blocked or broken
+    install)."""
+    _, scene, run = model
+    out = tmp_path / "out"
+    out.mkdir()
+    before = _listing(run)
+    proc = _run_cli(TORCH_COMMANDS[command](run, scene, out),
+                    env={**blocked_torch_env(tmp_path), "OMP_NUM_THREADS": "1",
+                         "NUMBA_NUM_THREADS": "1"})
+    _proc_error(proc, f"Error: nehad {command} needs torch", "pip install -e '.[train]'")
+    assert _listing(out) == [] and _listing(run) == before
+
+
+def test_torch_not_installed_names_the_extra(model, tmp_path):
+    """The real torch-free install: `import torch` raises ModuleNotFoundError."""
+    _, _, run = model
+    code = ("import sys; sys.modules['torch'] = None\n"
+            "from nehad.cli.main import main\n"
+            f"main(['export', {str(run)!r}, '-o', {str(tmp_path / 'm.onnx')!r}], "
+            f"prog_name='nehad')")
+    proc = subprocess.run([sys.executable, "-c", code], env=ENV, capture_output=True, text=True,
+                          timeout=300)
+    _proc_error(proc, "Error: nehad export needs torch", "pip install -e '.[train]' torch==2.13.0")
+    assert _listing(tmp_path) == []
+
+
+def test_missing_extra_recognises_only_the_training_packages():
+    from nehad.cli.errors import missing_extra
+
+    assert missing_extra(ModuleNotFoundError("No module named 'torch'", name="torch")) == "torch"
+    assert missing_extra(ModuleNotFoundError("No module named 'onnx.checker'",
+                                             name="onnx.checker")) == "onnx"
+    assert missing_extra(ModuleNotFoundError("No module named 'foo'", name="foo")) is None
+    assert missing_extra(ImportError("cannot import name 'x' from 'nehad'")) is None
+
+
+# ---------------------------------------------------------------------------------------------
+# 2. start-up validation before anything is written
+
+
+def _broken(scene: Path, dest: Path, how: str) -> Path:
+    shutil.copytree(scene, dest)
+    if how == "missing image":
+        (dest / "train" / "r_001.png").unlink()
+    elif how == "non-JSON transforms":
+        (dest / "transforms_train.json").write_text("{not json")
+    elif how == "NaN pose":
+        doc = json.loads((dest / "transforms_train.json").read_text())
+        doc["frames"][0]["transform_matrix"][0][3] = float("nan")
+        (dest / "transforms_train.json").write_text(json.dumps(doc))
+    elif how == "corrupt PNG":
+        (dest / "train" / "r_002.png").write_bytes(os.urandom(100))
+    return dest
+
+
+@pytest.mark.parametrize("how", ["missing image", "non-JSON transforms", "NaN pose",
+                                 "corrupt PNG"])
+def test_train_on_broken_dataset_writes_nothing(model, tmp_path, how):
+    _, scene, _ = model
+    data = _broken(scene, tmp_path / "data", how)
+    _one_error(_invoke(["train", data, "-o", tmp_path / "run", "--preset", "test", "--quiet"]),
+               str(data))
+    assert not (tmp_path / "run").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_train_after_fixing_the_dataset_is_not_refused(model, tmp_path):
+    _, scene, _ = model
+    data = _broken(scene, tmp_path / "data", "missing image")
+    args = ["train", data, "-o", tmp_path / "run", "--preset", "test", "--quiet",
+            "--set", "coarse.iterations=4", "--set", "fine.iterations=4"]
+    _one_error(_invoke(args), "r_001.png")
+    shutil.copy(scene / "train" / "r_001.png", data / "train" / "r_001.png")
+    res = _invoke(args)
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "run" / "model.pt").is_file()
+
+
+def test_resume_of_a_missing_run_is_an_error(model, tmp_path):
+    _, scene, _ = model
+    _one_error(_invoke(["train", scene, "-o", tmp_path / "nope", "--preset", "test", "--resume"]),
+               "no run to resume", "nope")
+    assert _listing(tmp_path) == []
+
+
+def test_demo_checks_its_settings_before_writing(tmp_path):
+    _one_error(_invoke(["demo", "-o", tmp_path / "demo", "--set", "bogus.key=1"]), "bogus")
+    _one_error(_invoke(["demo", "-o", tmp_path / "demo", "--set", "fine.iterations=abc"]),
+               "fine.iterations")
+    assert _listing(tmp_path) == []
+
+
+# ---------------------------------------------------------------------------------------------
+# 3. memory bound
+
+
+@pytest.fixture
+def cap_16g(monkeypatch):
+    """Make the limit the same on every machine: 16 GB."""
+    monkeypatch.setenv("NEHAD_MAX_FRAME_MEMORY", "16G")
+
+
+def test_render_video_batch_ply_refuse_what_does_not_fit(model, static_ply, tmp_path, cap_16g):
+    onnx_path, scene, _ = model
+    out = tmp_path / "out"
+    out.mkdir()
+    start = time.perf_counter()
+    _one_error(_invoke(["render", onnx_path, "--view", f"{scene}/transforms_test.json:0",
+                        "--time", "0.5", "--size", "32768x32768", "-o", out / "big.png"]),
+               "--size 32768x32768", "GB of memory", "NEHAD_MAX_FRAME_MEMORY=16G")
+    _one_error(_invoke(["render", static_ply, "--view",
+                        f"{scene}/transforms_test.json:0", "--size", "32768x32768",
+                        "-o", out / "big.png"]), "--size 32768x32768")
+    _one_error(_invoke(["video", onnx_path, "-o", out / "big.mp4", "--size", "32768x32768",
+                        "--frames", "2"]), "--size 32768x32768", "memory")
+    jobs = out / "jobs.yaml"
+    jobs.write_text(textwrap.dedent(f"""\
+        jobs:
+          - {{name: big, model: {onnx_path}, output: big.mp4, frames: 2, size: 32768x32768}}
+          - {{name: still, model: {onnx_path}, output: big.png, time: 0.5, size: 32768x32768}}
+        """))
+    res = _invoke(["batch", jobs, "--quiet", "--workers", "1"])
+    assert res.exit_code == 1 and isinstance(res.exception, (SystemExit, type(None)))
+    assert res.output.count("size 32768x32768: a 32768x32768 frame") == 2, res.output
+    assert time.perf_counter() - start < 60  # refused up front, not after paging for minutes
+    assert _listing(out) == ["jobs.yaml"]
+
+
+def test_ply_and_pool_limits(model, tmp_path, monkeypatch):
+    onnx_path, _, _ = model
+    monkeypatch.setenv("NEHAD_MAX_FRAME_MEMORY", "100k")
+    _one_error(_invoke(["ply", onnx_path, "--time", "0.5", "-o", tmp_path / "f.ply"]),
+               "Gaussians need about")
+    # a 256x256 frame needs about 6 MB: one fits under 10 MB, two workers' frames at once do not
+    monkeypatch.setenv("NEHAD_MAX_FRAME_MEMORY", "10M")
+    _one_error(_invoke(["video", onnx_path, "-o", tmp_path / "v.mp4", "--size", "256x256",
+                        "--frames", "4", "--workers", "2"]), "2 256x256 frames", "fewer workers")
+    assert _listing(tmp_path) == []
+    monkeypatch.setenv("NEHAD_MAX_FRAME_MEMORY", "lots")
+    _one_error(_invoke(["render", onnx_path, "--time", "0.5", "--view",
+                        f"{onnx_path.parent}/scene/transforms_test.json:0", "-o",
+                        tmp_path / "x.png"]), "NEHAD_MAX_FRAME_MEMORY='lots'")
+    assert _listing(tmp_path) == []
+
+
+def test_tile_lists_are_checked_before_they_are_allocated(monkeypatch):
+    import numpy as np
+
+    from nehad.runtime.cameras import Camera
+    from nehad.runtime.gaussians import GaussianCloud
+    from nehad.runtime.memory import FrameMemoryError
+    from nehad.runtime.raster import render
+
+    n = 400  # big Gaussians in front of the camera: each covers the whole 512x512 frame
+    cloud = GaussianCloud(np.zeros((n, 3)) + [0, 0, 3], np.full((n, 3), 2.0),
+                          np.tile([1.0, 0, 0, 0], (n, 1)), np.full(n, 0.9), np.zeros((n, 1, 3)))
+    cam = Camera(512, 512, 400.0, 400.0, 256.0, 256.0, np.eye(4))
+    assert render(cloud, cam).alpha.mean() > 0.9
+    monkeypatch.setenv("NEHAD_MAX_FRAME_MEMORY", "1M")  # 400 x 1024 tiles x 4 bytes = 1.6 MB
+    with pytest.raises(FrameMemoryError, match=r"tile lists need about .*\(409600 Gaussian-tile"):
+        render(cloud, cam)
+
+
+def test_available_memory_is_read_and_used(monkeypatch):
+    from nehad.runtime import memory
+
+    avail = memory.available_memory()
+    if sys.platform.startswith("linux"):
+        assert avail is not None and avail > 1 << 20
+    monkeypatch.delenv("NEHAD_MAX_FRAME_MEMORY", raising=False)
+    monkeypatch.setattr(memory, "available_memory", lambda: 24 * 10**9)
+    with pytest.raises(memory.FrameMemoryError, match=r"memory available \(24.0 GB\)"):
+        memory.check_frame_memory(32768, 32768, 1000, "--size 32768x32768")
+    memory.check_frame_memory(4096, 4096, 10**6, "--size 4096x4096")  # 1.7 GB: fits
+
+
+# ---------------------------------------------------------------------------------------------
+# 4. temporary files
+
+
+def test_temp_names_say_who_wrote_them_and_stale_ones_go(tmp_path):
+    target = tmp_path / "model.onnx"
+    with atomic_path(target) as tmp:
+        name = Path(tmp).name
+        assert name.startswith(f".model.nehad-{os.getpid()}-") and name.endswith(".tmp.onnx")
+        Path(tmp).write_bytes(b"x")
+    host = tempfiles._host()
+    dead = _dead_pid()
+    old = time.time() - 2 * tempfiles.STALE_SECONDS
+    files = {
+        "stale": f".model.nehad-{dead}-{host}-abc12345.tmp.onnx",  # this host, writer gone
+        "live": f".model.nehad-{os.getppid()}-{host}-abc12345.tmp.onnx",  # writer running
+        "other_new": ".model.nehad-12-otherhost-abc12345.tmp.onnx",  # recent, other machine
+        "other_old": ".model.nehad-13-otherhost-abc12346.tmp.onnx",  # abandoned, other machine
+        "legacy_old": ".model.k3j4h5g6.tmp.onnx",  # before issue 15, an hour old
+        "legacy_new": ".model.k3j4h5g7.tmp.onnx",  # before issue 15, recent
+        "other_target": f".other.nehad-{dead}-{host}-abc12345.tmp.onnx",
+        "unrelated": ".model.onnx.keep",
+    }
+    for key, fname in files.items():
+        (tmp_path / fname).write_bytes(b"partial")
+        if key in ("other_old", "legacy_old"):
+            os.utime(tmp_path / fname, (old, old))
+    with atomic_path(target) as tmp:
+        Path(tmp).write_bytes(b"y")
+    left = set(_listing(tmp_path))
+    for key in ("stale", "other_old", "legacy_old"):
+        assert files[key] not in left, key
+    for key in ("live", "other_new", "legacy_new", "other_target", "unrelated"):
+        assert files[key] in left, key
+    assert target.read_bytes() == b"y"
+
+
+HANG_ON_REPLACE = """
+import os, sys, time
+real = os.replace
+def hang(src, dst, *a, **k):
+    if str(dst).endswith(sys.argv[1]):
+        open(sys.argv[2], "w").close()
+        time.sleep(600)
+    return real(src, dst, *a, **k)
+os.replace = hang
+from nehad.cli.main import main
+main(sys.argv[3:], prog_name="nehad")
+"""
+
+
+def _kill_while_writing(tmp_path, suffix: str, args) -> None:
+    """Run the CLI with `args` in a process that stops just before renaming its `suffix` temp
+    file into place, and SIGKILL it there (the moment a kill leaves a temp file behind)."""
+    flag = tmp_path / "ready.flag"
+    proc = subprocess.Popen([sys.executable, "-c", HANG_ON_REPLACE, suffix, str(flag),
+                             *map(str, args)], env=ENV, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.time() + 300
+        while not flag.exists():
+            assert proc.poll() is None, proc.stderr.read()
+            assert time.time() < deadline
+            time.sleep(0.1)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    flag.unlink()
+
+
+def _temps(folder: Path) -> list[str]:
+    return [p.name for p in folder.iterdir() if ".tmp" in p.name and p.name.startswith(".")]
+
+
+def test_sigkill_during_export_then_rerun_leaves_no_temp(model, tmp_path):
+    _, _, run = model
+    out = tmp_path / "out"
+    out.mkdir()
+    _kill_while_writing(tmp_path, ".onnx", ["export", run, "-o", out / "model.onnx"])
+    left = _temps(out)
+    assert len(left) == 1 and left[0].startswith(".model.nehad-"), _listing(out)
+    assert not (out / "model.onnx").exists()
+    res = _invoke(["export", run, "-o", out / "model.onnx"])
+    assert res.exit_code == 0, res.output
+    assert _listing(out) == ["model.onnx"]
+
+
+def test_sigkill_during_encoding_then_rerun_leaves_no_temp(model, tmp_path):
+    onnx_path, _, _ = model
+    out = tmp_path / "out"
+    out.mkdir()
+    args = ["video", onnx_path, "-o", out / "orbit.mp4", "--frames", "4", "--workers", "1",
+            "--quiet"]
+    _kill_while_writing(tmp_path, ".mp4", args)
+    left = _temps(out)
+    assert len(left) == 1 and left[0].startswith(".orbit.nehad-") and left[0].endswith(".tmp.mp4")
+    assert (out / "orbit.mp4.frames").is_dir()  # the frames were rendered before the encoding
+    res = _invoke([*args, "--resume"])
+    assert res.exit_code == 0, res.output
+    assert "4 already there kept" in res.output
+    assert _listing(out) == ["orbit.mp4"]
+
+
+def test_resume_removes_a_killed_checkpoint_write(model, tmp_path):
+    _, scene, _ = model
+    run = tmp_path / "run"
+    args = ["train", scene, "-o", run, "--preset", "test", "--quiet", "--set",
+            "coarse.iterations=4", "--set", "fine.iterations=4"]
+    assert _invoke(args).exit_code == 0
+    ck = run / "checkpoints"
+    stale = ck / f".step_0000006.nehad-{_dead_pid()}-{tempfiles._host()}-abcd1234.tmp.pt"
+    legacy = ck / ".step_0000006.pt.abcd1234"
+    for p in (stale, legacy):
+        p.write_bytes(b"partial")
+    old = time.time() - 2 * tempfiles.STALE_SECONDS
+    os.utime(legacy, (old, old))
+    res = _invoke([*args, "--resume"])
+    assert res.exit_code == 0, res.output
+    assert not stale.exists() and not legacy.exists()
+    assert not _temps(run) and not _temps(ck)
+
+
+# ---------------------------------------------------------------------------------------------
+# 5. one writer per output
+
+
+HANG_AFTER_FIRST_FRAME = """
+import sys, time
+import nehad.runtime.distribute as d
+real = d.render_frame_task
+def slow(task):
+    r = real(task)
+    open(sys.argv[1], "w").close()
+    time.sleep(600)
+    return r
+d.render_frame_task = slow
+from nehad.cli.main import main
+main(sys.argv[2:], prog_name="nehad")
+"""
+
+
+def test_second_video_with_the_same_output_refuses(model, tmp_path):
+    onnx_path, _, _ = model
+    out = tmp_path / "orbit.mp4"
+    args = ["video", onnx_path, "-o", out, "--frames", "4", "--workers", "1", "--quiet"]
+    flag = tmp_path / "ready.flag"
+    first = subprocess.Popen([sys.executable, "-c", HANG_AFTER_FIRST_FRAME, str(flag),
+                              *map(str, args)], env=ENV, stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.time() + 300
+        while not flag.exists():
+            assert first.poll() is None, first.stderr.read()
+            assert time.time() < deadline
+            time.sleep(0.1)
+        frames = tmp_path / "orbit.mp4.frames"
+        held = _listing(frames)
+        assert "frame_00000.png" in held
+        line = _one_error(_invoke(args), str(out), f"pid {first.pid}", "is writing it")
+        assert "nehad video" in line
+        assert _listing(frames) == held  # the first run's folder is untouched
+        # another output sharing the frame folder is refused too
+        _one_error(_invoke(["video", onnx_path, "-o", tmp_path / "other.mp4", "--frames-dir",
+                            frames, "--frames", "4", "--workers", "1"]), "is writing it")
+        first.send_signal(signal.SIGKILL)  # the kernel drops the lock with the process
+        first.wait(30)
+    finally:
+        if first.poll() is None:
+            first.kill()
+            first.wait()
+    res = _invoke([*args, "--resume"])
+    assert res.exit_code == 0, res.output
+    assert _listing(tmp_path) == ["orbit.mp4", "ready.flag"]
+
+
+def test_second_train_into_the_same_run_refuses(model, tmp_path):
+    from nehad.runtime.lock import output_lock
+
+    _, scene, _ = model
+    run = tmp_path / "run"
+    with output_lock(run, "nehad train"):
+        _one_error(_invoke(["train", scene, "-o", run, "--preset", "test", "--quiet"]),
+                   f"{run}: nehad train (pid {os.getpid()}", "is writing it")
+    assert not run.exists() and _listing(tmp_path) == []
+
+
+# ---------------------------------------------------------------------------------------------
+# 6. integrity of the exported file
+
+
+def _flip_weights(src: Path, dest: Path) -> None:
+    from nehad.runtime.onnx_proto import summarize
+
+    data = bytearray(src.read_bytes())
+    start, end = summarize(bytes(data)).graph_spans[0]
+    mid = (start + end) // 2
+    for k in range(4):
+        data[mid + k] ^= 0x55
+    dest.write_bytes(bytes(data))
+
+
+def test_damaged_onnx_is_refused_by_every_load(model, tmp_path):
+    onnx_path, scene, _ = model
+    res = _invoke(["info", onnx_path])
+    assert res.exit_code == 0 and "integrity:    graph sha256" in res.output
+    bad = tmp_path / "bad.onnx"
+    _flip_weights(onnx_path, bad)
+    out = tmp_path / "out"
+    out.mkdir()
+    view = f"{scene}/transforms_test.json:0"
+    for args in (["info", bad],
+                 ["render", bad, "--view", view, "--time", "0.5", "-o", out / "x.png"],
+                 ["video", bad, "-o", out / "x.mp4", "--frames", "2"],
+                 ["ply", bad, "--time", "0.5", "-o", out / "x.ply"]):
+        _one_error(_invoke(args), str(bad), "damaged", "graph_sha256")
+    assert _listing(out) == []
+    from nehad.runtime.onnx_model import OnnxModel, OnnxModelError
+
+    with pytest.raises(OnnxModelError, match="damaged"):
+        OnnxModel(bad)
+
+
+def test_model_without_digest_still_loads(model, tmp_path):
+    onnx = pytest.importorskip("onnx")
+    onnx_path, _, _ = model
+    proto = onnx.load(str(onnx_path))
+    keep = [p for p in proto.metadata_props if p.key != "graph_sha256"]
+    del proto.metadata_props[:]
+    proto.metadata_props.extend(keep)
+    old = tmp_path / "old.onnx"
+    old.write_bytes(proto.SerializeToString())
+    res = _invoke(["info", old])
+    assert res.exit_code == 0 and "no digest" in res.output
+    from nehad.runtime.onnx_model import OnnxModel
+
+    assert len(OnnxModel(old).gaussians(0.5)) == OnnxModel(onnx_path).num_gaussians
+
+
+# ---------------------------------------------------------------------------------------------
+# 7. the small ones
+
+
+@pytest.mark.parametrize("suffix,needle", [(":-1", "frame index -1 out of range"),
+                                           (":7", "frame index 7 out of range"),
+                                           ("#x", "frame index 'x' is not a whole number")])
+def test_view_index_out_of_range(model, tmp_path, suffix, needle):
+    onnx_path, scene, _ = model
+    view = f"{scene}/transforms_test.json{suffix}"
+    _one_error(_invoke(["render", onnx_path, "--view", view, "--time", "0.5",
+                        "-o", tmp_path / "x.png"]), needle)
+    _one_error(_invoke(["video", onnx_path, "--path", view, "-o", tmp_path / "x.mp4",
+                        "--frames", "2"]), needle)
+    assert _listing(tmp_path) == []
+
+
+def test_time_with_a_static_ply_is_noted(model, static_ply, tmp_path):
+    _, scene, _ = model
+    res = _invoke(["render", static_ply, "--view", f"{scene}/transforms_test.json:0",
+                   "--time", "0.3", "-o", tmp_path / "x.png"])
+    assert res.exit_code == 0, res.output
+    assert "note: --time 0.3 is ignored" in res.stderr and "static 3DGS PLY" in res.stderr
+    res = _invoke(["render", static_ply, "--view", f"{scene}/transforms_test.json:0",
+                   "-o", tmp_path / "y.png"])
+    assert res.exit_code == 0 and "note:" not in res.stderr
+    res = _invoke(["ply", static_ply, "--time", "0.3", "-o", tmp_path / "z.ply"])
+    assert res.exit_code == 0 and "static 3DGS PLY" in res.stderr
+
+
+def test_append_metrics_drops_the_repeated_steps(tmp_path):
+    from nehad import checkpoint
+
+    for s in range(1, 11):
+        checkpoint.append_metrics(tmp_path, {"step": s, "loss": s})
+    with open(tmp_path / "metrics.jsonl", "a") as f:
+        f.write('{"step": 11, "lo')  # torn by a kill
+    checkpoint._LAST_LOGGED.clear()  # a new process resumes from the checkpoint at step 5
+    for s in range(6, 13):
+        checkpoint.append_metrics(tmp_path, {"step": s, "loss": -s})
+    recs = [json.loads(ln) for ln in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in recs] == list(range(1, 13))
+    assert [r["loss"] for r in recs[5:]] == [-s for s in range(6, 13)]
+    # a second resume in the same process (steps go back again)
+    checkpoint.append_metrics(tmp_path, {"step": 9, "loss": 0})
+    recs = [json.loads(ln) for ln in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in recs] == list(range(1, 10))
+
+
+def test_metrics_have_no_duplicates_after_resume(model, tmp_path):
+    _, scene, _ = model
+    run = tmp_path / "run"
+    args = ["train", scene, "-o", run, "--preset", "test", "--quiet", "--set",
+            "coarse.iterations=6", "--set", "fine.iterations=6", "--set", "train.log_interval=1",
+            "--set", "train.checkpoint_interval=3", "--set", "train.keep_checkpoints=5"]
+    assert _invoke(args).exit_code == 0
+    first = [json.loads(ln)["step"] for ln in (run / "metrics.jsonl").read_text().splitlines()]
+    assert first == list(range(1, 13))
+    # as if killed at step 12 just before its checkpoint: resume from step 9
+    for p in (run / "checkpoints").glob("step_*.pt"):
+        if int(p.stem.split("_")[1]) > 9:
+            p.unlink()
+    res = _invoke([*args, "--resume"])
+    assert res.exit_code == 0 and "resuming" in res.output, res.output
+    steps = [json.loads(ln)["step"] for ln in (run / "metrics.jsonl").read_text().splitlines()]
+    assert steps == list(range(1, 13))
+
+
+def test_ctrl_c_on_train_says_how_to_continue(model, tmp_path):
+    _, scene, _ = model
+    run = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "nehad.cli.main", "train", str(scene), "-o",
+                             str(run), "--preset", "test", "--quiet", "--set",
+                             "fine.iterations=100000"], env=ENV, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.time() + 300
+        while not list((run / "checkpoints").glob("step_*.pt")):
+            assert proc.poll() is None, proc.stderr.read()
+            assert time.time() < deadline
+            time.sleep(0.2)
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, err
+    assert "Traceback" not in err and "Aborted!" not in err
+    assert "keeps its checkpoint at step" in err and "--resume to continue" in err
+    assert not (run / "model.pt").exists() and not _temps(run / "checkpoints")
+    assert not (tmp_path / ".run.nehad-lock").exists()
+
+
+def test_module_stays_torch_free():
+    """The new runtime rooms (temp files, locks, memory) import nothing heavy."""
+    code = ("import sys; import nehad.runtime.tempfiles, nehad.runtime.lock, "
+            "nehad.runtime.memory; print('torch' in sys.modules)")
+    proc = subprocess.run([sys.executable, "-c", code], env=ENV, capture_output=True, text=True)
+    assert proc.stdout.strip() == "False", proc.stderr
+
