@@ -2,12 +2,14 @@
 
     python bench/quality.py [--scenes scene1_close_proximity,...] [--decoders hnn,mlp]
                             [--preset cpu] [--set k=v ...] [--out runs/quality]
-    python bench/quality.py --ablation scene1_close_proximity
+    python bench/quality.py --ablation scene1_close_proximity,scene3_collision --seeds 0,1
 
 Scenes are looked up in ../shared/data/mujoco (400x400 with the cpu preset's downscale 2) and
 ../shared/data/dnerf_lego_100 (100x100, black background, downscale 1). Prints one row per
-(scene, decoder): test PSNR / SSIM / LPIPS-vgg / training minutes / Gaussians / render FPS, and
-writes the rows to OUT/results_*.json (one file per invocation, so several invocations, e.g. one
+(scene, decoder): test PSNR beside the PSNR of a blank image (the background colour everywhere)
+on the same views, the gain, the worst quarter of the time range (its gain over blank), SSIM,
+LPIPS-vgg, training minutes, Gaussians and render FPS; then the means and the issue's targets.
+Writes the rows to OUT/results_*.json (one file per invocation, so several invocations, e.g. one
 per core with OMP_NUM_THREADS=1, can share OUT). Runs already finished are reused, and their
 scores (RUN/bench_row.json) too (delete a run to redo it).
 """
@@ -25,7 +27,7 @@ sys.path.insert(0, str(ROOT))
 
 DATA = ROOT.parent / "shared" / "data"
 DEFAULT_SCENES = ("scene1_close_proximity", "scene3_collision", "scene5_rapid_motion",
-                  "dnerf_lego_100")
+                  "scene7_deformation", "scene8_thin_structure", "dnerf_lego_100")
 ABLATIONS = {
     "full NeHaD": [],
     "no HNN": ["field.use_hnn=false"],
@@ -63,8 +65,10 @@ def train_and_eval(data: Path, run: Path, preset: str, sets: list[str]) -> dict:
     if row_file.exists() and minutes is None:
         return json.loads(row_file.read_text())
     result = evaluate_run(run, "test", data, lpips=True, progress=True)
-    m = result["mean"]
-    row = {"psnr": m["psnr"], "ssim": m["ssim"], "lpips_vgg": m["lpips_vgg"],
+    m, b, worst = result["mean"], result["blank"], result["worst_time_bin"]
+    row = {"psnr": m["psnr"], "blank_psnr": b["psnr"], "gain": result["psnr_gain"],
+           "worst_bin": worst["range"], "worst_bin_gain": worst["psnr"] - worst["blank_psnr"],
+           "ssim": m["ssim"], "lpips_vgg": m["lpips_vgg"],
            "minutes": minutes, "gaussians": result["gaussians"], "fps": result["fps"],
            "resolution": result["resolution"]}
     row_file.write_text(json.dumps(row, indent=1))
@@ -72,21 +76,49 @@ def train_and_eval(data: Path, run: Path, preset: str, sets: list[str]) -> dict:
 
 
 def print_rows(rows: list[dict]) -> None:
-    print(f"{'scene':<24} {'variant':<20} {'PSNR':>6} {'SSIM':>6} {'LPIPSvgg':>8} "
-          f"{'train min':>9} {'Gaussians':>9} {'FPS':>6}")
+    print(f"{'scene':<24} {'variant':<22} {'PSNR':>6} {'blank':>6} {'gain':>6} {'worst t':>9} "
+          f"{'SSIM':>6} {'LPIPSvgg':>8} {'min':>5} {'Gaussians':>9} {'FPS':>6}")
     for r in rows:
         f = lambda v, d: "n/a" if v is None else f"{v:.{d}f}"
-        print(f"{r['scene']:<24} {r['variant']:<20} {f(r['psnr'], 2):>6} {f(r['ssim'], 4):>6} "
-              f"{f(r['lpips_vgg'], 4):>8} {f(r['minutes'], 1):>9} {r['gaussians']:>9} "
-              f"{f(r['fps'], 1):>6}")
+        worst = (f"{r['worst_bin'][0]:.2f}:{r['worst_bin_gain']:+.1f}"
+                 if r.get("worst_bin") else "n/a")
+        print(f"{r['scene']:<24} {r['variant']:<22} {f(r['psnr'], 2):>6} "
+              f"{f(r.get('blank_psnr'), 2):>6} {f(r.get('gain'), 2):>6} {worst:>9} "
+              f"{f(r['ssim'], 4):>6} {f(r['lpips_vgg'], 4):>8} {f(r['minutes'], 1):>5} "
+              f"{r['gaussians']:>9} {f(r['fps'], 1):>6}")
+
+
+def print_summary(rows: list[dict]) -> None:
+    """Means per variant over the MuJoCo scenes, and the targets of the training issue
+    (docs/results.md): mean gain >= +12 dB, every scene >= +8 dB, every time bin >= blank + 5 dB,
+    <= 20 training minutes, NeHaD >= MLP on the mean, lego >= 27 dB."""
+    by_variant: dict[str, list[dict]] = {}
+    for r in rows:
+        by_variant.setdefault(r["variant"], []).append(r)
+    print()
+    for variant, rs in by_variant.items():
+        mj = [r for r in rs if r["scene"].startswith("scene") and r.get("gain") is not None]
+        if not mj:
+            continue
+        mean = lambda k: sum(r[k] for r in mj) / len(mj)
+        print(f"{variant}: MuJoCo mean over {len(mj)} runs: PSNR {mean('psnr'):.2f}, blank "
+              f"{mean('blank_psnr'):.2f}, gain {mean('gain'):+.2f} (target >= +12); lowest "
+              f"scene gain {min(r['gain'] for r in mj):+.2f} (>= +8); worst time bin "
+              f"{min(r['worst_bin_gain'] for r in mj):+.2f} (>= +5); longest training "
+              f"{max((r['minutes'] or 0) for r in rs):.1f} min (<= 20)")
+        for r in rs:
+            if r["scene"] == "dnerf_lego_100":
+                print(f"{variant}: lego {r['psnr']:.2f} dB (target >= 27)")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scenes", default=",".join(DEFAULT_SCENES))
     ap.add_argument("--decoders", default="hnn,mlp")
-    ap.add_argument("--ablation", default=None, metavar="SCENE",
-                    help="run the component ablation on this scene instead")
+    ap.add_argument("--ablation", default=None, metavar="SCENES",
+                    help="run the component ablation on these scenes (comma-separated) instead")
+    ap.add_argument("--seeds", default="0",
+                    help="comma-separated train.seed values for the ablation (default 0)")
     ap.add_argument("--variants", default=None,
                     help="comma-separated subset of the ablation variants (default: all)")
     ap.add_argument("--preset", default="cpu")
@@ -96,21 +128,29 @@ def main() -> None:
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     if args.ablation:
-        data, scene_sets = scene_path(args.ablation)
         wanted = args.variants.split(",") if args.variants else list(ABLATIONS)
         for variant in wanted:
             if variant not in ABLATIONS:
                 sys.exit(f"--variants: unknown variant {variant!r} (choose from "
                          f"{', '.join(ABLATIONS)})")
-            extra = ABLATIONS[variant]
-            # The full model and the baseline are the main table's runs of that scene.
-            shared = {"full NeHaD": "hnn", "MLP decoder (4DGS)": "mlp"}.get(variant)
-            run = (args.out / f"{args.ablation}_{shared}" if shared else
-                   args.out / f"ablation_{args.ablation}_{variant.replace(' ', '_')}")
-            extra = extra if shared is None else [f"field.decoder={shared}"]
-            rows.append({"scene": args.ablation, "variant": variant,
-                         **train_and_eval(data, run, args.preset, scene_sets + args.sets + extra)})
-            print_rows(rows[-1:])
+        for scene in args.ablation.split(","):
+            data, scene_sets = scene_path(scene)
+            for seed in (int(v) for v in args.seeds.split(",")):
+                for variant in wanted:
+                    extra = ABLATIONS[variant]
+                    # Seed 0 of the full model and the baseline are the main table's runs.
+                    shared = {"full NeHaD": "hnn", "MLP decoder (4DGS)": "mlp"}.get(variant)
+                    if shared:
+                        extra = [f"field.decoder={shared}"]
+                    if shared and seed == 0:
+                        run = args.out / f"{scene}_{shared}"
+                    else:
+                        run = (args.out / f"ablation_{scene}_{variant.replace(' ', '_')}"
+                                          f"{'' if seed == 0 else f'_seed{seed}'}")
+                    sets = scene_sets + args.sets + extra + [f"train.seed={seed}"]
+                    rows.append({"scene": scene, "variant": variant, "seed": seed,
+                                 **train_and_eval(data, run, args.preset, sets)})
+                    print_rows(rows[-1:])
     else:
         for scene in args.scenes.split(","):
             data, scene_sets = scene_path(scene)
@@ -122,8 +162,10 @@ def main() -> None:
                 print_rows(rows[-1:])
     print()
     print_rows(rows)
+    print_summary(rows)
     # One file per invocation: several invocations (e.g. one per core) may share --out.
-    tag = args.ablation or "_".join(args.scenes.split(",")) + "_" + "_".join(
+    tag = (args.ablation.replace(",", "_") + "_seeds" + args.seeds.replace(",", "_")
+           if args.ablation else None) or "_".join(args.scenes.split(",")) + "_" + "_".join(
         args.decoders.split(","))
     (args.out / f"results_{'ablation_' if args.ablation else ''}{tag}.json").write_text(
         json.dumps(rows, indent=1))

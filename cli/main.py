@@ -20,6 +20,10 @@ from nehad import __version__
 
 from .errors import InputError, user_errors
 from .params import BACKGROUND, SIZE
+from .threads import apply_thread_defaults
+
+# Before any command imports torch or numba: their OpenMP runtimes read this once, at load.
+apply_thread_defaults()
 
 # Formats `-o` can write (OpenImageIO picks the writer from the extension).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff")
@@ -250,9 +254,16 @@ def render(scene, view, output, depth, alpha, background, size, sh_degree, time_
         for problem in getattr(source, "problems", ()):
             click.echo(f"warning: {problem}", err=True)
         t = _render_time(source, camera, time_, extrapolate)
+        if time_ is not None and not source.dynamic:
+            click.echo(f"note: --time {time_:g} is ignored: {scene} is a static 3DGS PLY (the "
+                       f"same Gaussians at every time)", err=True)
         cloud = source.gaussians(t)
         if size is not None:
             camera = camera.with_size(*size)
+        from nehad.runtime.memory import check_frame_memory
+
+        check_frame_memory(camera.width, camera.height, len(cloud),
+                           f"--size {size[0]}x{size[1]}" if size else f"--view {view}")
         bg = (0.0, 0.0, 0.0) if alpha else (background or source.default_background)
 
         from nehad.runtime.raster import render as rasterize_cloud
@@ -359,7 +370,8 @@ def _export_split(run: Path, folder: Path, opset: int, fp16_field: bool = False)
 @click.argument("model", type=click.Path(dir_okay=False, path_type=Path))
 def info(model):
     """Describe an exported MODEL (.onnx): Gaussians, SH degree, time range, bounds, opset,
-    operators used and file size. Needs neither torch nor onnx."""
+    operators used and file size, after checking the file against the digest of its graph
+    written at export (a damaged file is refused). Needs neither torch nor onnx."""
     with user_errors():
         from nehad.runtime.onnx_model import read_model_info
 
@@ -385,6 +397,10 @@ def info(model):
             click.echo(f"  {label + ':':<13} {md[key]}")
     click.echo(f"  opset:        {i.opset}")
     click.echo(f"  file size:    {i.file_size} bytes ({i.file_size / 1e6:.2f} MB)")
+    if i.digest_checked:
+        click.echo(f"  integrity:    graph sha256 {md['graph_sha256'][:16]}... matches the file")
+    else:
+        click.echo("  integrity:    no digest (exported before nehad wrote one); not checked")
     ops = sorted(i.operators.items(), key=lambda kv: (-kv[1], kv[0]))
     click.echo(f"  operators:    {sum(i.operators.values())} nodes, {len(ops)} types")
     for k in range(0, len(ops), 6):
@@ -437,8 +453,14 @@ def ply(scene, output, time_, frames, extrapolate, fmt):
         if time_ is not None and not math.isfinite(time_):
             raise InputError(f"--time {time_}: not a finite number")
         source = open_source(scene)
+        from nehad.runtime.memory import check_cloud_memory
         from nehad.runtime.ply import write_gaussian_ply
         from nehad.runtime.splat import write_splat
+
+        check_cloud_memory(source.num_gaussians, source.sh_degree, str(scene))
+        if time_ is not None and not source.dynamic:
+            click.echo(f"note: {scene} is a static 3DGS PLY: the Gaussians are the same at "
+                       f"every time (--time {time_:g} changes nothing)", err=True)
 
         writer = write_splat if fmt == "splat" else write_gaussian_ply
         if frames is None:
@@ -506,26 +528,64 @@ def train(data, run, preset, config_file, overrides, resume, lod_levels, quiet):
     field with them. Checkpoints are written atomically every train.checkpoint_interval steps; a
     run stopped in any way continues with --resume.
     """
-    with user_errors():
-        if not data.is_dir():
-            raise InputError(f"{data}: no such dataset folder")
-        from nehad.config import build_config
+    trainer = None
+    try:
+        with user_errors():
+            if not data.is_dir():
+                raise InputError(f"{data}: no such dataset folder")
+            from nehad.config import build_config
 
-        if lod_levels is not None:
-            overrides = (*overrides, f"lod.levels={lod_levels}")
-        cfg = build_config(preset, config_file, overrides)
-        from nehad.lod import make_trainer
+            if lod_levels is not None:
+                overrides = (*overrides, f"lod.levels={lod_levels}")
+            cfg = build_config(preset, config_file, overrides)
+            if resume and not (run / "config.yaml").is_file():
+                raise InputError(f"{run}: no run to resume (no {run}/config.yaml); leave out "
+                                 f"--resume to start one")
+            from nehad.lod import make_trainer
+            from nehad.runtime.lock import output_lock
 
-        trainer = make_trainer(cfg, data, run, resume=resume, progress=not quiet)
-        if resume and trainer.step:
-            click.echo(f"resuming {run} at step {trainer.step} of {trainer.total_steps}")
-        summary = trainer.train()
+            # one process per run folder; the dataset is read (and checked) before the run
+            # folder is created, so a bad dataset leaves nothing behind
+            with output_lock(run, "nehad train"):
+                trainer = make_trainer(cfg, data, run, resume=resume, progress=not quiet)
+                if resume:
+                    from nehad.checkpoint import remove_stale_run_temps
+
+                    remove_stale_run_temps(run)  # what a killed run's last write left
+                if resume and trainer.step:
+                    click.echo(f"resuming {run} at step {trainer.step} of {trainer.total_steps}")
+                summary = trainer.train()
+    except KeyboardInterrupt:
+        _train_interrupted(run, trainer)
     last = summary["last"]
     click.echo(f"{run}/model.pt: {summary['steps']} steps, {summary['gaussians']} Gaussians, "
                f"last train PSNR {last.get('psnr', float('nan')):.2f} dB, "
                f"{summary['seconds'] / 60:.1f} min")
     if getattr(trainer, "layer_sizes", None):
         click.echo(f"  layers (Gaussians): {', '.join(str(n) for n in trainer.layer_sizes)}")
+
+
+def _train_interrupted(run: Path, trainer) -> None:
+    """Ctrl-C during `nehad train`: say what is kept and how to continue; exit status 130."""
+    if not (run / "config.yaml").is_file():
+        click.echo(f"interrupted before training started; nothing was written to {run}", err=True)
+        sys.exit(130)
+    if trainer is None:
+        click.echo(f"interrupted before training resumed; {run} is unchanged; run the same "
+                   f"command with --resume to continue it", err=True)
+        sys.exit(130)
+    from nehad.checkpoint import list_checkpoints
+
+    ckpts = list_checkpoints(run)
+    total = getattr(trainer, "total_steps", None)
+    of = f" of {total}" if total else ""
+    if ckpts:
+        step = int(ckpts[-1].stem.split("_")[-1])
+        kept = f"{run} keeps its checkpoint at step {step}{of}"
+    else:
+        kept = f"{run} has no checkpoint yet (it restarts from step 0)"
+    click.echo(f"interrupted: {kept}; run the same command with --resume to continue", err=True)
+    sys.exit(130)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -575,6 +635,11 @@ def demo(out, resolution, overrides, quiet):
     """Synthesise a scene, train NeHaD on it (quick preset), evaluate it and render a strip of
     frames over time: the whole pipeline in a few minutes on a laptop CPU."""
     with user_errors():
+        if out.exists() and not out.is_dir():
+            raise InputError(f"-o {out}: exists and is not a folder")
+        from nehad.config import build_config
+
+        build_config("quick", None, overrides)  # a bad --set fails before anything is written
         from nehad.demo import run_demo
         from nehad.evaluate import format_table
 
@@ -582,7 +647,7 @@ def demo(out, resolution, overrides, quiet):
                        log=click.echo)
     click.echo(format_table(res["eval"]))
     click.echo(f"train: {res['train']['steps']} steps in {res['train']['seconds'] / 60:.1f} min; "
-               f"frames over time: {res['strip']}")
+               f"frames over time: {res['strip']} (ground truth: {res['strip_truth']})")
 
 
 from .viz import report as _report_command, viz as _viz_group  # noqa: E402  (issue 8)

@@ -21,10 +21,16 @@ class DataConfig:
     background: tuple[float, float, float] | None = None  # None: white for RGBA D-NeRF data, black for RGB
     downscale: int = 1  # integer image downscale factor (2 = half resolution)
     # Train images with alpha over a new random background colour each step (3DGS's
-    # --random_background). Over a fixed white background, semi-transparent white "fog" is free
-    # wherever it covers white, and it hides the scene from cameras inside it (the MuJoCo close
-    # cameras); a random colour makes every uncovered pixel count. Evaluation uses `background`.
-    random_background: bool = True
+    # --random_background) instead of the evaluation background. Off by default: when the alpha
+    # of a surface differs between views (the MuJoCo floor is opaque white from the side cameras
+    # and transparent from the top one), a random colour makes those targets contradict each
+    # other, while over the evaluation background they agree (docs/training.md).
+    random_background: bool = False
+    # Resolution warm-up: (fraction of all training steps, extra downscale factor) pairs, in
+    # order; from each fraction on, images are area-downscaled by that factor on top of
+    # `downscale`. Early steps, where the Gaussians are large and blurry anyway, cost 1/4 or 1/16
+    # as many pixels. () trains at `downscale` throughout.
+    resolution_schedule: tuple[tuple[float, int], ...] = ()
     frame_stride: int = 1  # keep every n-th frame (DyNeRF: video frames 0, n, 2n, ...; D-NeRF
     # and HyperNeRF: every n-th image of each split); applies to training and evaluation alike
     train_split: str = "train"
@@ -33,8 +39,23 @@ class DataConfig:
 
 @dataclass
 class StageConfig:
+    """One training stage (coarse: static Gaussians; fine: the deformation field on). Schedules
+    are fractions of the stage's `iterations`, so shortening or lengthening a stage keeps their
+    meaning (docs/training.md)."""
+
     iterations: int = 3000  # optimisation steps of this stage
     batch_size: int = 1  # views per step; their losses are averaged
+    densify_from: float = 0.025  # densify and prune from this fraction of the stage ...
+    densify_until: float = 0.75  # ... until this one (3DGS: 500 and 15000 of 20000)
+    opacity_reset_every: float = 0.15  # reset opacities every this fraction (3000 of 20000),
+    # only inside the densification window (so never at the stage's end); 0 = never
+    prune_large_every: float = 0.4  # also prune oversized Gaussians every this fraction, after
+    # the first opacity reset (D-NeRF: 8000 of 20000); 0 = never
+    # Time curriculum (docs/training.md): a step draws only frames whose time lies within
+    # `time_window` of train.canonical_time at the stage's start; the window widens linearly to
+    # the whole time range by `window_growth` of the stage (0: it stays fixed). 1 = every frame.
+    time_window: float = 1.0
+    window_growth: float = 0.0
 
 
 @dataclass
@@ -49,21 +70,22 @@ class OptimConfig:
     grid_lr_init: float = 1.6e-3  # hex-plane planes, exponential decay ...
     grid_lr_final: float = 1.6e-4  # ... to this
     decoder_lr: float = 1e-3  # trunk, HNN scalar networks and adapters ...
-    decoder_lr_final: float | None = None  # ... decaying exponentially to this (None: constant)
+    decoder_lr_final: float | None = 1e-4  # ... decaying exponentially to this over the fine
+    # stage (None: constant). The paper gives 1e-3 and no decay; the decay to 1e-4 (4DGS decays
+    # its deformation network 10x too) gained 1.0-2.3 dB on two MuJoCo scenes, two seeds each
+    # (docs/training.md)
     t_eq_lr: float = 1e-3  # BED equilibrium times (mu_eq learns like positions)
 
 
 @dataclass
 class DensifyConfig:
-    start: int = 500  # first fine... first iteration (of each stage) that densifies
-    stop: int = 15000  # no densification after this iteration (per stage)
+    """Adaptive density control of 3DGS; *when* it runs is each stage's schedule (StageConfig)."""
+
     interval: int = 100  # densify and prune every this many iterations
     grad_threshold: float = 2e-4  # mean view-space (NDC) gradient norm above which to densify
     min_opacity: float = 0.005  # prune below this opacity
     percent_dense: float = 0.01  # clone below / split above this fraction of the scene extent
-    opacity_reset_interval: int = 3000  # reset opacities to 0.01 every this many iterations
-    prune_interval: int = 8000  # D-NeRF: large-Gaussian pruning only every this many iterations
-    max_screen_size: int = 20  # prune Gaussians larger than this (pixels) at prune_interval
+    max_screen_size: int = 20  # prune Gaussians larger than this (pixels) when pruning large ones
     max_gaussians: int = 0  # 0 = no cap; otherwise densification stops adding past this count
     # (of trainable Gaussians: in a layered run, --lod-levels, it caps each layer on its own)
 
@@ -82,6 +104,24 @@ class TrainConfig:
     init: Literal["auto", "points", "random"] = "auto"  # auto: the dataset's points if any
     init_random_points: int = 2000  # D-NeRF: random points in [-1.3, 1.3]^3
     init_max_points: int = 0  # 0 = all; else a random subset of the dataset's points this large
+    # The time the canonical Gaussians show (docs/training.md): the coarse stage fits the frames
+    # around it, the fine stage's time window grows from it, and the BED equilibrium times t_eq
+    # start at it (paper Sec. "Boltzmann Equilibrium Decomposition").
+    canonical_time: float = 0.5
+    # While the fine stage's time window is narrower than the time range, hold the space-time
+    # planes outside it at the window's edge values, so a time that enters the window starts
+    # from the deformation of its nearest trained time instead of the planes' initial value.
+    hold_time_planes: bool = True
+    # At the start of the fine stage, rescale the trunk's first layer so that its output h has
+    # mean 0 and standard deviation 1 over the Gaussians (DeformationField.standardize_trunk):
+    # otherwise h, and with it the decoder's output, starts out the same for every Gaussian.
+    standardize_trunk: bool = True
+    # At the start of the fine stage, fit the hex-plane box to the canonical Gaussians (those
+    # with opacity >= 0.1, 0.5-99.5 percentiles, padded by `fit_box_padding` of the box size on
+    # each side) instead of keeping the initial points' bounds, which for a random initial
+    # cloud can be much larger than the scene and waste the planes' cells.
+    fit_box_to_gaussians: bool = True
+    fit_box_padding: float = 0.15
     checkpoint_interval: int = 1000  # iterations between checkpoints (and at each stage end)
     log_interval: int = 50  # iterations between metric log lines
     keep_checkpoints: int = 2  # how many recent checkpoints stay on disk
@@ -106,13 +146,41 @@ class LodConfig:
     # changes how the frozen lower layers move: a layer-0-only render drifts from what it was)
 
 
+def coarse_stage(iterations: int, **overrides) -> StageConfig:
+    """The static stage of the recipe (docs/training.md): only the frames within 0.06 of the
+    canonical time, densified throughout, no opacity reset (one at the stage's end would hand
+    the fine stage transparent Gaussians)."""
+    return StageConfig(**{**dict(iterations=iterations, densify_from=0.0, densify_until=1.0,
+                                 opacity_reset_every=0.0, prune_large_every=0.0,
+                                 time_window=0.06, window_growth=0.0), **overrides})
+
+
+def fine_stage(iterations: int, **overrides) -> StageConfig:
+    """The deforming stage of the recipe (docs/training.md): the time window starts at 0.06
+    around the canonical time and covers the whole range at half the stage; 3DGS densification
+    from 10% to 80% of the stage with an opacity reset every 15%."""
+    return StageConfig(**{**dict(iterations=iterations, densify_from=0.1, densify_until=0.8,
+                                 opacity_reset_every=0.15, prune_large_every=0.0,
+                                 time_window=0.06, window_growth=0.5), **overrides})
+
+
+def _paper_coarse() -> StageConfig:
+    return coarse_stage(3000, densify_from=0.17)  # 3DGS densifies from iteration 500
+
+
+def _paper_fine() -> StageConfig:
+    # 3DGS/4DGS: densify from 500 to 15000 of 20000, reset every 3000, D-NeRF large-Gaussian
+    # pruning every 8000
+    return fine_stage(20000, densify_from=0.025, densify_until=0.75, prune_large_every=0.4)
+
+
 @dataclass
 class Config:
     preset: str = "cpu"
     data: DataConfig = dc_field(default_factory=DataConfig)
     field: FieldConfig = dc_field(default_factory=FieldConfig)
-    coarse: StageConfig = dc_field(default_factory=lambda: StageConfig(iterations=3000))
-    fine: StageConfig = dc_field(default_factory=lambda: StageConfig(iterations=20000))
+    coarse: StageConfig = dc_field(default_factory=_paper_coarse)
+    fine: StageConfig = dc_field(default_factory=_paper_fine)
     optim: OptimConfig = dc_field(default_factory=OptimConfig)
     densify: DensifyConfig = dc_field(default_factory=DensifyConfig)
     loss: LossConfig = dc_field(default_factory=LossConfig)
@@ -132,6 +200,26 @@ class Config:
                 raise ConfigError(f"{name}.iterations: must be >= 0")
             if stage.batch_size < 1:
                 raise ConfigError(f"{name}.batch_size: must be >= 1")
+            for key in ("densify_from", "densify_until", "opacity_reset_every",
+                        "prune_large_every", "window_growth"):
+                if not 0.0 <= getattr(stage, key) <= 1.0:
+                    raise ConfigError(f"{name}.{key}: must lie in [0, 1] (a fraction of the "
+                                      f"stage)")
+            if stage.densify_from > stage.densify_until:
+                raise ConfigError(f"{name}.densify_from: must not exceed {name}.densify_until")
+            if not 0.0 < stage.time_window <= 1.0:
+                raise ConfigError(f"{name}.time_window: must lie in (0, 1] (1 = every frame)")
+        if not 0.0 <= self.train.canonical_time <= 1.0:
+            raise ConfigError("train.canonical_time: must lie in [0, 1]")
+        last = -1.0
+        for k, entry in enumerate(self.data.resolution_schedule):
+            frac, factor = entry
+            if not (0.0 <= frac < 1.0 and frac > last):
+                raise ConfigError(f"data.resolution_schedule[{k}]: fractions must increase "
+                                  f"within [0, 1)")
+            if factor < 1:
+                raise ConfigError(f"data.resolution_schedule[{k}]: the factor must be >= 1")
+            last = frac
         if self.data.downscale < 1:
             raise ConfigError("data.downscale: must be >= 1")
         if self.data.frame_stride < 1:
@@ -154,29 +242,26 @@ class Config:
 
 
 def _paper() -> Config:
-    """The paper's settings (SPEC section 5): full resolution, 3000 + 20000 iterations."""
+    """The paper's settings (SPEC section 5): full resolution, 3000 + 20000 iterations, with the
+    project's training recipe (docs/training.md)."""
     return Config(preset="paper")
 
 
 def _cpu() -> Config:
-    """Sized for a 2-core CPU (each MuJoCo scene at 400x400 in about 20 minutes or less): half
-    resolution, a SHORT static (coarse) stage, a short fine stage and a Gaussian cap. The
-    deformation field is the paper's (D-NeRF hex-plane, W=64, D=1).
-
-    Why the coarse stage is short (docs/results.md): the MuJoCo objects move by several
-    diameters, so a static fit converges to the mean image, in which they are absent, and prunes
-    the Gaussians that could have followed them. At 100x100 on scene1 (2000 fine steps, 20k
-    Gaussians) 100 static steps instead of 1000 gave 21.06 vs 20.48 dB test PSNR.
-    """
+    """Sized for a 2-core CPU: each MuJoCo scene at 400x400 in under 20 minutes (docs/results.md).
+    The deformation field is the paper's (D-NeRF hex-plane, W = 64, D = 1); the schedule is
+    shorter (1000 static + 12000 deforming steps), the first 40% of the steps see 100x100
+    images and the next 30% 200x200 (data.resolution_schedule), and densification stops at 15k
+    Gaussians. 2500 of the dataset's points start it (the MuJoCo `fused.ply` holds 100k random
+    points)."""
     return Config(
         preset="cpu",
-        data=DataConfig(downscale=2),
-        coarse=StageConfig(iterations=100),
-        fine=StageConfig(iterations=2000),
-        densify=DensifyConfig(start=200, stop=1600, interval=100, opacity_reset_interval=3000,
-                              prune_interval=3000, max_gaussians=12000),
-        train=TrainConfig(sh_degree=3, sh_degree_interval=500, checkpoint_interval=500,
-                          init_max_points=10000),
+        data=DataConfig(downscale=2, resolution_schedule=((0.0, 4), (0.4, 2), (0.7, 1))),
+        coarse=coarse_stage(1000),
+        fine=fine_stage(12000),
+        densify=DensifyConfig(interval=100, max_gaussians=15000),
+        train=TrainConfig(sh_degree=3, sh_degree_interval=1000, checkpoint_interval=1000,
+                          init_max_points=2500),
     )
 
 
@@ -187,10 +272,9 @@ def _test() -> Config:
         data=DataConfig(downscale=1),
         field=dataclasses.replace(FieldConfig(), resolution=(8, 8, 8, 4), out_dim=8,
                                   multires=(1,), width=16, hnn_hidden=16),
-        coarse=StageConfig(iterations=30),
-        fine=StageConfig(iterations=40),
-        densify=DensifyConfig(start=10, stop=60, interval=10, opacity_reset_interval=1000,
-                              prune_interval=1000, max_gaussians=1500),
+        coarse=coarse_stage(30, densify_from=0.3),
+        fine=fine_stage(40, densify_from=0.25, densify_until=1.0, opacity_reset_every=0.0),
+        densify=DensifyConfig(interval=10, max_gaussians=1500),
         train=TrainConfig(sh_degree=1, sh_degree_interval=20, init_random_points=500,
                           checkpoint_interval=20, log_interval=10),
     )
@@ -202,12 +286,9 @@ def _quick() -> Config:
     return Config(
         preset="quick",
         field=dataclasses.replace(FieldConfig(), resolution=(32, 32, 32, 16)),
-        # A short static stage, as in `cpu`: on the demo scene 100 + 1900 steps gave 19.46 dB
-        # test PSNR where 500 + 1500 gave 17.11 (docs/results.md).
-        coarse=StageConfig(iterations=100),
-        fine=StageConfig(iterations=1900),
-        densify=DensifyConfig(start=200, stop=1200, interval=100, opacity_reset_interval=3000,
-                              prune_interval=3000, max_gaussians=10000),
+        coarse=coarse_stage(300),
+        fine=fine_stage(3000),
+        densify=DensifyConfig(interval=100, max_gaussians=10000),
         train=TrainConfig(sh_degree=1, sh_degree_interval=500, checkpoint_interval=500,
                           log_interval=50),
     )

@@ -1,16 +1,19 @@
 """Adaptive density control of 3DGS as a strategy object (gsplat's layout): the training loop
 calls `step_post_backward` and never decides itself when to clone, split, prune or reset.
 
-Rules (3DGS, SPEC section 5): between `start` and `stop`, every `interval` iterations, Gaussians
-whose mean view-space (NDC) gradient exceeds `grad_threshold` are cloned when small (max scale <=
-percent_dense * extent) and split in two when large; Gaussians with opacity < `min_opacity` are
-pruned, and too large ones too once the first opacity reset has passed (at `prune_interval`).
-Opacities are reset to at most 0.01 every `opacity_reset_interval`. Every per-Gaussian parameter
-takes part, so densified children inherit mu_eq and t_eq (SPEC 4.7).
+Rules (3DGS, SPEC section 5): inside the stage's densification window, every `interval`
+iterations, Gaussians whose mean view-space (NDC) gradient exceeds `grad_threshold` are cloned
+when small (max scale <= percent_dense * extent) and split in two when large; Gaussians with
+opacity < `min_opacity` are pruned, and too large ones too once the first opacity reset has passed
+(every `prune_large_every`). Opacities are reset to at most 0.01 every `reset_every`, only inside
+the densification window, so a reset is always followed by densification steps that recover from
+it and never falls on a stage's last step (docs/training.md). Every per-Gaussian parameter takes
+part, so densified children inherit mu_eq and t_eq (SPEC 4.7).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -55,6 +58,39 @@ def append_gaussians(params: GaussianParameters, optimizer, new: dict) -> None:
                            lambda v, e=extra: torch.cat([v, torch.zeros_like(e)], 0))
 
 
+@dataclass(frozen=True)
+class DensifySchedule:
+    """When densification runs within one stage, in iterations counted from the stage's start
+    (1-based: `step_post_backward` is called after iteration `it` with it = 1 .. length)."""
+
+    start: int  # first iteration that densifies
+    stop: int  # no densification or opacity reset from this iteration on
+    interval: int
+    reset_every: int  # 0 = never
+    prune_large_every: int  # 0 = never
+
+    @classmethod
+    def for_stage(cls, stage, length: int, interval: int) -> "DensifySchedule":
+        """From a StageConfig's fractions (nehad.config) and the stage's length."""
+        def at(frac: float) -> int:
+            return int(math.floor(frac * length + 0.5))
+
+        every = lambda frac: max(at(frac), 1) if frac > 0 else 0
+        return cls(at(stage.densify_from), at(stage.densify_until), int(interval),
+                   every(stage.opacity_reset_every), every(stage.prune_large_every))
+
+    def densifies(self, it: int) -> bool:
+        return self.start <= it < self.stop and it > 0 and it % self.interval == 0
+
+    def resets(self, it: int) -> bool:
+        return (self.reset_every > 0 and it > 0 and it < self.stop
+                and it % self.reset_every == 0)
+
+    def prunes_large(self, it: int) -> bool:
+        return (self.prune_large_every > 0 and self.reset_every > 0 and it > self.reset_every
+                and it % self.prune_large_every == 0)
+
+
 @dataclass
 class DensifyState:
     grad_accum: torch.Tensor  # (N,) summed view-space gradient norms
@@ -69,9 +105,11 @@ class DensifyState:
 class DensifyStrategy:
     """3DGS densification; `iteration` is counted from the start of the current stage."""
 
-    def __init__(self, cfg: DensifyConfig, extent: float):
+    def __init__(self, cfg: DensifyConfig, extent: float,
+                 schedule: DensifySchedule | None = None):
         self.cfg = cfg
         self.extent = float(extent)
+        self.schedule = schedule or DensifySchedule(0, 0, cfg.interval, 0, 0)
         self.state = DensifyState.zeros(0)
         #: The first `frozen` Gaussians are never cloned, split, pruned or opacity-reset: the
         #: frozen lower layers of layered training (SPEC 8, nehad.lod). New ones go after them.
@@ -106,12 +144,11 @@ class DensifyStrategy:
     @torch.no_grad()
     def step_post_backward(self, params: GaussianParameters, optimizer, iteration: int,
                            generator: torch.Generator | None = None) -> dict:
-        """Densify / prune / reset as the schedule says; returns what it did."""
-        cfg = self.cfg
+        """Densify / prune / reset as `self.schedule` says; returns what it did."""
         did = {}
-        if cfg.start <= iteration < cfg.stop and iteration > 0 and iteration % cfg.interval == 0:
+        if self.schedule.densifies(iteration):
             did.update(self._densify_and_prune(params, optimizer, iteration, generator))
-        if iteration > 0 and iteration % cfg.opacity_reset_interval == 0:
+        if self.schedule.resets(iteration):
             self._reset_opacity(params, optimizer)
             did["opacity_reset"] = True
         return did
@@ -152,7 +189,7 @@ class DensifyStrategy:
         prune = torch.zeros(total, dtype=torch.bool)
         prune[:n][split] = True
         prune |= torch.sigmoid(params.opacity_logits).detach() < cfg.min_opacity
-        if iteration > cfg.opacity_reset_interval and iteration % cfg.prune_interval == 0:
+        if self.schedule.prunes_large(iteration):
             radii = torch.cat([s.max_radii, torch.zeros(total - n)])
             big_screen = radii > cfg.max_screen_size
             big_world = torch.exp(params.log_scales).detach().max(dim=1).values > 0.1 * self.extent

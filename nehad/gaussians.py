@@ -56,11 +56,12 @@ class GaussianParameters(nn.Module):
         """Parameters shaped like a saved state dict (to load a checkpoint into)."""
         return cls(*(torch.zeros_like(state[name]) for name in cls.NAMES))
 
-    def reset_equilibrium(self) -> None:
-        """SPEC 4.7: mu_eq starts as mu and t_eq at 0.5 when the fine stage begins."""
+    def reset_equilibrium(self, t_eq: float = 0.5) -> None:
+        """SPEC 4.7: mu_eq starts as mu and t_eq at the canonical time (train.canonical_time,
+        0.5 by default) when the fine stage begins."""
         with torch.no_grad():
             self.mu_eq.copy_(self.means)
-            self.t_eq.fill_(0.5)
+            self.t_eq.fill_(float(t_eq))
 
     @classmethod
     def from_points(cls, points, colors=None, sh_degree: int = 3, opacity: float = 0.1,

@@ -102,6 +102,24 @@ class LodTrainer(Trainer):
                 if group["name"] in ("grid", "decoder"):
                     group["lr"] = 0.0
 
+    def time_window(self, stage: str, it: int, length: int):
+        """Enhancement layers see every time: the time curriculum (nehad.curriculum) belongs to
+        layer 0, where the shared field learns to follow the objects."""
+        if self.layer_of(self._current_step) > 0:
+            from nehad.curriculum import TimeWindow
+
+            return TimeWindow(*self.scene.time_range)
+        return super().time_window(stage, it, length)
+
+    def resolution_factor(self, step: int) -> int:
+        """Layer 0 follows data.resolution_schedule over its own steps; enhancement layers
+        train at their layer's resolution throughout."""
+        if self.layer_of(step) > 0:
+            return 1
+        from nehad.curriculum import resolution_factor
+
+        return resolution_factor(self.cfg.data.resolution_schedule, step, self.base_steps)
+
     def views_of(self, layer: int):
         """Training views of `layer` at its resolution (loaded once)."""
         if layer not in self._layer_views:

@@ -10,6 +10,7 @@ never stopped.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
@@ -24,7 +25,9 @@ from nehad.config import Config, config_from_dict
 from nehad.configtools import ConfigError, diff, dump_yaml, to_dict
 from nehad.data.dnerf import DNeRFScene
 from nehad.data.loader import load_dataset
-from nehad.densify import DensifyStrategy
+from nehad.curriculum import (TimeWindow, eligible_frames, hold_time_planes, resolution_factor,
+                              window_at)
+from nehad.densify import DensifySchedule, DensifyStrategy
 from nehad.field.deformation import DeformationField
 from nehad.gaussians import GaussianParameters
 from nehad.losses import photometric_loss, psnr
@@ -66,6 +69,21 @@ def _views(scene: DNeRFScene, split: str) -> Views:
                   for f in frames])
 
 
+def _downscale_views(views: Views, factor: int) -> Views:
+    """`views` area-downscaled by an integer factor (a remainder at the right/bottom edge is
+    cropped, as the dataset readers crop it), cameras to match."""
+    def pool(img):
+        h, w, c = img.shape
+        h2, w2 = h // factor, w // factor
+        return img[:h2 * factor, :w2 * factor].reshape(h2, factor, w2, factor, c).mean((1, 3))
+
+    cams = [dataclasses.replace(c, width=c.width // factor, height=c.height // factor,
+                                fx=c.fx / factor, fy=c.fy / factor, cx=c.cx / factor,
+                                cy=c.cy / factor) for c in views.cameras]
+    return Views(cams, [pool(im).contiguous() for im in views.images], list(views.times),
+                 [None if a is None else pool(a).contiguous() for a in views.alphas])
+
+
 def recomposite(image: torch.Tensor, alpha: torch.Tensor, old_bg, new_bg) -> torch.Tensor:
     """An image composited over `old_bg`, composited over `new_bg` instead:
     rgb + (new - old)(1 - a) (the loader adds bg (1 - a) to premultiplied colour)."""
@@ -104,6 +122,22 @@ def scene_bounds(points: np.ndarray | None) -> np.ndarray:
     return np.stack([lo - pad, hi + pad]).astype(np.float32)
 
 
+def gaussian_bounds(gaussians: GaussianParameters, padding: float,
+                    min_opacity: float = 0.1) -> np.ndarray | None:
+    """(2, 3) box around the Gaussians with opacity >= `min_opacity` (0.5 and 99.5
+    percentiles of their means, so a few stray ones do not stretch it), padded by `padding` of
+    its size on each side; None if fewer than 10 Gaussians qualify."""
+    with torch.no_grad():
+        keep = torch.sigmoid(gaussians.opacity_logits).reshape(-1) >= min_opacity
+        pts = gaussians.means[keep].numpy()
+    if len(pts) < 10:
+        return None
+    lo, hi = np.percentile(pts, 0.5, axis=0), np.percentile(pts, 99.5, axis=0)
+    size = np.maximum(hi - lo, 1e-3)
+    pad = padding * size.max()
+    return np.stack([lo - pad, hi + pad]).astype(np.float32)
+
+
 class Trainer:
     def __init__(self, cfg: Config, data_dir, run_dir, resume: bool = False,
                  progress: bool = True, log=print):
@@ -112,8 +146,11 @@ class Trainer:
         self.data_dir = Path(data_dir)
         self.progress = progress
         self.log = log
-        self._check_run_dir(resume)
+        if resume and not (self.run / "config.yaml").exists():
+            raise RunError(f"{self.run}: no run to resume (no config.yaml); leave out --resume "
+                           f"to start one")
         torch.manual_seed(cfg.train.seed)
+        # The dataset is read before anything is written, so a broken one leaves no run folder.
         # RGB images ignore the background, so one load over white (or the configured colour)
         # serves both kinds; the render background then follows from whether any frame has alpha
         load_bg = cfg.data.background if cfg.data.background is not None else (1.0, 1.0, 1.0)
@@ -124,10 +161,12 @@ class Trainer:
         has_alpha = any(f.alpha is not None for f in self.scene.frames[cfg.data.train_split])
         self.background = resolve_background(cfg, has_alpha)
         self.train_views = _views(self.scene, cfg.data.train_split)
+        self._scaled_views: dict = {}
         self.extent = float(self.scene.extent)
         self.aabb = scene_bounds(self.scene.initial_points)
         self.total_steps = cfg.coarse.iterations + cfg.fine.iterations
         self.step = 0
+        self._check_run_dir(resume)
         state = self._latest_checkpoint() if resume else None
         self._build(state)
 
@@ -147,9 +186,8 @@ class Trainer:
                                f"or another output folder")
         self.run.mkdir(parents=True, exist_ok=True)
         if not cfg_path.exists():
-            tmp = cfg_path.with_suffix(".yaml.tmp")
-            tmp.write_text(dump_yaml(self.cfg))
-            tmp.replace(cfg_path)
+            from nehad.runtime.images import atomic_write_bytes
+            atomic_write_bytes(cfg_path, dump_yaml(self.cfg).encode())
 
     def _latest_checkpoint(self):
         ckpts = list_checkpoints(self.run)
@@ -190,6 +228,9 @@ class Trainer:
             self.optimizer.load_state_dict(state["optimizer"])
             self.strategy.load_state_dict(state["strategy"])
             self.step = int(state["step"])
+        # (the base class's stage_of: a subclass's may need state set after _build)
+        stage, _, length = Trainer.stage_of(self, min(self.step, max(self.total_steps - 1, 0)))
+        self._enter_stage(stage, length)
 
     def _make_optimizer(self) -> torch.optim.Optimizer:
         o, g = self.cfg.optim, self.model.gaussians
@@ -232,34 +273,76 @@ class Trainer:
                 final = o.decoder_lr if o.decoder_lr_final is None else o.decoder_lr_final
                 group["lr"] = exp_lr(it, length, o.decoder_lr, final) if fine else 0.0
 
+    def stage_config(self, stage: str):
+        return self.cfg.coarse if stage == "coarse" else self.cfg.fine
+
+    def _enter_stage(self, stage: str, length: int) -> None:
+        """Give the densification strategy the schedule of `stage` (nehad.densify)."""
+        self.strategy.schedule = DensifySchedule.for_stage(self.stage_config(stage), length,
+                                                           self.cfg.densify.interval)
+        self._stage = (stage, length)
+
+    def time_window(self, stage: str, it: int, length: int) -> TimeWindow:
+        """The times step `it` of `stage` may draw frames from (nehad.curriculum)."""
+        return window_at(self.stage_config(stage), it, length, self.cfg.train.canonical_time,
+                         self.scene.time_range)
+
+    def resolution_factor(self, step: int) -> int:
+        """Extra downscale factor of `step` (data.resolution_schedule over all steps)."""
+        return resolution_factor(self.cfg.data.resolution_schedule, step, self.total_steps)
+
+    def views_at(self, step: int) -> Views:
+        """The training views of `step` at its resolution (data.resolution_schedule)."""
+        factor = self.resolution_factor(step)
+        if factor == 1:
+            return self.train_views
+        key = (id(self.train_views), factor)
+        if key not in self._scaled_views:
+            self._scaled_views[key] = _downscale_views(self.train_views, factor)
+        return self._scaled_views[key]
+
     def active_sh_degree(self, step: int) -> int:
         return min(self.cfg.train.sh_degree, step // max(self.cfg.train.sh_degree_interval, 1))
 
     def start_fine_stage(self) -> None:
-        """Called at the first fine step: the BED equilibria start at the Gaussians (SPEC 4.7);
-        layered training (nehad.lod) overrides it to start each enhancement layer instead."""
-        self.model.gaussians.reset_equilibrium()
-        self.strategy.reset(len(self.model.gaussians))
+        """Called at the first fine step: the BED equilibria start at the Gaussians, t_eq at the
+        canonical time (SPEC 4.7, docs/training.md); layered training (nehad.lod) overrides it
+        to start each enhancement layer instead."""
+        g = self.model.gaussians
+        g.reset_equilibrium(self.cfg.train.canonical_time)
+        if self.cfg.train.fit_box_to_gaussians:
+            box = gaussian_bounds(g, self.cfg.train.fit_box_padding)
+            if box is not None:
+                self.aabb = box
+                self.model.field.set_aabb(torch.as_tensor(box))
+        if self.cfg.train.standardize_trunk and len(g) > 1:
+            self.model.field.standardize_trunk(g.means.detach(), self.cfg.train.canonical_time,
+                                               g.log_scales.detach(), g.quats.detach())
+        self.strategy.reset(len(g))
 
     # -- one step --------------------------------------------------------------------------
     def train_step(self, step: int) -> dict:
         cfg = self.cfg
         stage, it, length = self.stage_of(step)
+        if it == 0 or (stage, length) != self._stage:
+            self._enter_stage(stage, length)
         if stage == "fine" and it == 0:
             self.start_fine_stage()
         self._set_learning_rates(stage, it, length)
-        batch = (cfg.coarse if stage == "coarse" else cfg.fine).batch_size
+        batch = self.stage_config(stage).batch_size
+        window = self.time_window(stage, it, length)
+        views = self.views_at(step)
         rng = np.random.default_rng([cfg.train.seed, step])
-        views = rng.choice(len(self.train_views.cameras), size=batch,
-                           replace=batch > len(self.train_views.cameras))
+        pool = eligible_frames(views.times, window)
+        picks = rng.choice(pool, size=batch, replace=batch > len(pool))
         degree = self.active_sh_degree(step)
         total = 0.0
         psnrs = []
         renders = []
-        for k in views:
-            cam = self.train_views.cameras[k]
-            params = self.model.gaussians_at(self.train_views.times[k], deform=stage == "fine")
-            target, alpha = self.train_views.images[k], self.train_views.alphas[k]
+        for k in picks:
+            cam = views.cameras[k]
+            params = self.model.gaussians_at(views.times[k], deform=stage == "fine")
+            target, alpha = views.images[k], views.alphas[k]
             background = self.background
             if cfg.data.random_background and alpha is not None:
                 background = tuple(float(v) for v in rng.random(3))
@@ -267,7 +350,12 @@ class Trainer:
             res = render_torch(*params, cam, background=background, sh_degree=degree)
             loss = photometric_loss(res.rgb, target, cfg.loss.ssim_weight) / batch
             total = total + loss
-            psnrs.append(psnr(res.rgb, target))
+            # logged against the evaluation background, whatever the step trained over
+            psnrs.append(psnr(recomposite(res.rgb.detach(), res.alpha.detach()[:, :, None],
+                                          background, self.background),
+                              recomposite(target, alpha, background, self.background)
+                              if alpha is not None and background != self.background
+                              else target))
             renders.append((res, cam))
         if stage == "fine":
             total = total + self.model.field.regularization_loss()
@@ -279,11 +367,17 @@ class Trainer:
         for res, cam in renders:
             self.strategy.record_view(res.means2d.grad, res.radii, cam.width, cam.height)
         self.optimizer.step()
+        if stage == "fine" and cfg.train.hold_time_planes:
+            full = window.lo <= self.scene.time_range[0] and window.hi >= self.scene.time_range[1]
+            if not full:
+                hold_time_planes(self.model.field.hexplane, window)
         gen = torch.Generator().manual_seed(int(cfg.train.seed) * 1_000_003 + step)
         did = self.strategy.step_post_backward(self.model.gaussians, self.optimizer, it + 1, gen)
         return {"step": step + 1, "stage": stage, "loss": float(total.item()),
                 "psnr": float(np.mean(psnrs)), "gaussians": len(self.model.gaussians),
-                "sh_degree": degree, **{k: v for k, v in did.items() if k != "gaussians"}}
+                "sh_degree": degree, "window": [round(window.lo, 4), round(window.hi, 4)],
+                "resolution": list(res.rgb.shape[1::-1]),
+                **{k: v for k, v in did.items() if k != "gaussians"}}
 
     # -- loop ----------------------------------------------------------------------------
     def checkpoint_state(self) -> dict:
@@ -347,9 +441,13 @@ def load_run(run_dir) -> tuple[NeHaDModel, dict]:
         raise RunError(f"{run}: no model.pt (training not finished?)")
     state = load_state(path)
     cfg = config_from_dict(state["config"])
-    gaussians = GaussianParameters.empty_like_state(state["gaussians"])
-    gaussians.load_state_dict(state["gaussians"])
-    field = DeformationField(cfg.field, state["aabb"], float(state["extent"]))
-    field.load_state_dict(state["field"])
+    try:
+        gaussians = GaussianParameters.empty_like_state(state["gaussians"])
+        gaussians.load_state_dict(state["gaussians"])
+        field = DeformationField(cfg.field, state["aabb"], float(state["extent"]))
+        field.load_state_dict(state["field"])
+    except (RuntimeError, KeyError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise RunError(f"{path}: its tensors do not fit its config ({first})") from None
     model = NeHaDModel(gaussians, field).eval()
     return model, {k: v for k, v in state.items() if k not in ("gaussians", "field")}

@@ -44,6 +44,25 @@ def test_eval_writes_metrics_and_renders(trained):
     # the saved render is the one scored
     img = read_image(run / "eval_test" / "r_000.png")
     assert img.shape[:2] == (48, 48)
+    # the blank baseline: a white image against the same views, computed here independently
+    from nehad.data.dnerf import load_dnerf
+
+    frames = load_dnerf(data, splits=("test",), background=(1, 1, 1)).frames["test"]
+    blank = [-10 * np.log10(np.mean((1.0 - np.clip(f.image, 0, 1)) ** 2)) for f in frames]
+    for rec, want in zip(out["per_frame"], blank):
+        assert rec["blank_psnr"] == pytest.approx(want, abs=1e-3)
+    assert out["blank"]["psnr"] == pytest.approx(np.mean(blank), abs=1e-3)
+    assert out["psnr_gain"] == pytest.approx(out["mean"]["psnr"] - out["blank"]["psnr"])
+    # PSNR per quarter of the time range: every frame in exactly one bin
+    bins = out["time_bins"]
+    assert sum(b["frames"] for b in bins) == out["frames"]
+    for k, b in enumerate(bins):
+        last = k == len(bins) - 1
+        inside = [r["psnr"] for r in out["per_frame"]
+                  if b["range"][0] <= r["time"] < b["range"][1] or (last and
+                                                                   r["time"] == b["range"][1])]
+        assert len(inside) == b["frames"] and b["psnr"] == pytest.approx(np.mean(inside))
+    assert "blank" in res.output and "PSNR by time" in res.output
 
 
 def test_render_run_matches_eval_render(trained, tmp_path):
@@ -80,4 +99,7 @@ def test_demo_runs_the_whole_pipeline(tmp_path):
     assert (tmp_path / "d" / "run" / "model.pt").exists()
     strip = read_image(tmp_path / "d" / "strip.png")
     assert strip.shape[:2] == (40, 40 * 6)
-    assert "PSNR" in res.output
+    truth = read_image(tmp_path / "d" / "strip_truth.png")
+    assert truth.shape == strip.shape
+    assert truth[..., :3].min() < 0.5  # objects drawn over the white background
+    assert "PSNR" in res.output and "blank" in res.output and "strip_truth.png" in res.output

@@ -27,7 +27,7 @@ from torch_blocker import blocked_torch_env  # noqa: E402
 
 OUTPUTS = ("means", "scales", "quats", "opacities", "sh")
 SETS = ["lod.levels=3", "lod.iterations=12", "coarse.iterations=12", "fine.iterations=12",
-        "densify.start=4", "densify.interval=4", "train.sh_degree_interval=10",
+        "densify.interval=4", "train.sh_degree_interval=10",
         "train.checkpoint_interval=1000", "lod.opacity_threshold=0.02"]
 
 

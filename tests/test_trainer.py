@@ -132,7 +132,7 @@ def test_random_background_recomposites_the_target_exactly(tmp_path, tiny_scene,
     got = recomposite(torch.from_numpy(white.image), alpha, (1, 1, 1), (0, 0, 0))
     assert torch.allclose(got, torch.from_numpy(black.image), atol=1e-6)
     # the trainer draws a new colour each step (and the same one for the same step on resume)
-    tr = _run(tmp_path, "rb", tiny_scene)
+    tr = _run(tmp_path, "rb", tiny_scene, **{"data.random_background": "true"})
     seen = []
     import nehad.trainer as trainer_module
     real = trainer_module.render_torch
@@ -146,3 +146,133 @@ def test_random_background_recomposites_the_target_exactly(tmp_path, tiny_scene,
         tr.train_step(s)
     assert seen[0] != seen[1] and seen[1] == seen[2]
     assert all(0.0 <= v <= 1.0 for c in seen for v in c)
+
+
+# -- the training recipe's schedules (docs/training.md) ---------------------------------------
+
+def test_densify_schedule_scales_with_the_stage_and_never_resets_at_its_end():
+    from nehad.config import fine_stage
+    from nehad.densify import DensifySchedule
+
+    s = DensifySchedule.for_stage(fine_stage(12000), 12000, 100)
+    assert (s.start, s.stop, s.reset_every) == (1200, 9600, 1800)
+    assert [it for it in range(1, 12001) if s.resets(it)] == [1800, 3600, 5400, 7200, 9000]
+    # the same fractions keep their meaning in a 20x longer stage
+    long = DensifySchedule.for_stage(fine_stage(240000), 240000, 100)
+    assert (long.start, long.stop, long.reset_every) == (24000, 192000, 36000)
+    # whatever the length, no reset on the last step or outside the densification window
+    for length in (10, 99, 300, 2000, 3000, 6000, 20000, 30000):
+        for stage in (fine_stage(length), fine_stage(length, densify_until=1.0)):
+            s = DensifySchedule.for_stage(stage, length, 100)
+            resets = [it for it in range(1, length + 1) if s.resets(it)]
+            assert length not in resets and all(it < s.stop for it in resets)
+            assert all(s.start <= it < s.stop for it in range(1, length + 1) if s.densifies(it))
+
+
+def test_time_window_grows_from_the_canonical_time_to_the_whole_range():
+    from nehad.config import coarse_stage, fine_stage
+    from nehad.curriculum import eligible_frames, window_at
+
+    fine = fine_stage(1000)
+    w0 = window_at(fine, 0, 1000, 0.5, (0.0, 1.0))
+    assert (w0.lo, w0.hi) == pytest.approx((0.44, 0.56))
+    mid = window_at(fine, 250, 1000, 0.5, (0.0, 1.0))
+    assert (mid.lo, mid.hi) == pytest.approx((0.22, 0.78))
+    for it in (500, 700, 999):
+        w = window_at(fine, it, 1000, 0.5, (0.0, 1.0))
+        assert (w.lo, w.hi) == (0.0, 1.0)
+    # the coarse stage's window stays put; an off-centre canonical time is clipped to the range
+    c = window_at(coarse_stage(100), 99, 100, 0.02, (0.0, 1.0))
+    assert (c.lo, c.hi) == pytest.approx((0.0, 0.08))
+    times = np.linspace(0, 1, 11)
+    assert list(eligible_frames(times, w0)) == [5]
+    # a window between two frames still yields the nearest one
+    from nehad.curriculum import TimeWindow
+
+    assert list(eligible_frames(times, TimeWindow(0.33, 0.34))) == [3]
+
+
+def test_time_planes_outside_the_window_are_held_at_its_edges(tmp_path, tiny_scene):
+    from nehad.curriculum import TimeWindow, hold_time_planes, time_plane_rows
+    from nehad.field.hexplane import TIME_PLANES
+
+    tr = _run(tmp_path, "hold", tiny_scene, **{"field.resolution": "[8,8,8,11]"})
+    hp = tr.model.field.hexplane
+    with torch.no_grad():
+        for p in hp.parameters():
+            p.normal_()
+    before = [p.detach().clone() for p in hp.parameters()]
+    window = TimeWindow(0.35, 0.62)
+    first, last = time_plane_rows(window, 11)
+    assert (first, last) == (3, 7)  # nodes at k / 10: 0.3 .. 0.7 bracket the window
+    hold_time_planes(hp, window)
+    for scale, old_scale in zip(hp.planes, _chunks(before, len(hp.planes))):
+        for k, (plane, old) in enumerate(zip(scale, old_scale)):
+            if k not in TIME_PLANES:
+                assert torch.equal(plane, old)
+                continue
+            assert torch.equal(plane[:, :, first:last + 1], old[:, :, first:last + 1])
+            assert torch.equal(plane[:, :, :first], old[:, :, first:first + 1].expand_as(
+                plane[:, :, :first]))
+            assert torch.equal(plane[:, :, last + 1:], old[:, :, last:last + 1].expand_as(
+                plane[:, :, last + 1:]))
+
+
+def _chunks(items, n):
+    size = len(items) // n
+    return [items[i * size:(i + 1) * size] for i in range(n)]
+
+
+def test_trunk_standardisation_gives_every_gaussian_its_own_h(tmp_path, tiny_scene):
+    tr = _run(tmp_path, "std", tiny_scene)
+    for s in range(tr.cfg.coarse.iterations + 1):  # through the first fine step
+        tr.train_step(s)
+    g = tr.model.gaussians
+    field = tr.model.field
+    fresh = type(field)(field.cfg, field.aabb, float(field.extent))
+    with torch.no_grad():
+        fresh.hexplane.load_state_dict(field.hexplane.state_dict())
+        t_col = torch.full((len(g), 1), tr.cfg.train.canonical_time)
+        from nehad.field.hexplane import normalize_aabb
+
+        f = fresh.hexplane(normalize_aabb(g.means, fresh.aabb), 2 * t_col - 1)
+        h_default = fresh.trunk(f)
+        fresh.standardize_trunk(g.means, tr.cfg.train.canonical_time)
+        h = fresh.trunk(f)
+    # default initialisation: h is mostly the trunk's bias, nearly the same for every Gaussian
+    assert float((h_default.std(0) / h_default.abs().mean(0)).median()) < 0.5
+    assert torch.allclose(h.mean(0), torch.zeros(h.shape[1]), atol=1e-4)
+    assert torch.allclose(h.std(0), torch.ones(h.shape[1]), atol=1e-3)
+
+
+def test_resolution_schedule_and_logged_psnr(tmp_path, tiny_scene):
+    import json
+
+    tr = _run(tmp_path, "res", tiny_scene,
+              **{"data.resolution_schedule": "[[0,4],[0.5,2]]", "coarse.iterations": 10,
+                 "fine.iterations": 10, "data.random_background": "true"})
+    tr.train()
+    lines = [json.loads(x) for x in (tmp_path / "res" / "metrics.jsonl").read_text().splitlines()]
+    sizes = {r["step"]: r["resolution"] for r in lines}
+    assert sizes[10] == [6, 6] and sizes[20] == [12, 12]  # 24 px images / 4, then / 2
+    assert all(np.isfinite(r["psnr"]) for r in lines)
+
+
+def test_resume_of_a_missing_run_and_a_broken_dataset_write_nothing(tmp_path, tiny_scene):
+    with pytest.raises(RunError, match="no run to resume"):
+        _run_resume(tmp_path / "nothing", tiny_scene)
+    assert not (tmp_path / "nothing").exists()
+    import shutil
+
+    broken = tmp_path / "broken"
+    shutil.copytree(tiny_scene, broken)
+    (broken / "transforms_train.json").write_text("{not json")
+    from nehad.data.dnerf import DatasetError
+
+    with pytest.raises(DatasetError):
+        _run(tmp_path, "from_broken", broken)
+    assert not (tmp_path / "from_broken").exists()
+
+
+def _run_resume(run, data):
+    return Trainer(build_config("test"), data, run, resume=True, progress=False)

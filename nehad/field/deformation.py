@@ -98,10 +98,10 @@ class DeformationField(nn.Module):
         else:
             if cfg.use_hnn:
                 self.field = HamiltonianDecoder(cfg.width, cfg.hnn_hidden, cfg.hnn_depth,
-                                                cfg.activation, cfg.hnn_grad)
+                                                cfg.activation, cfg.hnn_grad, cfg.hnn_init_gain)
             else:
                 self.field = DirectFieldDecoder(cfg.width, cfg.hnn_hidden, cfg.hnn_depth,
-                                                cfg.activation)
+                                                cfg.activation, cfg.hnn_init_gain)
             self.adapters = Adapters(cfg.width, cfg.deform_opacity_sh, cfg.sh_coeffs)
             self.heads = None
         self.register_buffer("aabb", torch.zeros(2, 3))
@@ -123,6 +123,35 @@ class DeformationField(nn.Module):
             if mode not in ("autograd", "closed_form"):
                 raise ValueError(f"DeformationField.set_grad_mode: unknown mode {mode!r}")
             self.field.grad_mode = mode
+
+    @torch.no_grad()
+    def standardize_trunk(self, means: torch.Tensor, t: float, log_scales=None, quats=None,
+                          target_std: float = 1.0) -> None:
+        """Data-dependent initialisation of the trunk's first Linear (docs/training.md): rescale
+        its rows and set its bias so that, over the given canonical Gaussians at time t, every
+        channel of h has mean 0 and standard deviation `target_std`.
+
+        With the hex-plane's initial features (a product of three planes drawn from U(0.1, 0.5),
+        about 0.03 per channel) the default initialisation gives an h that is mostly the trunk's
+        bias, the same for every Gaussian, so v = grad_h F(h) is too: the first gradient steps
+        then learn one deformation shared by all Gaussians. Standardised, h differs between
+        Gaussians by O(1) from the first step. Only the first Linear changes; it is a change of
+        initial values, not of the model."""
+        first = self.trunk[0]
+        aabb = self.aabb.to(means.dtype)
+        t_col = time_column(t, means.shape[0], means)
+        sigma = None
+        if self.cfg.mipmap and log_scales is not None and quats is not None:
+            from nehad.field.mipmap import world_axis_sigma
+
+            sigma = world_axis_sigma(log_scales, quats, self.cfg.norm_eps) * (
+                2.0 / (aabb[1] - aabb[0]))
+        f = self.hexplane(normalize_aabb(means, aabb), 2.0 * t_col - 1.0, sigma)
+        raw = f @ first.weight.t()
+        mean, std = raw.mean(0), raw.std(0).clamp_min(1e-8)
+        gain = target_std / std
+        first.weight.mul_(gain[:, None])
+        first.bias.copy_(-mean * gain)
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         """{"grid": hex-plane planes, "decoder": trunk, F1/F2 (or heads) and adapters}; the

@@ -54,7 +54,8 @@ def _activation(z: torch.Tensor, name: str) -> torch.Tensor:
 class ScalarNet(nn.Module):
     """F: R^W -> R, `depth` x [Linear, activation] then Linear(hidden, 1, no bias); -> (N,)."""
 
-    def __init__(self, in_dim: int, hidden: int = 64, depth: int = 2, activation: str = "tanh"):
+    def __init__(self, in_dim: int, hidden: int = 64, depth: int = 2, activation: str = "tanh",
+                 init_gain: float = 1.0):
         super().__init__()
         if activation not in SMOOTH_ACTIVATIONS:
             raise ValueError(f"ScalarNet.activation {activation!r}: must be one of "
@@ -64,6 +65,13 @@ class ScalarNet(nn.Module):
         self.activation = activation
         dims = [in_dim] + [hidden] * depth
         self.hidden_layers = nn.ModuleList(nn.Linear(i, o) for i, o in zip(dims[:-1], dims[1:]))
+        if init_gain != 1.0:
+            # Larger initial weights put the activations in their curved range, so grad_h F
+            # differs between inputs from the start (FieldConfig.hnn_init_gain).
+            with torch.no_grad():
+                for lin in self.hidden_layers:
+                    lin.weight.mul_(init_gain)
+                    lin.bias.mul_(init_gain)
         # No output bias: only grad_h F is used, and a constant would get no gradient.
         self.out = nn.Linear(hidden, 1, bias=False)
 
@@ -115,12 +123,12 @@ class HamiltonianDecoder(nn.Module):
     """
 
     def __init__(self, width: int = 64, hidden: int = 64, depth: int = 2,
-                 activation: str = "tanh", grad_mode: str = "autograd"):
+                 activation: str = "tanh", grad_mode: str = "autograd", init_gain: float = 1.0):
         super().__init__()
         if width % 2:
             raise ValueError(f"HamiltonianDecoder.width {width}: must be even")
-        self.f1 = ScalarNet(width, hidden, depth, activation)
-        self.f2 = ScalarNet(width, hidden, depth, activation)
+        self.f1 = ScalarNet(width, hidden, depth, activation, init_gain)
+        self.f2 = ScalarNet(width, hidden, depth, activation, init_gain)
         self.grad_mode = grad_mode
 
     def input_gradients(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -153,13 +161,19 @@ class DirectFieldDecoder(nn.Module):
     not curl-free and v_s not divergence-free); v = v_c + v_s."""
 
     def __init__(self, width: int = 64, hidden: int = 64, depth: int = 2,
-                 activation: str = "tanh"):
+                 activation: str = "tanh", init_gain: float = 1.0):
         super().__init__()
         if activation not in SMOOTH_ACTIVATIONS:
             raise ValueError(f"DirectFieldDecoder.activation {activation!r}")
         self.activation = activation
         self.g1 = self._mlp(width, hidden, depth)
         self.g2 = self._mlp(width, hidden, depth)
+        if init_gain != 1.0:  # the same initial scale as F1, F2's hidden layers
+            with torch.no_grad():
+                for layers in (self.g1, self.g2):
+                    for lin in layers[:-1]:
+                        lin.weight.mul_(init_gain)
+                        lin.bias.mul_(init_gain)
 
     @staticmethod
     def _mlp(width: int, hidden: int, depth: int) -> nn.ModuleList:

@@ -1,0 +1,107 @@
+"""What each training step may look at: the time curriculum and the resolution warm-up
+(docs/training.md, "The recipe").
+
+Time curriculum. The MuJoCo objects move by many times their own size, and a Gaussian that is
+more than its own width away from the object it should follow gets no gradient from it. So the
+coarse stage fits static Gaussians only to the frames near `train.canonical_time` (a window
+short enough that the objects barely move in it, long enough to hold every camera of a
+monocular rig), and the fine stage starts from that window and widens it step by step to the
+whole time range: every newly admitted time is close to one the field already places correctly,
+so the objects are followed instead of lost.
+
+While the window is narrower than the time range, the space-time hex-plane rows outside it are
+held at the values of the window's edge rows (`hold_time_planes`); a time entering the window
+then starts from the deformation of the nearest trained time.
+
+Resolution warm-up. `data.resolution_schedule` lists (fraction of all steps, extra downscale
+factor) pairs; early steps render 1/4 or 1/16 of the pixels.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+
+@dataclass(frozen=True)
+class TimeWindow:
+    """The closed interval of times [lo, hi] a step may draw frames from."""
+
+    lo: float
+    hi: float
+
+    def contains(self, t: float) -> bool:
+        return self.lo - 1e-9 <= t <= self.hi + 1e-9
+
+
+def window_at(stage, it: int, length: int, centre: float, time_range) -> TimeWindow:
+    """The time window of iteration `it` (0-based) of a stage of `length` iterations
+    (StageConfig fields `time_window`, `window_growth`; nehad.config), centred on `centre`.
+
+    The half-width starts at `time_window` and grows linearly to the half-width that covers
+    `time_range` when `window_growth` of the stage is done; a window of 1 covers every time."""
+    t0, t1 = float(time_range[0]), float(time_range[1])
+    full = max(centre - t0, t1 - centre, 0.0)
+    half = min(float(stage.time_window), full) if stage.time_window < 1.0 else full
+    if stage.window_growth > 0 and half < full:
+        grow_steps = stage.window_growth * max(length, 1)
+        half += (full - half) * min(it / grow_steps, 1.0)
+    elif stage.window_growth > 0:
+        half = full
+    if half >= full:
+        return TimeWindow(t0, t1)
+    return TimeWindow(max(centre - half, t0), min(centre + half, t1))
+
+
+def eligible_frames(times, window: TimeWindow, minimum: int = 1) -> np.ndarray:
+    """Indices of the frames whose time lies in `window`; if fewer than `minimum` do, the
+    `minimum` frames nearest to the window's centre."""
+    times = np.asarray(times, np.float64)
+    inside = np.flatnonzero((times >= window.lo - 1e-9) & (times <= window.hi + 1e-9))
+    if len(inside) >= minimum or len(times) == 0:
+        return inside
+    centre = 0.5 * (window.lo + window.hi)
+    return np.sort(np.argsort(np.abs(times - centre), kind="stable")[:min(minimum, len(times))])
+
+
+def time_plane_rows(window: TimeWindow, rows: int) -> tuple[int, int]:
+    """(first, last) rows of a space-time plane with `rows` time nodes (node k at time
+    k / (rows - 1), align_corners) that a time in `window` interpolates from."""
+    scale = rows - 1
+    first = int(math.floor(window.lo * scale + 1e-6))
+    last = int(math.ceil(window.hi * scale - 1e-6))
+    return max(first, 0), min(max(last, first), rows - 1)
+
+
+@torch.no_grad()
+def hold_time_planes(hexplane, window: TimeWindow) -> None:
+    """Set the rows of every space-time plane outside `window` to its edge rows (see the
+    module doc). Planes are (1, C, T, S): the height axis is time."""
+    from nehad.field.hexplane import TIME_PLANES
+
+    for scale in hexplane.planes:
+        for k in TIME_PLANES:
+            plane = scale[k]
+            rows = plane.shape[2]
+            first, last = time_plane_rows(window, rows)
+            if first > 0:
+                plane[:, :, :first, :] = plane[:, :, first:first + 1, :]
+            if last < rows - 1:
+                plane[:, :, last + 1:, :] = plane[:, :, last:last + 1, :]
+
+
+def resolution_factor(schedule, step: int, total: int) -> int:
+    """Extra downscale factor of (0-based) `step` of `total` (data.resolution_schedule)."""
+    factor = 1
+    frac = step / max(total, 1)
+    for start, f in schedule:
+        if frac >= start:
+            factor = int(f)
+    return factor
+
+
+__all__ = ["TimeWindow", "window_at", "eligible_frames", "time_plane_rows", "hold_time_planes",
+           "resolution_factor"]
