@@ -9,14 +9,13 @@ machine" of issue 13). Settings compared:
 
   library     nothing set: torch's and numba's OpenMP defaults (one thread per core, spinning
               workers);
-  nehad       what the `nehad` command sets when the user has not (see nehad/cli/threads.py and
-              docs/training.md#threads);
-  workqueue   nehad's setting plus NUMBA_THREADING_LAYER=workqueue (numba's own thread pool
-              instead of OpenMP);
+  nehad       what the `nehad` command chooses when the user has not (threads = idle cores at
+              start; nehad/cli/threads.py, docs/training.md#threads);
+  passive     OMP_WAIT_POLICY=PASSIVE (idle workers sleep at once), threads left at one per core;
   one-thread  OMP_NUM_THREADS=1 NUMBA_NUM_THREADS=1, the workaround the issue measured.
 
-The `library` row runs with every variable that nehad sets removed from the environment, so it
-measures the libraries as a plain `python -c` user would get them. It prints wall time, CPU
+Every row starts from an environment without the thread variables, so `library` measures the
+libraries as a plain `python -c` user gets them. It prints wall time, CPU
 time (user + system of the child) and the ratio to the `nehad` setting. Run it on an otherwise
 quiet machine; it prints the load average it started under.
 """
@@ -37,6 +36,9 @@ sys.path.insert(0, str(ROOT.parent))
 
 CHILD = """
 import sys
+if sys.argv[5] == "1":
+    from nehad.cli.threads import apply_thread_defaults
+    apply_thread_defaults()
 from pathlib import Path
 from nehad.config import build_config
 from nehad.data.synth import synthesize_scene
@@ -50,20 +52,25 @@ Trainer(cfg, data, run, progress=False, log=lambda *a: None).train()
 """
 
 
-def settings() -> dict[str, dict[str, str | None]]:
-    from nehad.cli.threads import DEFAULTS
+NEHAD = "__nehad__"  # marker: the child applies the command's own choice
 
-    removed = {k: None for k in DEFAULTS}
-    removed.update({"OMP_NUM_THREADS": None, "NUMBA_NUM_THREADS": None})
+
+def settings() -> dict[str, dict[str, str | None]]:
+    from nehad.cli.threads import VARIABLES
+
+    removed = {k: None for k in (*VARIABLES, "OMP_WAIT_POLICY", "NUMBA_THREADING_LAYER")}
     return {"library": removed,
-            "nehad": dict(DEFAULTS),
-            "workqueue": {**DEFAULTS, "NUMBA_THREADING_LAYER": "workqueue"},
+            "nehad": {**removed, NEHAD: "1"},
+            "passive": {**removed, "OMP_WAIT_POLICY": "PASSIVE"},
             "one-thread": {**removed, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}}
 
 
 def run_child(env_changes: dict, data: Path, steps: int, res: int) -> tuple[float, float]:
     env = dict(os.environ)
+    nehad = env_changes.get(NEHAD, "0")
     for k, v in env_changes.items():
+        if k == NEHAD:
+            continue
         if v is None:
             env.pop(k, None)
         else:
@@ -72,7 +79,7 @@ def run_child(env_changes: dict, data: Path, steps: int, res: int) -> tuple[floa
         before = resource.getrusage(resource.RUSAGE_CHILDREN)
         t0 = time.perf_counter()
         subprocess.run([sys.executable, "-c", CHILD, str(data), str(Path(tmp) / "run"),
-                        str(steps), str(res)], env=env, check=True)
+                        str(steps), str(res), nehad], env=env, check=True)
         wall = time.perf_counter() - t0
         after = resource.getrusage(resource.RUSAGE_CHILDREN)
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
@@ -85,17 +92,25 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=400)
     ap.add_argument("--resolution", type=int, default=64)
     ap.add_argument("--only", default="", help="comma-separated subset of the settings")
+    ap.add_argument("--variant", action="append", default=[], metavar="NAME:K=V,K=V",
+                    help="another setting to compare (variables over the library defaults; K= removes K), "
+                         "repeatable")
     a = ap.parse_args()
     print(f"cores {os.cpu_count()}, load average at start {os.getloadavg()[0]:.2f}, "
           f"{a.steps} steps at {a.resolution}px")
     chosen = settings()
+    chosen_base = dict(chosen["library"])
     if a.only:
         chosen = {k: v for k, v in chosen.items() if k in a.only.split(",")}
+    for spec in a.variant:
+        name, _, assigns = spec.partition(":")
+        pairs = dict(kv.split("=", 1) for kv in assigns.split(","))
+        chosen[name] = {**chosen_base, **{k: (v or None) for k, v in pairs.items()}}
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         data = Path(tmp) / "scene"
         run_child({}, data, 8, a.resolution)  # synthesise once, warm the numba cache
-        for load in (0, a.busy):
+        for load in sorted({0, a.busy}):
             spinners = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
                         for _ in range(load)]
             try:

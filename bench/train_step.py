@@ -58,7 +58,8 @@ def build(scene: Path, downscale: int, n: int, extra: list[str], run: Path):
     base = [f"data.downscale={downscale}", "coarse.iterations=1", "fine.iterations=100000",
             f"train.init_max_points={n}", "densify.max_gaussians=0"]
     # no densification: this checkout's keys, or an older one's
-    for no_densify in (["fine.densify_from=1.0", "coarse.densify_until=0.0"],
+    for no_densify in (["fine.densify_from=1.0", "fine.densify_until=1.0",
+                        "coarse.densify_until=0.0"],
                        ["densify.start=1000000"]):
         try:
             cfg = build_config("cpu", None, base + no_densify + extra)

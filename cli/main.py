@@ -20,10 +20,7 @@ from nehad import __version__
 
 from .errors import InputError, user_errors
 from .params import BACKGROUND, SIZE
-from .threads import apply_thread_defaults
-
-# Before any command imports torch or numba: their OpenMP runtimes read this once, at load.
-apply_thread_defaults()
+from .threads import apply_thread_defaults, usable_cores
 
 # Formats `-o` can write (OpenImageIO picks the writer from the extension).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff")
@@ -662,5 +659,19 @@ main.add_command(_video_command)
 main.add_command(_batch_command)
 
 
+def entry(prog_name: str | None = None) -> None:
+    """The `nehad` executable: thread counts for the load the machine has now (they must be in
+    the environment before torch or numba load; see nehad/cli/threads.py), then the commands.
+    Tests call :func:`main` directly and keep their own environment."""
+    args = sys.argv[1:]
+    if args and not set(args) & {"-h", "--help", "-V", "--version"}:
+        threads = int(apply_thread_defaults().get("OMP_NUM_THREADS", 0))
+        if 0 < threads < usable_cores():
+            click.echo(f"note: {threads} of {usable_cores()} cores idle, using {threads} "
+                       f"thread{'s' if threads > 1 else ''} (set OMP_NUM_THREADS and "
+                       f"NUMBA_NUM_THREADS to choose)", err=True)
+    main(prog_name=prog_name)
+
+
 if __name__ == "__main__":  # python -m nehad.cli.main
-    main(prog_name="nehad")
+    entry(prog_name="nehad")
