@@ -20,7 +20,7 @@ from nehad import __version__
 
 from .errors import InputError, user_errors
 from .params import BACKGROUND, SIZE
-from .threads import apply_thread_defaults, usable_cores
+from .threads import apply_thread_defaults
 
 # Formats `-o` can write (OpenImageIO picks the writer from the extension).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff")
@@ -665,11 +665,8 @@ def entry(prog_name: str | None = None) -> None:
     Tests call :func:`main` directly and keep their own environment."""
     args = sys.argv[1:]
     if args and not set(args) & {"-h", "--help", "-V", "--version"}:
-        threads = int(apply_thread_defaults().get("OMP_NUM_THREADS", 0))
-        if 0 < threads < usable_cores():
-            click.echo(f"note: {threads} of {usable_cores()} cores idle, using {threads} "
-                       f"thread{'s' if threads > 1 else ''} (set OMP_NUM_THREADS and "
-                       f"NUMBA_NUM_THREADS to choose)", err=True)
+        # silent: a bad input must still end in exactly one `Error:` line
+        apply_thread_defaults()
     main(prog_name=prog_name)
 
 
