@@ -421,6 +421,15 @@ main(sys.argv[3:], prog_name="nehad")
 """
 
 
+def _wait_for_flag(proc, flag, timeout: float = 300.0) -> None:
+    """Wait until `proc` creates `flag`; fail (with its stderr) if it exits or times out first."""
+    deadline = time.time() + timeout
+    while not flag.exists():
+        assert proc.poll() is None, proc.stderr.read()
+        assert time.time() < deadline
+        time.sleep(0.1)
+
+
 def _kill_while_writing(tmp_path, suffix: str, args) -> None:
     """Run the CLI with `args` in a process that stops just before renaming its `suffix` temp
     file into place, and SIGKILL it there (the moment a kill leaves a temp file behind)."""
@@ -429,11 +438,7 @@ def _kill_while_writing(tmp_path, suffix: str, args) -> None:
                              *map(str, args)], env=ENV, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
     try:
-        deadline = time.time() + 300
-        while not flag.exists():
-            assert proc.poll() is None, proc.stderr.read()
-            assert time.time() < deadline
-            time.sleep(0.1)
+        _wait_for_flag(proc, flag)
         proc.send_signal(signal.SIGKILL)
         proc.wait(30)
     finally:
@@ -523,11 +528,7 @@ def test_second_video_with_the_same_output_refuses(model, tmp_path):
                               *map(str, args)], env=ENV, stdout=subprocess.DEVNULL,
                              stderr=subprocess.PIPE, text=True)
     try:
-        deadline = time.time() + 300
-        while not flag.exists():
-            assert first.poll() is None, first.stderr.read()
-            assert time.time() < deadline
-            time.sleep(0.1)
+        _wait_for_flag(first, flag)
         frames = tmp_path / "orbit.mp4.frames"
         held = _listing(frames)
         assert "frame_00000.png" in held
