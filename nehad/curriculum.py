@@ -13,8 +13,13 @@ While the window is narrower than the time range, the space-time hex-plane rows 
 held at the values of the window's edge rows (`hold_time_planes`); a time entering the window
 then starts from the deformation of the nearest trained time.
 
+A monocular capture has one camera per time, so the window is widened until it holds at least
+`min_window_frames` frames (`widen_to_frames`): a short window must still show the static
+stage enough viewpoints.
+
 Resolution warm-up. `data.resolution_schedule` lists (fraction of all steps, extra downscale
-factor) pairs; early steps render 1/4 or 1/16 of the pixels.
+factor) pairs; early steps render 1/4 or 1/16 of the pixels, but never fewer than
+`data.warmup_min_size` pixels along the shorter side.
 """
 
 from __future__ import annotations
@@ -67,6 +72,19 @@ def eligible_frames(times, window: TimeWindow, minimum: int = 1) -> np.ndarray:
     return np.sort(np.argsort(np.abs(times - centre), kind="stable")[:min(minimum, len(times))])
 
 
+def widen_to_frames(window: TimeWindow, times, minimum: int) -> TimeWindow:
+    """`window`, widened if needed so that it holds at least `minimum` frames (the ones nearest
+    to its centre). A monocular capture has one camera per time, so a window that is short in
+    time can hold too few viewpoints to fit a static scene: the MuJoCo captures hold 12-15
+    frames within 0.06 of t = 0.5, the D-NeRF lego scene 6 (docs/training.md)."""
+    times = np.asarray(times, np.float64)
+    if minimum <= 0 or len(times) == 0:
+        return window
+    nearest = eligible_frames(times, window, minimum=min(minimum, len(times)))
+    lo, hi = float(times[nearest].min()), float(times[nearest].max())
+    return TimeWindow(min(window.lo, lo), max(window.hi, hi))
+
+
 def time_plane_rows(window: TimeWindow, rows: int) -> tuple[int, int]:
     """(first, last) rows of a space-time plane with `rows` time nodes (node k at time
     k / (rows - 1), align_corners) that a time in `window` interpolates from."""
@@ -93,15 +111,20 @@ def hold_time_planes(hexplane, window: TimeWindow) -> None:
                 plane[:, :, last + 1:, :] = plane[:, :, last:last + 1, :]
 
 
-def resolution_factor(schedule, step: int, total: int) -> int:
-    """Extra downscale factor of (0-based) `step` of `total` (data.resolution_schedule)."""
+def resolution_factor(schedule, step: int, total: int, short_side: int | None = None,
+                      min_size: int = 0) -> int:
+    """Extra downscale factor of (0-based) `step` of `total` (data.resolution_schedule), reduced
+    if needed so that an image whose shorter side is `short_side` pixels keeps at least
+    `min_size` of them (data.warmup_min_size): a 100-pixel capture is not trained at 25."""
     factor = 1
     frac = step / max(total, 1)
     for start, f in schedule:
         if frac >= start:
             factor = int(f)
+    if short_side is not None and min_size > 0:
+        factor = max(1, min(factor, short_side // min_size))
     return factor
 
 
-__all__ = ["TimeWindow", "window_at", "eligible_frames", "time_plane_rows", "hold_time_planes",
+__all__ = ["TimeWindow", "window_at", "eligible_frames", "widen_to_frames", "time_plane_rows", "hold_time_planes",
            "resolution_factor"]

@@ -116,9 +116,7 @@ class LodTrainer(Trainer):
         train at their layer's resolution throughout."""
         if self.layer_of(step) > 0:
             return 1
-        from nehad.curriculum import resolution_factor
-
-        return resolution_factor(self.cfg.data.resolution_schedule, step, self.base_steps)
+        return self.warmup_factor(step, self.base_steps)
 
     def views_of(self, layer: int):
         """Training views of `layer` at its resolution (loaded once)."""

@@ -26,7 +26,7 @@ from nehad.configtools import ConfigError, diff, dump_yaml, to_dict
 from nehad.data.dnerf import DNeRFScene
 from nehad.data.loader import load_dataset
 from nehad.curriculum import (TimeWindow, eligible_frames, hold_time_planes, resolution_factor,
-                              window_at)
+                              widen_to_frames, window_at)
 from nehad.densify import DensifySchedule, DensifyStrategy
 from nehad.field.deformation import DeformationField
 from nehad.gaussians import GaussianParameters
@@ -284,12 +284,21 @@ class Trainer:
 
     def time_window(self, stage: str, it: int, length: int) -> TimeWindow:
         """The times step `it` of `stage` may draw frames from (nehad.curriculum)."""
-        return window_at(self.stage_config(stage), it, length, self.cfg.train.canonical_time,
-                         self.scene.time_range)
+        config = self.stage_config(stage)
+        window = window_at(config, it, length, self.cfg.train.canonical_time,
+                           self.scene.time_range)
+        return widen_to_frames(window, self.train_views.times, config.min_window_frames)
 
     def resolution_factor(self, step: int) -> int:
         """Extra downscale factor of `step` (data.resolution_schedule over all steps)."""
-        return resolution_factor(self.cfg.data.resolution_schedule, step, self.total_steps)
+        return self.warmup_factor(step, self.total_steps)
+
+    def warmup_factor(self, step: int, total: int) -> int:
+        """data.resolution_schedule at `step` of `total`, limited by data.warmup_min_size."""
+        image = self.train_views.images[0] if self.train_views.images else None
+        short_side = None if image is None else min(image.shape[0], image.shape[1])
+        return resolution_factor(self.cfg.data.resolution_schedule, step, total, short_side,
+                                 self.cfg.data.warmup_min_size)
 
     def views_at(self, step: int) -> Views:
         """The training views of `step` at its resolution (data.resolution_schedule)."""

@@ -187,9 +187,20 @@ def test_time_window_grows_from_the_canonical_time_to_the_whole_range():
     times = np.linspace(0, 1, 11)
     assert list(eligible_frames(times, w0)) == [5]
     # a window between two frames still yields the nearest one
-    from nehad.curriculum import TimeWindow
+    from nehad.curriculum import TimeWindow, resolution_factor, widen_to_frames
 
     assert list(eligible_frames(times, TimeWindow(0.33, 0.34))) == [3]
+    # a window holding too few frames widens to the nearest ones, a wide one stays
+    w = widen_to_frames(w0, times, 3)
+    assert (w.lo, w.hi) == pytest.approx((0.4, 0.6))
+    assert widen_to_frames(TimeWindow(0.0, 1.0), times, 3) == TimeWindow(0.0, 1.0)
+    assert widen_to_frames(w0, times, 0) == w0
+    # the warm-up factor never takes the shorter side below the minimum size
+    schedule = ((0.0, 4), (0.5, 2))
+    assert [resolution_factor(schedule, s, 10) for s in (0, 5)] == [4, 2]
+    assert [resolution_factor(schedule, s, 10, 400, 100) for s in (0, 5)] == [4, 2]
+    assert [resolution_factor(schedule, s, 10, 200, 100) for s in (0, 5)] == [2, 2]
+    assert [resolution_factor(schedule, s, 10, 100, 100) for s in (0, 5)] == [1, 1]
 
 
 def test_time_planes_outside_the_window_are_held_at_its_edges(tmp_path, tiny_scene):
@@ -250,7 +261,8 @@ def test_resolution_schedule_and_logged_psnr(tmp_path, tiny_scene):
 
     tr = _run(tmp_path, "res", tiny_scene,
               **{"data.resolution_schedule": "[[0,4],[0.5,2]]", "coarse.iterations": 10,
-                 "fine.iterations": 10, "data.random_background": "true"})
+                 "fine.iterations": 10, "data.random_background": "true",
+                 "data.warmup_min_size": 0})
     tr.train()
     lines = [json.loads(x) for x in (tmp_path / "res" / "metrics.jsonl").read_text().splitlines()]
     sizes = {r["step"]: r["resolution"] for r in lines}
