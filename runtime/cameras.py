@@ -517,6 +517,29 @@ def load_view(path, frame: int | None = None) -> Camera | list[Camera]:
 # writing
 
 
+def frame_image_path(transforms_path, index: int) -> Path:
+    """The image file of frame `index` of a D-NeRF transforms file: ``file_path`` relative to
+    the file's folder, with ``.png`` (then ``.jpg``, ``.jpeg``) appended when it has no image
+    extension, as D-NeRF writes it (docs/design.md, cameras)."""
+    path = Path(transforms_path)
+    try:
+        doc = json.loads(path.read_text())
+        fp = doc["frames"][index].get("file_path")
+    except (OSError, ValueError, KeyError, IndexError, TypeError, AttributeError) as e:
+        raise CameraError(f"{path}: frames[{index}].file_path: cannot be read ({e})") from None
+    if not isinstance(fp, str) or not fp:
+        raise _err(str(path), f"frames[{index}].file_path", "expected a relative image path")
+    base = path.parent / fp
+    if base.suffix in _IMAGE_EXTENSIONS:
+        candidates = [base]
+    else:
+        candidates = [base.with_name(base.name + ext) for ext in (".png", ".jpg", ".jpeg")] + [base]
+    found = next((c for c in candidates if c.is_file()), None)
+    if found is None:
+        raise _err(str(path), f"frames[{index}].file_path", f"image {candidates[0]} not found")
+    return found
+
+
 def camera_to_dict(cam: Camera) -> dict:
     """The canonical cam.json form of `cam` (SPEC 3.1; OpenGL camera-to-world)."""
     c2w = cam.camera_to_world_opengl

@@ -43,7 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cameras import Camera, CameraError, load_view
+from .cameras import Camera, CameraError, frame_image_path, load_view
 
 __all__ = ["PathError", "PathSpec", "TimeSpec", "PlannedFrame", "Reference", "OrbitParams",
            "parse_path_spec", "parse_time_spec", "look_at", "orbit_params_from_cameras",
@@ -413,23 +413,24 @@ def _reference_cameras(value: str, spec: str) -> list[Camera]:
     return cams if isinstance(cams, list) else [cams]
 
 
-def _dataset_frames(spec: PathSpec, background) -> tuple[list[Camera], list[str]]:
-    from nehad.data.dnerf import DatasetError, load_dnerf
-
-    if not (spec.data / f"transforms_{spec.split}.json").is_file():
+def _dataset_frames(spec: PathSpec) -> tuple[list[Camera], list[str]]:
+    """The cameras of a D-NeRF split and the paths of its images (the ground truth)."""
+    transforms = spec.data / f"transforms_{spec.split}.json"
+    if not transforms.is_file():
         raise PathError(f"{spec.text}: {spec.data} has no transforms_{spec.split}.json "
                         f"(a D-NeRF layout folder is expected)")
     try:
-        scene = load_dnerf(spec.data, splits=(spec.split,), background=background or (1, 1, 1))
-    except (DatasetError, CameraError) as e:
+        cams = load_view(transforms)
+        cams = cams if isinstance(cams, list) else [cams]
+        paths = [str(frame_image_path(transforms, k)) for k in range(len(cams))]
+    except CameraError as e:
         raise PathError(f"{spec.text}: {e}") from None
-    frames = scene.frames[spec.split]
-    if not frames:
+    if not cams:
         raise PathError(f"{spec.text}: the split holds no frames")
-    return [f.camera for f in frames], [str(f.path) for f in frames]
+    return cams, paths
 
 
-def _path_cameras(spec: PathSpec, frames: int | None, ref: Reference, background):
+def _path_cameras(spec: PathSpec, frames: int | None, ref: Reference):
     """(cameras, ground-truth paths or None, kind of list) of a path spec; the kind is
     "generated" (already `frames` long), "frozen" (one camera, repeated) or "list"."""
     if spec.kind in ("orbit", "spiral"):
@@ -474,7 +475,7 @@ def _path_cameras(spec: PathSpec, frames: int | None, ref: Reference, background
             raise PathError(f"{spec.text}: the scene has no default camera (give a camera file)")
         return [ref.default_camera], None, "frozen"
     if spec.kind == "dataset":
-        cams, gts = _dataset_frames(spec, background)
+        cams, gts = _dataset_frames(spec)
         return cams, gts, "list"
     try:
         cams = load_view(spec.file)
@@ -497,7 +498,7 @@ def check_time(t: float, ref: Reference, extrapolate: bool, what: str,
 
 def plan_frames(path: PathSpec | str, time: TimeSpec | str | None = None,
                 frames: int | None = None, size: tuple[int, int] | None = None,
-                reference: Reference | None = None, background=None,
+                reference: Reference | None = None,
                 extrapolate: bool = False, labels: dict | None = None) -> list[PlannedFrame]:
     """The frames of a video: cameras from `path`, times from `time` (module doc), resized to
     `size` (W, H; same field of view) when given.
@@ -505,7 +506,7 @@ def plan_frames(path: PathSpec | str, time: TimeSpec | str | None = None,
     `frames`: the frame count of a generated path or a frozen camera (default
     :data:`DEFAULT_FRAMES`); a camera list has its own count (a different `frames` is an error).
     `reference`: the scene's default camera, box and time range (None range: a static scene,
-    every time is None). `background`: the colour a dataset's RGBA ground truth is read over.
+    every time is None).
     `labels` names the inputs in messages (``{"path": "--path", "time": "--time", "frames":
     "--frames"}`` for the CLI; the jobs.yaml keys by default).
     """
@@ -517,7 +518,7 @@ def plan_frames(path: PathSpec | str, time: TimeSpec | str | None = None,
     if frames is not None and int(frames) < 1:
         raise PathError(f"frames {frames}: must be at least 1")
     try:
-        cams, gts, kind = _path_cameras(spec, frames, ref, background)
+        cams, gts, kind = _path_cameras(spec, frames, ref)
     except PathError as e:
         raise PathError(f"{lab['path']} {e}") from None
     if kind == "frozen":

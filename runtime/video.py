@@ -232,7 +232,7 @@ def plan_video(job: VideoJob, threads: int | None = None) -> VideoPlan:
                          f"not {job.path!r}")
     ref, default_bg, n_gaussians = scene_info(model)
     bg = tuple(float(v) for v in (job.background or default_bg))
-    frames = plan_frames(pspec, tspec, job.frames, job.size, ref, bg, job.extrapolate,
+    frames = plan_frames(pspec, tspec, job.frames, job.size, ref, job.extrapolate,
                          {**{k: o(k) for k in ("path", "time", "frames")},
                           "extrapolate": "extrapolate: true" if job.name else "--extrapolate"})
     w, h = frames[0].camera.width, frames[0].camera.height

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import textwrap
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
@@ -110,7 +111,16 @@ def test_cli_runs_every_job_and_reports_failures(model, tmp_path):
     assert lines[-1] == "3 of 5 jobs done, 2 failed"
     info = probe_video(tmp_path / "out" / "orbit.mp4")
     assert (info["frames"], info["fps"], info["width"]) == (6, 12.0, 32)
-    assert read_image(tmp_path / "out" / "still.png").shape == (32, 32, 3)
+    still = read_image(tmp_path / "out" / "still.png")
+    assert still.shape == (32, 32, 3)
+    # the same picture as `nehad render` of the same model, camera, time and size
+    res = CliRunner().invoke(main, ["render", str(onnx), "--view",
+                                    f"{scene}/transforms_test.json:0", "--size", "32x32",
+                                    "-o", str(tmp_path / "ref.png")])
+    assert res.exit_code == 0, res.output
+    reference = read_image(tmp_path / "ref.png")
+    assert reference.std() > 0.01  # not an empty picture
+    np.testing.assert_array_equal(still, reference)
     assert len(list((tmp_path / "out" / "seq").glob("frame_*.png"))) == 3
     assert not (tmp_path / "out" / "broken.mp4").exists()
     # --resume: nothing left to render for the jobs that worked

@@ -63,7 +63,8 @@ def test_spec_example_camera():
     assert (cam.cx, cam.cy) == (400.0, 400.0)  # default W/2, H/2
     assert cam.time is None
     uv, z = cam.project([0.0, 0.0, 0.0])  # the origin is 4 units in front
-    np.testing.assert_allclose(uv[0], [400, 400]) and np.testing.assert_allclose(z, [4.0])
+    np.testing.assert_allclose(uv[0], [400, 400])
+    np.testing.assert_allclose(z, [4.0])
 
 
 @pytest.mark.parametrize("variant", ["w2c_gl", "c2w_cv", "w2c_cv", "c2w_3x4", "w2c_3x4_cv"])

@@ -213,7 +213,17 @@ def test_plan_orbit_from_a_dataset_and_its_split(tmp_path):
     frames = plan_frames(f"orbit:from={data}", None, 6, None, Reference(None, None, (0, 1)))
     assert len(frames) == 6 and frames[0].camera.width == 16
     test = json.loads((data / "transforms_test.json").read_text())["frames"]
-    frames = plan_frames(f"{data}:test", None, None, None, reference(), background=(1, 1, 1))
+    frames = plan_frames(f"{data}:test", None, None, None, reference())
     assert len(frames) == len(test) == 2
     assert [f.time for f in frames] == pytest.approx([fr["time"] for fr in test])
     assert all(f.ground_truth and f.ground_truth.endswith(".png") for f in frames)
+    # the same cameras and images as the training package's dataset reader
+    from nehad.data.dnerf import load_dnerf
+
+    scene = load_dnerf(data, splits=("test",))
+    for planned, frame in zip(frames, scene.frames["test"]):
+        assert planned.ground_truth == str(frame.path)
+        np.testing.assert_allclose(planned.camera.world_to_camera,
+                                   frame.camera.world_to_camera, atol=1e-12)
+        assert (planned.camera.fx, planned.camera.cx) == pytest.approx(
+            (frame.camera.fx, frame.camera.cx))
