@@ -2,7 +2,7 @@
 
 For 10k, 100k and 1M Gaussians with the D-NeRF field (hex-plane 64^3 x 25, multires (1, 2),
 W = 64, HNN decoder with randomised adapters so the deformation is not the identity): export
-with `nehad.export.onnx_export.export_model` (its SPEC 7 parity check against the torch model
+with `nehad.export.onnx_export.export_model` (its docs/design.md section 7 parity check against the torch model
 included, at t = 0 and 1), then time, back to back at each thread count of --threads:
   torch:       NeHaDModel.gaussians_at(t) under torch.no_grad (the HNN gradient by autograd,
                create_graph=False), torch.set_num_threads(threads)

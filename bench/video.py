@@ -1,4 +1,4 @@
-"""Frames per second of a video render in three modes (issue 5; SPEC section 10): one process,
+"""Frames per second of a video render in three modes (issue 5; docs/design.md section 10): one process,
 a local pool, and Dask distributed with local workers; and the overhead per frame of the pool
 and Dask paths.
 

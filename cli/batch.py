@@ -1,5 +1,5 @@
-"""`nehad batch JOBS.yaml` (issue 5; SPEC section 10): a thin wrapper around
-:mod:`nehad.runtime.batch`; the file's format is described there and in README.md."""
+"""`nehad batch JOBS.yaml`: a thin wrapper around :mod:`nehad.runtime.batch`; the file's format
+is described there and in docs/video.md."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 
 from .errors import user_errors
+from .scenes import SCENE_OPENERS
 from .video import make_cli_backend
 
 
@@ -34,7 +35,7 @@ def batch(jobs_file, workers, scheduler, threads, resume, check, quiet):
 
     A failing job is reported and the others still run; the summary table lists every job and
     the exit status is 1 when one failed. A mistake in the file (unknown key, bad value) is
-    reported with the job and the key before anything runs. See README.md for every key.
+    reported with the job and the key before anything runs. See docs/video.md for every key.
     """
     from nehad.runtime.batch import format_summary, load_batch, run_batch
 
@@ -59,7 +60,7 @@ def batch(jobs_file, workers, scheduler, threads, resume, check, quiet):
         with user_errors():
             with make_cli_backend(workers, scheduler, threads) as backend:
                 results = run_batch(spec, backend, resume=resume, progress=not quiet,
-                                    on_job=report)
+                                    on_job=report, openers=SCENE_OPENERS)
     except KeyboardInterrupt:
         click.echo("interrupted: run the same command with --resume to render only what is "
                    "missing", err=True)

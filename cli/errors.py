@@ -1,11 +1,13 @@
 """How the CLI reports a bad input: one line on stderr, a non-zero exit, no traceback.
 
-The library raises its own error classes for bad inputs (:class:`CameraError`, :class:`PlyError`,
-:class:`ImageError`, :class:`DatasetError`, ...), each with a message that names the file and the
-field. :func:`user_errors` turns exactly those into :class:`click.ClickException` (``Error: ...``,
-exit code 1), and so is an :class:`OSError` that names a file (permission denied, disk full).
+The runtime raises :class:`nehad.runtime.errors.InputProblem` (and its subclasses) for bad
+inputs, with messages that name inputs as ``{time}``, ``{lod}``, ...: they are shown here as the
+options (:data:`OPTION_NAMES`). The training package has its own (:class:`DatasetError`,
+:class:`ConfigError`, ...). :func:`user_errors` turns exactly those into
+:class:`click.ClickException` (``Error: ...``, exit code 1), and so is an :class:`OSError` that
+names a file (permission denied, disk full).
 An :class:`ImportError` of a package of the training extra (torch, onnx) is a runtime-only install
-(SPEC section 2), not a bug: one line names the command, the missing package and the extra to
+(docs/design.md section 2), not a bug: one line names the command, the missing package and the extra to
 install. Any other exception is a bug and keeps its traceback.
 
 Nothing here imports the library at import time (``nehad --help`` stays fast, and a module that
@@ -23,27 +25,27 @@ import click
 # (module, class) pairs whose exceptions are a user's bad input, not a bug. Other engineers add
 # theirs here (ONNX model errors, training config errors, ...).
 USER_ERROR_CLASSES = (
-    ("nehad.runtime.cameras", "CameraError"),
-    ("nehad.runtime.ply", "PlyError"),
-    ("nehad.runtime.images", "ImageError"),
+    ("nehad.runtime.errors", "InputProblem"),  # every runtime input error (runtime/errors.py)
     ("nehad.data.dnerf", "DatasetError"),
     ("nehad.cli.errors", "InputError"),
     ("nehad.configtools", "ConfigError"),
     ("nehad.trainer", "RunError"),
     ("nehad.metrics.lpips", "LpipsWeightsMissing"),
-    ("nehad.runtime.onnx_model", "OnnxModelError"),
     ("nehad.export.onnx_export", "ExportError"),
     ("nehad.viz", "VizError"),
-    ("nehad.runtime.splat", "SplatError"),
-    ("nehad.runtime.paths", "PathError"),
-    ("nehad.runtime.video", "VideoError"),
-    ("nehad.runtime.batch", "BatchError"),
-    ("nehad.runtime.distribute", "RenderError"),
-    ("nehad.runtime.layers", "LayerError"),
     ("nehad.checkpoint", "CheckpointError"),
-    ("nehad.runtime.memory", "FrameMemoryError"),
-    ("nehad.runtime.lock", "LockError"),
 )
+
+#: How the command line calls the inputs a runtime message names as {input} (runtime/errors.py).
+OPTION_NAMES = {
+    "scene": "SCENE", "view": "--view", "time": "--time", "lod": "--lod", "output": "-o",
+    "size": "--size", "background": "--background", "extrapolate": "--extrapolate",
+    "path": "--path", "frames": "--frames", "frames_dir": "--frames-dir",
+    "frame_format": "--frame-format", "fps": "--fps", "crf": "--crf", "encoder": "--encoder",
+    "side_by_side": "--side-by-side", "threads": "--threads", "workers": "--workers",
+    "scheduler": "--scheduler", "depth": "--depth", "alpha": "--alpha",
+    "sh_degree": "--sh-degree", "format": "--format",
+}
 
 #: Top-level packages of the `train` extra (pyproject.toml) and how to install them.
 TRAIN_EXTRA = ("torch", "onnx", "onnxscript")
@@ -103,7 +105,9 @@ def user_errors():
         raise
     except Exception as e:
         if isinstance(e, _user_error_types()):
-            raise click.ClickException(_one_line(e)) from None
+            text = e.message(OPTION_NAMES) if hasattr(e, "message") and callable(e.message) \
+                else str(e)
+            raise click.ClickException(_one_line(text)) from None
         if isinstance(e, ImportError) and (pkg := missing_extra(e)) is not None:
             raise click.ClickException(_one_line(
                 f"{_command()} needs {pkg}, which cannot be imported here ({e}); install "

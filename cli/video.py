@@ -1,4 +1,4 @@
-"""`nehad video` (issue 5; SPEC section 10): a thin wrapper around :mod:`nehad.runtime.video`
+"""`nehad video`: a thin wrapper around :mod:`nehad.runtime.video`
 and :mod:`nehad.runtime.distribute`; its backend helpers serve `nehad batch` too.
 
 Ctrl-C stops a run with exit status 130 and a line saying how many frames are kept and how to
@@ -69,8 +69,8 @@ def report_interrupted(frames_dir, total: int | None) -> None:
 @click.option("--frames", type=click.IntRange(min=1), default=None,
               help="Frames of an orbit, spiral or frozen camera (default 120); a camera list or "
                    "dataset split has its own count.")
-@click.option("--fps", type=click.FloatRange(0, 1000, min_open=True), default=30.0,
-              show_default=True, help="Frames per second of the video.")
+@click.option("--fps", type=click.FloatRange(0, 1000, min_open=True), default=None,
+              help="Frames per second of the video [default: 30].")
 @click.option("--time", "time_spec", default=None, metavar="A:B|T|own",
               help="Time schedule: A:B sweeps t over the frames, T freezes it (bullet time), own "
                    "uses the views' times. Default: the views' own times for a dataset split, "
@@ -82,8 +82,8 @@ def report_interrupted(frames_dir, total: int | None) -> None:
 @click.option("--frames-dir", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Keep the frames in this folder (frame_00000.png ...). Default: OUT.mp4.frames, "
                    "removed once the video is written.")
-@click.option("--frame-format", type=click.Choice(["png", "exr"]), default="png",
-              show_default=True, help="Frame files: 8-bit PNG or float EXR (linear).")
+@click.option("--frame-format", type=click.Choice(["png", "exr"]), default=None,
+              help="Frame files: 8-bit PNG or float EXR (linear) [default: png].")
 @click.option("--resume", is_flag=True,
               help="Keep the frames an interrupted run left and render only the missing ones.")
 @click.option("--side-by-side", is_flag=True,
@@ -96,14 +96,17 @@ def report_interrupted(frames_dir, total: int | None) -> None:
 @click.option("--threads", type=click.IntRange(min=1), default=None,
               help="Threads per frame (default: cores / workers locally; on Dask each worker's "
                    "share of its cores, or its $NEHAD_THREADS).")
-@click.option("--crf", type=click.IntRange(0, 51), default=18, show_default=True,
-              help="H.264 quality (lower: better, larger).")
+@click.option("--crf", type=click.IntRange(0, 51), default=None,
+              help="H.264 quality (lower: better, larger) [default: 18].")
 @click.option("--extrapolate", is_flag=True, help="Allow times outside the trained range.")
+@click.option("--lod", type=click.IntRange(min=0), default=None, metavar="K",
+              help="Render streaming layers 0..K only (as nehad render --lod).")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def video(model, output, path_spec, frames, fps, time_spec, size, background, frames_dir,
           frame_format, resume, side_by_side, workers, scheduler, threads, crf, extrapolate,
-          quiet):
-    """Render a video of MODEL (an exported .onnx, or a static 3DGS .ply).
+          lod, quiet):
+    """Render a video of MODEL: any scene `nehad render` takes (an exported .onnx, a split
+    layers folder, a training run folder, or a static 3DGS .ply).
 
     \b
     Examples:
@@ -118,10 +121,16 @@ def video(model, output, path_spec, frames, fps, time_spec, size, background, fr
     """
     from nehad.runtime.video import VideoJob, plan_video, run_video
 
+    from .scenes import SCENE_OPENERS
+
+    # VideoJob owns the defaults (the [default: ...] texts above are checked against it by
+    # tests/test_video.py): an option left out is not passed
+    given = {k: v for k, v in dict(fps=fps, frame_format=frame_format, crf=crf).items()
+             if v is not None}
     job = VideoJob(model=model, output=output, path=path_spec, time=time_spec, frames=frames,
-                   size=size, fps=fps, frames_dir=frames_dir, frame_format=frame_format,
-                   side_by_side=side_by_side, background=background, extrapolate=extrapolate,
-                   crf=crf)
+                   size=size, frames_dir=frames_dir, side_by_side=side_by_side,
+                   background=background, extrapolate=extrapolate, lod=lod,
+                   openers=SCENE_OPENERS, **given)
     plan = None
     try:
         with user_errors():

@@ -7,7 +7,6 @@ training run is opened.
 
 from __future__ import annotations
 
-import math
 import sys
 from pathlib import Path
 
@@ -39,42 +38,28 @@ def _need_torch(run: Path, what: str) -> None:
 
 def _dynamic_source(scene: Path):
     """A run folder or an exported .onnx (a static PLY has no motion)."""
-    from .sources import open_source
+    from .scenes import open_cli_scene
 
     if scene.suffix.lower() == ".ply" and not scene.is_dir():
         raise InputError(f"{scene}: a 3DGS PLY is static (no trajectories); give a training run "
                          f"folder or an exported .onnx model")
     if scene.is_dir():
         _need_torch(scene, "drawing trajectories from it")
-    return open_source(scene)
+    return open_cli_scene(scene)
 
 
 def _view(view: str | None, source, size):
-    """--view, else the model's default camera (an .onnx file's metadata) or the first test
-    camera of the run's dataset."""
-    from .main import _single_camera
+    """--view, else the scene's default camera (an .onnx file's metadata, a run's first test
+    camera): runtime.scene.choose_camera, the rule of every command."""
+    from nehad.runtime.scene import choose_camera
 
-    if view is not None:
-        cam = _single_camera(view)
-    else:
-        cam = getattr(source, "default_camera", None)
-        meta = getattr(source, "meta", None)
-        if cam is None and meta is not None:
-            test = Path(meta.get("data_dir", "")) / "transforms_test.json"
-            if test.is_file():
-                cam = _single_camera(f"{test}:0")
-        if cam is None:
-            raise InputError(f"{source.path}: no default camera; pass --view CAMERA")
-    return cam.with_size(*size) if size is not None else cam
+    return choose_camera(source, view, size)
 
 
 def _check_time(source, t: float, extrapolate: bool = False) -> float:
-    lo, hi = source.time_range
-    if not math.isfinite(t):
-        raise InputError(f"--time {t}: not a finite number")
-    if not extrapolate and not (lo - 1e-9 <= t <= hi + 1e-9):
-        raise InputError(f"--time {t}: outside the trained time range [{lo:g}, {hi:g}]")
-    return float(t)
+    from nehad.runtime.scene import check_time
+
+    return check_time(source, t, extrapolate)
 
 
 def _bar(total: int, desc: str):
@@ -244,9 +229,9 @@ def masks(run, view, time_, output, plot, n_times, threshold, score, split, data
             _check_out(json_out, "--json", (".json",), "the scores file")
         ids = _parse_ids(moving_ids)
         _need_torch(run, "the BED split")
-        from .sources import open_source
+        from .scenes import open_cli_scene
 
-        source = open_source(run)  # a RunSource: loads the torch model
+        source = open_cli_scene(run)  # a RunScene (nehad/run_scene.py): loads the torch model
         from nehad.viz.masks import bed_status
 
         why = bed_status(source.model)

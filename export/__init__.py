@@ -1,1 +1,1 @@
-"""Export of trained NeHaD fields to one self-contained ONNX file (SPEC section 7)."""
+"""Export of trained NeHaD fields to one self-contained ONNX file (docs/design.md section 7)."""

@@ -1,4 +1,4 @@
-"""Checks of an exported `nehad-onnx/1` graph (SPEC 7): standard operators only, opset, checker.
+"""Checks of an exported `nehad-onnx/1` graph (docs/design.md section 7): standard operators only, opset, checker.
 
 Only needs the `onnx` package (no torch), so the tests and `nehad export` share it.
 """
@@ -27,7 +27,7 @@ STANDARD_DOMAINS = ("", "ai.onnx")
 
 
 class GraphCheckError(ValueError):
-    """An exported graph breaks a rule of SPEC 7 (the message says which)."""
+    """An exported graph breaks a rule of docs/design.md section 7 (the message says which)."""
 
 
 def operator_counts(model) -> Counter:

@@ -1,4 +1,4 @@
-"""The deformation as it is written into the exported graph (SPEC 4 and 7), arranged for
+"""The deformation as it is written into the exported graph (docs/design.md section 4 and 7), arranged for
 onnxruntime.
 
 `FastDeform(model, sh_degree)(arrays, time)` computes what `NeHaDModel.gaussians_at(t)` computes
@@ -10,18 +10,18 @@ single-file graph runs ~170 nodes: 6 Gathers and 9 elementwise ops of the hex-pl
 (N, 64) and 8 elementwise ops of the decoder, and a tail on (k, N) rows.
 
 Rearrangements (each exact in real arithmetic; the export checks parity against the torch model,
-SPEC 7):
+docs/design.md section 7):
 
-* Hex-plane (SPEC 4.1). Only the space-time planes depend on t. The product of the three spatial
+* Hex-plane (docs/design.md section 4.1). Only the space-time planes depend on t. The product of the three spatial
   planes depends on the canonical Gaussians only: in the single-file export it is a constant
   subgraph (GridSample) that onnxruntime folds once when the session is created, so the file
   does not grow; with mipmapping it is computed here and stored (see `FastDeform`). A space-time
   plane at time t is first sliced: its two rows around t interpolated into a small (R, C) table
   (`time_rows`), then sampled by 1-D linear interpolation along its spatial axis, A[i] + f D[i]
   (2 Gathers instead of the 4 of a bilinear lookup). The scales are stacked into one table per
-  axis, so one Gather serves all scales. With mipmapping (SPEC 8) every level is sliced the same
+  axis, so one Gather serves all scales. With mipmapping (docs/design.md section 8) every level is sliced the same
   way and the two levels around l_hat are blended.
-* HNN decoder (SPEC 4.3-4.6). The closed-form input gradient of each scalar net ends with W1^T;
+* HNN decoder (docs/design.md section 4.3-4.6). The closed-form input gradient of each scalar net ends with W1^T;
   v_s = (grad F2) M^T, the adapters, the Verlet step dmu dt + F dt^2/2 and the force adapter are
   all linear in (grad F1, grad F2). So everything the adapters produce is
   delta1(F1) @ P1 + delta1(F2) @ P2 with precomposed P1, P2 (biases folded): one small GEMM per
@@ -143,7 +143,7 @@ def _product(factors):
 
 
 def mip_levels(hexplane, sigma: torch.Tensor) -> list[torch.Tensor]:
-    """l_hat (N,) of every scale (`nehad.field.mipmap.mip_level`, SPEC 8)."""
+    """l_hat (N,) of every scale (`nehad.field.mipmap.mip_level`, docs/design.md section 8)."""
     from nehad.field.mipmap import mip_level
 
     return [mip_level(sigma * torch.tensor([(r - 1) * 0.5 for r in res[:3]], dtype=sigma.dtype),
@@ -161,7 +161,7 @@ def mip_spatial_features(hexplane, x: torch.Tensor, sigma: torch.Tensor) -> torc
 def mip_hexplane_features(hexplane, x: torch.Tensor, tp: torch.Tensor, sigma: torch.Tensor,
                           spatial: Optional[torch.Tensor] = None) -> torch.Tensor:
     """HexPlane._forward_mipmap(x, t, sigma) for one time tp (1,), from the pyramids frozen by
-    `freeze_pyramids_for_export` (SPEC 8) -> (N, S C). Every level of a space-time plane is
+    `freeze_pyramids_for_export` (docs/design.md section 8) -> (N, S C). Every level of a space-time plane is
     sliced at tp; each point blends its levels lo and lo + 1 (one term when no scale has more
     than one level). `spatial`: `mip_spatial_features` computed beforehand (else it is computed
     here)."""
@@ -234,7 +234,7 @@ def _block_diag(blocks: list[torch.Tensor]) -> torch.Tensor:
 def adapter_maps(field, k_sh: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(Q_c, Q_s, bias) in float64 with every adapter output = v_c Q_c + v_s Q_s + bias, columns
     [displacement mu~ - mu (3), ds (3), q (4), (d_opacity (1), d_sh (3 k_sh))]: the displacement
-    is dt A_mu v (+ dt^2/2 A_mu' v_c with Verlet, SPEC 4.5-4.6), q includes (1, 0, 0, 0)."""
+    is dt A_mu v (+ dt^2/2 A_mu' v_c with Verlet, docs/design.md section 4.5-4.6), q includes (1, 0, 0, 0)."""
     cfg, ad = field.cfg, field.adapters
     w = {name: getattr(ad, name).weight.detach().double().t() for name in ("mu", "scale", "rot")}
     b = {name: getattr(ad, name).bias.detach().double() for name in ("mu", "scale", "rot")}
@@ -257,9 +257,9 @@ def symplectic_rows(q: torch.Tensor) -> torch.Tensor:
 
 
 class ClosedFormNet(nn.Module):
-    """One scalar net F (SPEC 4.3) with its input gradient contracted with a fixed matrix:
+    """One scalar net F (docs/design.md section 4.3) with its input gradient contracted with a fixed matrix:
     forward(x) = (grad_h F(h)) @ Q (+ bias) for h = Wt x + bt (the trunk's last Linear, folded
-    into F's first layer), in closed form (SPEC 4.4):
+    into F's first layer), in closed form (docs/design.md section 4.4):
         m = act'(z_L) @ (diag(w_out) W_L);  m = (act'(z_l) * m) @ W_l, l = L-1 .. 2;
         out = (act'(z_1) * m) @ (W_1 Q) + bias   (depth 1: act'(z_1) @ (diag(w_out) W_1 Q)).
     For tanh, act'(z) @ M = colsum(M) - (a * a) @ M is a single Gemm."""
@@ -341,7 +341,7 @@ class MLPHeadsGraph(nn.Module):
 class FastDeform(nn.Module):
     """forward(means, log_scales, quats, opacity_logits, sh, mu_eq, t_eq, time [1]) ->
     (means [N,3], scales [N,3], quats [N,4], opacities [N], sh [N,k,3]) as
-    `NeHaDModel.gaussians_at(time)` for these canonical Gaussians (SPEC 4, 7), with `sh` the first
+    `NeHaDModel.gaussians_at(time)` for these canonical Gaussians (docs/design.md section 4, 7), with `sh` the first
     k = (sh_degree + 1)^2 coefficients. `model` should be a `closed_form_copy` (its weights are
     read here, once). `constant_means`: the canonical Gaussians will be initializers (the
     single-file export), not graph inputs (the streaming base graph)."""

@@ -1,4 +1,4 @@
-"""The module that is traced into the `nehad-onnx/1` graph (SPEC 7).
+"""The module that is traced into the `nehad-onnx/1` graph (docs/design.md section 7).
 
 `ExportGraph(model, sh_degree)(time)` computes what `NeHaDModel.gaussians_at(t)` computes
 (activated means, scales, unit wxyz quats, opacities, SH truncated to `sh_degree`), but takes the
@@ -8,8 +8,8 @@ field's weights are the model's parameters and buffers: they become initializers
 
 The deformation is written as :class:`nehad.export.deform_graph.FastDeform`: the same function,
 rearranged for onnxruntime (time-independent parts as constant subgraphs, linear maps
-precomposed), with the HNN gradient in closed form (SPEC 4.4), never with autograd. The export
-checks it against the torch model's own `gaussians_at` (SPEC 7 parity).
+precomposed), with the HNN gradient in closed form (docs/design.md section 4.4), never with autograd. The export
+checks it against the torch model's own `gaussians_at` (docs/design.md section 7 parity).
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from torch import nn
 from nehad.export.deform_graph import FastDeform
 
 OUTPUT_NAMES = ("means", "scales", "quats", "opacities", "sh")
-LAYER_OUTPUT = "layer"  # SPEC 7: with LOD layers, each Gaussian's layer [N] int32
+LAYER_OUTPUT = "layer"  # docs/design.md section 7: with LOD layers, each Gaussian's layer [N] int32
 
 
 def closed_form_copy(model) -> nn.Module:
@@ -31,7 +31,7 @@ def closed_form_copy(model) -> nn.Module:
     the caller's model is left untouched."""
     model = copy.deepcopy(model).eval()
     model.field.set_grad_mode("closed_form")
-    if getattr(model.field.cfg, "mipmap", False):  # SPEC 8: pyramids as initializers
+    if getattr(model.field.cfg, "mipmap", False):  # docs/design.md section 8: pyramids as initializers
         model.field.hexplane.freeze_pyramids_for_export()
     for p in model.parameters():
         p.requires_grad_(False)
@@ -40,7 +40,7 @@ def closed_form_copy(model) -> nn.Module:
 
 class ExportGraph(nn.Module):
     """forward(time [1]) -> (means [N,3], scales [N,3], quats [N,4], opacities [N], sh [N,K,3])
-    and, when `layer` ([N] layer index of each Gaussian, SPEC 8) is given, `layer` [N] int32."""
+    and, when `layer` ([N] layer index of each Gaussian, docs/design.md section 8) is given, `layer` [N] int32."""
 
     def __init__(self, model, sh_degree: int, layer=None):
         super().__init__()
@@ -68,7 +68,7 @@ class ExportGraph(nn.Module):
 
 def reference_outputs(model, t: float, sh_degree: int, layer=None) -> list:
     """The torch model's own outputs at time t (`gaussians_at`, SH truncated to `sh_degree`, the
-    layer column when given) as NumPy arrays: what the exported graph must match (SPEC 7)."""
+    layer column when given) as NumPy arrays: what the exported graph must match (docs/design.md section 7)."""
     k = (int(sh_degree) + 1) ** 2
     with torch.no_grad():
         out = [o.detach().cpu().numpy()

@@ -1,4 +1,4 @@
-"""`nehad export RUN --split-layers DIR`: a layered run (SPEC 8, nehad.lod) as a base model plus
+"""`nehad export RUN --split-layers DIR`: a layered run (docs/design.md section 8, nehad.lod) as a base model plus
 one chunk per enhancement layer and a manifest, for streaming (format: nehad.runtime.layers and
 docs/streaming.md).
 
@@ -7,7 +7,7 @@ initializers and takes the enhancement layers' canonical Gaussians as optional i
 defaults are empty; it appends them to layer 0's and deforms all of them with
 `nehad.export.deform_graph.FastDeform` (the function of `NeHaDModel.gaussians_at` arranged for
 onnxruntime; the means are graph inputs here, so the spatial planes are sampled in every run).
-Before anything is written, the graph passes the SPEC 7 checks and is run with onnxruntime with
+Before anything is written, the graph passes the docs/design.md section 7 checks and is run with onnxruntime with
 no extra inputs and with every prefix of layers, against the torch model's outputs for the same
 Gaussians (1e-5).
 """
@@ -49,7 +49,7 @@ def canonical_arrays(model, sh_coeffs: int, rows=slice(None)) -> dict[str, torch
 
 
 class SplitBaseGraph(nn.Module):
-    """forward(time [1], extra_means [M,3], ..., extra_layer [M]) -> the SPEC 7 outputs and
+    """forward(time [1], extra_means [M,3], ..., extra_layer [M]) -> the docs/design.md section 7 outputs and
     `layer` for layer 0's Gaussians followed by the M extra ones."""
 
     def __init__(self, model, sh_degree: int, n0: int):

@@ -1,4 +1,4 @@
-"""Export a trained NeHaD run to one self-contained `nehad-onnx/1` file (SPEC 7).
+"""Export a trained NeHaD run to one self-contained `nehad-onnx/1` file (docs/design.md section 7).
 
     from nehad.export.onnx_export import export_run
     report = export_run("runs/lego", "lego.onnx")
@@ -147,7 +147,7 @@ def _to_fp16_initializers(proto) -> int:
 
 
 def _name_outputs(proto, names=OUTPUT_NAMES) -> None:
-    """Give the graph outputs the names of SPEC 7. An output the exporter folded into a constant
+    """Give the graph outputs the names of docs/design.md section 7. An output the exporter folded into a constant
     (the SH, which do not depend on time) comes out as an initializer with a generated name: it
     is routed through an Identity node to its proper name."""
     import onnx
@@ -171,7 +171,7 @@ def _trace(graph: ExportGraph, opset: int) -> bytes:
 
 def _seal_and_open(proto, md: dict[str, str], doc: str):
     """Write the metadata `md` (replacing any; `md` gets the graph's digest added), producer and
-    `doc` into `proto`, run the SPEC 7 graph checks (full_check) and open the serialized graph
+    `doc` into `proto`, run the docs/design.md section 7 graph checks (full_check) and open the serialized graph
     with onnxruntime for the parity check: (operator types, serialized bytes, session). Shared
     by the single-file and the split-layer exports."""
     import onnxruntime as ort
@@ -206,7 +206,7 @@ def _seal_and_open(proto, md: dict[str, str], doc: str):
 
 
 def run_layers_of(meta: dict, n: int):
-    """The [n] layer of each Gaussian when the run was trained with LOD layers (SPEC 8), else
+    """The [n] layer of each Gaussian when the run was trained with LOD layers (docs/design.md section 8), else
     None (then the file has no `layer` output)."""
     if meta.get("layer") is None:
         return None
@@ -258,7 +258,7 @@ def export_model(model, meta: dict, out_path, *, opset: int = MIN_OPSET, fp16_we
         _to_fp16_initializers(proto)
     md = build_metadata(model, meta, sh_degree, cfg)
     md["fp16_weights"] = "1" if fp16_weights else "0"
-    if layer is not None:  # SPEC 8: Gaussians per layer, layer 0 first
+    if layer is not None:  # docs/design.md section 8: Gaussians per layer, layer 0 first
         md["lod_layers"] = json.dumps(np.bincount(layer, minlength=int(layer.max()) + 1
                                                   if len(layer) else 1).tolist())
     # Parity against the torch model before writing.

@@ -1,4 +1,4 @@
-"""Separable Gaussian blur of image stacks in Numba, for SSIM (SPEC section 9: 11-tap window,
+"""Separable Gaussian blur of image stacks in Numba, for SSIM (docs/design.md section 9: 11-tap window,
 sigma 1.5, zero padding, 'same' size).
 
 torch's depthwise convolutions take ~150 ms per SSIM at 400x400 on two cores, more than the

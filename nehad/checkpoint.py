@@ -1,4 +1,4 @@
-"""Run directories and checkpoints (SPEC section 5): state dicts only, written atomically, loaded
+"""Run directories and checkpoints (docs/design.md section 5): state dicts only, written atomically, loaded
 with `weights_only=True`.
 
     RUN/config.yaml        the resolved config

@@ -1,4 +1,4 @@
-"""Every training knob of nehad as typed dataclasses with documented defaults (SPEC section 5),
+"""Every training knob of nehad as typed dataclasses with documented defaults (docs/design.md section 5),
 and the presets `paper`, `cpu` (default), `quick`, `test`, `hypernerf` and `dynerf`.
 
 A run's config is: preset -> YAML file (`--config`) -> dotted overrides (`--set a.b=v`), each
@@ -136,7 +136,7 @@ class TrainConfig:
 
 @dataclass
 class LodConfig:
-    """Layered progressive optimisation for streaming (SPEC 8, `nehad.lod`): layer 0 is trained
+    """Layered progressive optimisation for streaming (docs/design.md section 8, `nehad.lod`): layer 0 is trained
     (coarse + fine stages) at the lowest resolution, data.downscale * 2^(levels - 1); each further
     layer adds Gaussians trained at twice the previous resolution while the earlier layers stay
     frozen and the deformation field is shared."""
@@ -254,7 +254,7 @@ class Config:
 
 
 def _paper() -> Config:
-    """The paper's settings (SPEC section 5): full resolution, 3000 + 20000 iterations, with the
+    """The paper's settings (docs/design.md section 5): full resolution, 3000 + 20000 iterations, with the
     project's training recipe (docs/training.md)."""
     return Config(preset="paper")
 
@@ -307,7 +307,7 @@ def _quick() -> Config:
 
 
 def _hypernerf() -> Config:
-    """The paper's recipe on HyperNeRF captures (SPEC section 5): hex-plane out_dim 16,
+    """The paper's recipe on HyperNeRF captures (docs/design.md section 5): hex-plane out_dim 16,
     [64, 64, 64, 150], multires [1, 2, 4], trunk W = 128; images from rgb/2x (536 x 960, the
     paper's resolution, as 4DGS reads them). Regulariser weights of 4DGS's
     arguments/hypernerf/default.py (plane TV 2e-4, time smoothness 1e-3, time L1 1e-4)."""
@@ -320,7 +320,7 @@ def _hypernerf() -> Config:
 
 
 def _dynerf() -> Config:
-    """The paper's recipe on DyNeRF videos (SPEC section 5): hex-plane out_dim 16,
+    """The paper's recipe on DyNeRF videos (docs/design.md section 5): hex-plane out_dim 16,
     [64, 64, 64, 150], multires [1, 2], trunk W = 128, opacity and SH deformed as 4DGS does for
     DyNeRF (arguments/dynerf/default.py: no_do=False, no_dshs=False, and its regulariser weights);
     1352 x 1014 frames (the 2704 x 2028 videos halved, the paper's resolution). Every frame of

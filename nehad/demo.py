@@ -14,7 +14,7 @@ from nehad.data.synth import render_view, scene_objects, synthesize_scene
 from nehad.evaluate import evaluate_run
 from nehad.runtime.images import write_image
 from nehad.runtime.raster import render
-from nehad.trainer import Trainer, cloud_at, load_run
+from nehad.trainer import cloud_at, load_run, make_trainer
 
 
 def frame_strip(run: Path, camera, times, background) -> np.ndarray:
@@ -46,9 +46,9 @@ def run_demo(out: Path, resolution: int = 128, frames: int = 60, preset: str = "
     run = out / "run"
     log(f"2/4 training ({preset} preset) into {run}")
     cfg = build_config(preset, None, overrides)
-    summary = Trainer(cfg, data, run, resume=(run / "config.yaml").exists(),
-                      progress=progress).train()
-    log(f"3/4 evaluating on the test views")
+    summary = make_trainer(cfg, data, run, resume=(run / "config.yaml").exists(),
+                           progress=progress).train()
+    log("3/4 evaluating on the test views")
     result = evaluate_run(run, "test", data, lpips=True, progress=progress)
     log("4/4 rendering a strip of frames over time")
     from nehad.data.dnerf import load_dnerf

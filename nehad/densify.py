@@ -1,14 +1,14 @@
 """Adaptive density control of 3DGS as a strategy object (gsplat's layout): the training loop
 calls `step_post_backward` and never decides itself when to clone, split, prune or reset.
 
-Rules (3DGS, SPEC section 5): inside the stage's densification window, every `interval`
+Rules (3DGS, docs/design.md section 5): inside the stage's densification window, every `interval`
 iterations, Gaussians whose mean view-space (NDC) gradient exceeds `grad_threshold` are cloned
 when small (max scale <= percent_dense * extent) and split in two when large; Gaussians with
 opacity < `min_opacity` are pruned, and too large ones too once the first opacity reset has passed
 (every `prune_large_every`). Opacities are reset to at most 0.01 every `reset_every`, only inside
 the densification window, so a reset is always followed by densification steps that recover from
 it and never falls on a stage's last step (docs/training.md). Every per-Gaussian parameter takes
-part, so densified children inherit mu_eq and t_eq (SPEC 4.7).
+part, so densified children inherit mu_eq and t_eq (docs/design.md section 4.7).
 """
 
 from __future__ import annotations
@@ -112,7 +112,7 @@ class DensifyStrategy:
         self.schedule = schedule or DensifySchedule(0, 0, cfg.interval, 0, 0)
         self.state = DensifyState.zeros(0)
         #: The first `frozen` Gaussians are never cloned, split, pruned or opacity-reset: the
-        #: frozen lower layers of layered training (SPEC 8, nehad.lod). New ones go after them.
+        #: frozen lower layers of layered training (docs/design.md section 8, nehad.lod). New ones go after them.
         self.frozen = 0
 
     def reset(self, n: int) -> None:

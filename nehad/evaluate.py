@@ -1,4 +1,4 @@
-"""`nehad eval`: render a split of the dataset with a trained run and score it (SPEC section 9):
+"""`nehad eval`: render a split of the dataset with a trained run and score it (docs/design.md section 9):
 PSNR, SSIM, MS-SSIM, D-SSIM, LPIPS alex and vgg (official [-1, 1] input convention) per frame and
 mean, plus render FPS (deformation + rasterization at the dataset resolution, after a warm-up).
 

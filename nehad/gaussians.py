@@ -1,7 +1,7 @@
-"""Learnable canonical Gaussians in torch, stored as 3DGS stores them (SPEC section 3): means,
+"""Learnable canonical Gaussians in torch, stored as 3DGS stores them (docs/design.md section 3): means,
 log-scales, quaternions (w, x, y, z, unnormalised), opacity logits, SH coefficients split into the
 DC term and the rest (they get different learning rates), and the Boltzmann equilibrium
-parameters of SPEC section 4.7 (mu_eq, t_eq), set when the fine stage starts.
+parameters of docs/design.md section 4.7 (mu_eq, t_eq), set when the fine stage starts.
 
 Every parameter's first dimension is the Gaussian index, so densification (nehad.densify) treats
 them all alike: clone, split and prune apply to each one, and children inherit mu_eq and t_eq."""
@@ -57,7 +57,7 @@ class GaussianParameters(nn.Module):
         return cls(*(torch.zeros_like(state[name]) for name in cls.NAMES))
 
     def reset_equilibrium(self, t_eq: float = 0.5) -> None:
-        """SPEC 4.7: mu_eq starts as mu and t_eq at the canonical time (train.canonical_time,
+        """docs/design.md section 4.7: mu_eq starts as mu and t_eq at the canonical time (train.canonical_time,
         0.5 by default) when the fine stage begins."""
         with torch.no_grad():
             self.mu_eq.copy_(self.means)
@@ -84,7 +84,7 @@ class GaussianParameters(nn.Module):
 
     @classmethod
     def random_in_box(cls, n: int, low=-1.3, high=1.3, sh_degree: int = 3, seed: int = 0):
-        """D-NeRF initialisation: `n` random points in the cube [low, high]^3 (SPEC section 5)."""
+        """D-NeRF initialisation: `n` random points in the cube [low, high]^3 (docs/design.md section 5)."""
         rng = np.random.default_rng(seed)
         pts = rng.uniform(low, high, (n, 3)).astype(np.float32)
         return cls.from_points(pts, rng.uniform(0, 1, (n, 3)).astype(np.float32), sh_degree)

@@ -1,20 +1,22 @@
-"""Layered progressive optimisation for streaming (SPEC 8; paper appendix "Detailed Methodology of
-Streaming", after LapisGS): G_i = G_0 + sum_{j <= i} dG_j.
+"""Layered progressive optimisation for streaming (docs/streaming.md; the paper's appendix,
+"Detailed Methodology of Streaming", after LapisGS): G_i = G_0 + sum_{j <= i} dG_j.
 
-`LodTrainer` drives the ordinary :class:`nehad.trainer.Trainer` through L = `lod.levels` layers:
+`LayeredSchedule` is the schedule (`nehad.schedule`) the ordinary `nehad.trainer.Trainer` follows
+when lod.levels = L > 1:
 
-* Layer 0 is the ordinary schedule (coarse static stage, then the fine stage with the deformation
-  field) on images downscaled by data.downscale * 2^(L-1), the lowest resolution.
+* Layer 0 is the ordinary schedule (`StagedSchedule`: coarse static stage, then the fine stage
+  with the deformation field) on images downscaled by data.downscale * 2^(L-1), the lowest
+  resolution.
 * Layer k >= 1 runs `lod.iterations` fine steps (0: fine.iterations) on images at
   data.downscale * 2^(L-1-k), twice the resolution of layer k-1. It starts by spawning one child
   per Gaussian of the layers below: position drawn from the parent's Gaussian, half its scale
   (the pixels are half as large), opacity `lod.spawn_opacity`, colour, rotation and BED
-  equilibrium (mu_eq, t_eq) inherited (SPEC 4.7: children inherit). Only the new layer trains:
-  the Gaussians of earlier layers get no gradient (zeroed before each Adam step, and restored
-  bit-exactly after it), are never densified, pruned or opacity-reset (`DensifyStrategy.frozen`).
-  The deformation field is shared by all layers; it trains in layer 0 and stays fixed in later
-  layers unless `lod.train_field` (fixed keeps every prefix of layers rendering exactly as it did
-  when it was trained).
+  equilibrium (mu_eq, t_eq) inherited, as densified children inherit them. Only the new layer
+  trains: the Gaussians of earlier layers get no gradient (zeroed before each Adam step, and
+  restored bit-exactly after it), are never densified, pruned or opacity-reset
+  (`DensifyStrategy.frozen`). The deformation field is shared by all layers; it trains in layer
+  0 and stays fixed in later layers unless `lod.train_field` (fixed keeps every prefix of layers
+  rendering exactly as it did when it was trained).
 * At the end of every layer its Gaussians with opacity < `lod.opacity_threshold` are dropped: the
   threshold sets how many Gaussians (bytes) each layer adds (paper: "adjusting the opacity
   threshold ... to fine-tune transmitted rates").
@@ -28,14 +30,19 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
-from nehad.data.loader import load_dataset
+from nehad.curriculum import TimeWindow
 from nehad.densify import append_gaussians, keep_gaussians
+from nehad.schedule import Phase, StagedSchedule
 from nehad.splat.projection import quat_to_rotmat
-from nehad.trainer import Trainer, _views
+from nehad.trainer import make_trainer  # noqa: F401  (re-exported: `nehad train` imports it here)
+
+if TYPE_CHECKING:
+    from nehad.trainer import Trainer, Views
 
 
 def layer_downscales(levels: int, downscale: int) -> list[int]:
@@ -49,37 +56,30 @@ def layer_ids(layer_sizes) -> np.ndarray:
                      np.asarray(layer_sizes, np.int64)).astype(np.int32)
 
 
-class LodTrainer(Trainer):
-    """`Trainer` with `cfg.lod.levels` layers (see the module doc). Same run directory layout,
-    checkpoints and resume; `train()` writes RUN/model.pt with the layer of each Gaussian."""
+class LayeredSchedule:
+    """`cfg.lod.levels` layers (see the module doc): layer 0 follows `StagedSchedule` at the
+    lowest resolution, then each enhancement layer trains `lod.iterations` fine steps on its own
+    Gaussians while the layers below stay frozen."""
 
-    def __init__(self, cfg, data_dir, run_dir, resume: bool = False, progress: bool = True,
-                 log=print):
-        self._resumed_lod = None
-        super().__init__(cfg, data_dir, run_dir, resume=resume, progress=progress, log=log)
-        lod = cfg.lod
-        self.levels = int(lod.levels)
-        self.layer_iterations = int(lod.iterations or cfg.fine.iterations)
+    def __init__(self, cfg):
+        self.cfg = cfg
+        self.base = StagedSchedule(cfg)  # layer 0
+        self.levels = int(cfg.lod.levels)
+        self.layer_iterations = int(cfg.lod.iterations or cfg.fine.iterations)
         if self.levels > 1 and self.layer_iterations < 1:
             from nehad.configtools import ConfigError
 
             raise ConfigError("lod.iterations: enhancement layers need >= 1 step (lod.iterations "
                               "and fine.iterations are both 0)")
-        self.base_steps = cfg.coarse.iterations + cfg.fine.iterations
+        self.base_steps = self.base.total_steps
         self.total_steps = self.base_steps + (self.levels - 1) * self.layer_iterations
         self.downscales = layer_downscales(self.levels, cfg.data.downscale)
-        self._layer_views = {self.levels - 1: self.train_views}  # loaded at data.downscale
-        saved = self._resumed_lod or {}
         #: Gaussian counts of the finished (frozen) layers, in order.
-        self.layer_sizes: list[int] = [int(v) for v in saved.get("layer_sizes", [])]
-        self.strategy.frozen = sum(self.layer_sizes)
-        self._apply_layer_cap(self.layer_of(self.step))
-        self._snapshot = self._take_snapshot()
-        self._current_step = self.step
-        self.optimizer.register_step_pre_hook(self._zero_frozen_grads)
-        self.optimizer.register_step_post_hook(self._restore_frozen)
+        self.layer_sizes: list[int] = []
+        self._views: dict = {}
+        self._snapshot: dict = {}
 
-    # -- schedule -----------------------------------------------------------------------------
+    # -- where a step falls -------------------------------------------------------------------
     def layer_of(self, step: int) -> int:
         """The layer trained at (0-based) `step`."""
         if step < self.base_steps:
@@ -90,93 +90,123 @@ class LodTrainer(Trainer):
         """The number of steps done when `layer` is finished."""
         return self.base_steps + layer * self.layer_iterations
 
-    def stage_of(self, step: int) -> tuple[str, int, int]:
+    def phase(self, step: int) -> Phase:
         if step < self.base_steps:
-            return super().stage_of(step)
-        return "fine", (step - self.base_steps) % self.layer_iterations, self.layer_iterations
+            return self.base.phase(step)
+        return Phase("fine", (step - self.base_steps) % self.layer_iterations,
+                     self.layer_iterations, self.layer_of(step))
 
-    def _set_learning_rates(self, stage: str, it: int, length: int) -> None:
-        super()._set_learning_rates(stage, it, length)
-        if self.layer_of(self._current_step) > 0 and not self.cfg.lod.train_field:
-            for group in self.optimizer.param_groups:
-                if group["name"] in ("grid", "decoder"):
-                    group["lr"] = 0.0
+    def stage_config(self, phase: Phase):
+        return self.base.stage_config(phase)
 
-    def time_window(self, stage: str, it: int, length: int):
-        """Enhancement layers see every time: the time curriculum (nehad.curriculum) belongs to
-        layer 0, where the shared field learns to follow the objects."""
-        if self.layer_of(self._current_step) > 0:
-            from nehad.curriculum import TimeWindow
+    def views(self, trainer: Trainer, layer: int) -> Views:
+        """Training views of `layer` at its resolution (loaded once; the last layer's are the
+        trainer's own, at data.downscale)."""
+        if layer == self.levels - 1:
+            return trainer.train_views
+        if layer not in self._views:
+            self._views[layer] = trainer.load_views(self.downscales[layer])
+        return self._views[layer]
 
-            return TimeWindow(*self.scene.time_range)
-        return super().time_window(stage, it, length)
-
-    def resolution_factor(self, step: int) -> int:
+    def resolution_warmup(self, step: int, phase: Phase) -> tuple[int, int] | None:
         """Layer 0 follows data.resolution_schedule over its own steps; enhancement layers
         train at their layer's resolution throughout."""
-        if self.layer_of(step) > 0:
-            return 1
-        return self.warmup_factor(step, self.base_steps)
+        return (step, self.base_steps) if phase.layer == 0 else None
 
-    def views_of(self, layer: int):
-        """Training views of `layer` at its resolution (loaded once)."""
-        if layer not in self._layer_views:
-            cfg = self.cfg
-            bg = cfg.data.background if cfg.data.background is not None else (1.0, 1.0, 1.0)
-            scene = load_dataset(self.data_dir, splits=(cfg.data.train_split,), background=bg,
-                                 downscale=self.downscales[layer],
-                                 frame_stride=cfg.data.frame_stride)
-            self._layer_views[layer] = _views(scene, cfg.data.train_split)
-        return self._layer_views[layer]
+    def time_window(self, trainer: Trainer, phase: Phase) -> TimeWindow:
+        """Enhancement layers see every time: the time curriculum (nehad.curriculum) belongs to
+        layer 0, where the shared field learns to follow the objects."""
+        if phase.layer > 0:
+            return TimeWindow(*trainer.scene.time_range)
+        return self.base.time_window(trainer, phase)
 
-    def _apply_layer_cap(self, layer: int) -> None:
+    def frozen_groups(self, phase: Phase) -> frozenset[str]:
+        """Layer 0 as the staged schedule; later layers keep the shared field fixed unless
+        lod.train_field."""
+        if phase.layer == 0:
+            return self.base.frozen_groups(phase)
+        return frozenset() if self.cfg.lod.train_field else frozenset({"grid", "decoder"})
+
+    # -- setup and state ----------------------------------------------------------------------
+    def attach(self, trainer: Trainer, state: dict | None) -> None:
+        """Restore the finished layers of a resumed run and freeze them."""
+        saved = (state or {}).get("lod") or {}
+        self.layer_sizes = [int(v) for v in saved.get("layer_sizes", [])]
+        trainer.strategy.frozen = sum(self.layer_sizes)
+        self._apply_layer_cap(trainer, self.layer_of(trainer.step))
+        self._snapshot = self._take_snapshot(trainer)
+
+    def lod_state(self) -> dict:
+        return {"levels": self.levels, "layer_sizes": list(self.layer_sizes),
+                "downscales": list(self.downscales), "iterations": self.layer_iterations,
+                "opacity_threshold": float(self.cfg.lod.opacity_threshold)}
+
+    def state_dict(self) -> dict:
+        return {"lod": self.lod_state()}
+
+    def model_extras(self, trainer: Trainer) -> dict:
+        sizes = list(self.layer_sizes)
+        rest = len(trainer.model.gaussians) - sum(sizes)
+        if rest:  # an unfinished layer (model_state of a run stopped early)
+            sizes.append(rest)
+        return {"layer": torch.from_numpy(layer_ids(sizes)),
+                "lod": {**self.lod_state(), "layer_sizes": sizes}}
+
+    def _apply_layer_cap(self, trainer: Trainer, layer: int) -> None:
         """Densification cap of `layer`: `lod.base_max_gaussians` for layer 0 when set, else
         `densify.max_gaussians` (which counts only the trainable Gaussians, i.e. this layer's)."""
         base_cap = int(self.cfg.lod.base_max_gaussians)
         if layer == 0 and base_cap > 0:
-            self.strategy.cfg = dataclasses.replace(self.cfg.densify, max_gaussians=base_cap)
+            trainer.strategy.cfg = dataclasses.replace(self.cfg.densify, max_gaussians=base_cap)
         else:
-            self.strategy.cfg = self.cfg.densify
+            trainer.strategy.cfg = self.cfg.densify
 
     # -- freezing -----------------------------------------------------------------------------
-    def _gaussian_groups(self):
-        names = set(self.model.gaussians.NAMES)
-        return [g for g in self.optimizer.param_groups if g["name"] in names]
-
-    def _take_snapshot(self) -> dict:
-        f = self.strategy.frozen
-        g = self.model.gaussians
+    @staticmethod
+    def _take_snapshot(trainer: Trainer) -> dict:
+        f = trainer.strategy.frozen
+        g = trainer.model.gaussians
         return {name: getattr(g, name).detach()[:f].clone() for name in g.NAMES}
 
-    def _zero_frozen_grads(self, optimizer, args, kwargs) -> None:
-        f = self.strategy.frozen
+    def before_update(self, trainer: Trainer) -> None:
+        """The frozen layers get no gradient."""
+        f = trainer.strategy.frozen
         if f:
-            for group in self._gaussian_groups():
-                p = group["params"][0]
-                if p.grad is not None:
-                    p.grad[:f] = 0.0
+            names = set(trainer.model.gaussians.NAMES)
+            for group in trainer.optimizer.param_groups:
+                if group["name"] in names:
+                    p = group["params"][0]
+                    if p.grad is not None:
+                        p.grad[:f] = 0.0
 
     @torch.no_grad()
-    def _restore_frozen(self, optimizer=None, args=None, kwargs=None) -> None:
-        f = self.strategy.frozen
+    def after_update(self, trainer: Trainer) -> None:
+        """The frozen layers are restored bit-exactly (Adam's momentum would still move them)."""
+        f = trainer.strategy.frozen
         if f:
-            g = self.model.gaussians
+            g = trainer.model.gaussians
             for name in g.NAMES:
                 getattr(g, name)[:f] = self._snapshot[name]
 
     # -- layer boundaries ---------------------------------------------------------------------
-    def start_fine_stage(self) -> None:
-        layer = self.layer_of(self._current_step)
-        if layer == 0:
-            super().start_fine_stage()
+    def begin(self, trainer: Trainer, phase: Phase) -> None:
+        if phase.layer == 0:
+            self.base.begin(trainer, phase)
         else:
-            self._spawn_layer(layer)
+            self._spawn_layer(trainer, phase.layer)
+
+    def end(self, trainer: Trainer, phase: Phase, step: int, record: dict) -> None:
+        record["layer"] = phase.layer
+        if step + 1 == self.layer_end(phase.layer):
+            self._finish_layer(trainer, phase.layer)
+            record["layer_sizes"] = list(self.layer_sizes)
+            record["gaussians"] = len(trainer.model.gaussians)
 
     @torch.no_grad()
-    def _spawn_layer(self, layer: int) -> None:
+    def _spawn_layer(self, trainer: Trainer, layer: int) -> None:
         """Seed layer `layer`: one child per frozen Gaussian (see the module doc)."""
-        g = self.model.gaussians
-        f = self.strategy.frozen
+        g = trainer.model.gaussians
+        f = trainer.strategy.frozen
         gen = torch.Generator().manual_seed(int(self.cfg.train.seed) * 1_000_003 + 7919 * layer)
         scales = torch.exp(g.log_scales[:f])
         offsets = (quat_to_rotmat(g.quats[:f]) @ (torch.randn(scales.shape, generator=gen)
@@ -186,85 +216,32 @@ class LodTrainer(Trainer):
         new["log_scales"] = new["log_scales"] - math.log(2.0)
         p = float(self.cfg.lod.spawn_opacity)
         new["opacity_logits"] = torch.full_like(new["opacity_logits"], math.log(p / (1.0 - p)))
-        append_gaussians(g, self.optimizer, new)
-        self.strategy.reset(len(g))
-        self._apply_layer_cap(layer)
-        self.log_event(f"layer {layer}: {f} frozen Gaussians, {f} spawned, images at 1/"
-                       f"{self.downscales[layer]}")
+        append_gaussians(g, trainer.optimizer, new)
+        trainer.strategy.reset(len(g))
+        self._apply_layer_cap(trainer, layer)
+        trainer.log_event(f"layer {layer}: {f} frozen Gaussians, {f} spawned, images at 1/"
+                          f"{self.downscales[layer]}")
 
     @torch.no_grad()
-    def _finish_layer(self, layer: int) -> None:
+    def _finish_layer(self, trainer: Trainer, layer: int) -> None:
         """Drop the layer's Gaussians below the opacity threshold; freeze the rest."""
-        g = self.model.gaussians
-        f = self.strategy.frozen
+        g = trainer.model.gaussians
+        f = trainer.strategy.frozen
         keep = torch.ones(len(g), dtype=torch.bool)
         opacity = torch.sigmoid(g.opacity_logits[f:].reshape(-1))
         keep[f:] = opacity >= self.cfg.lod.opacity_threshold
         if len(g) > f and not bool(keep[f:].any()):
             # a threshold above every opacity would leave an empty layer: keep it whole
-            self._warn(f"warning: lod.opacity_threshold {self.cfg.lod.opacity_threshold:g} is above "
-                     f"every opacity of layer {layer} (max {float(opacity.max()):.3g}); the "
-                     f"layer is kept unthresholded")
+            trainer.warn(f"warning: lod.opacity_threshold {self.cfg.lod.opacity_threshold:g} is "
+                         f"above every opacity of layer {layer} (max {float(opacity.max()):.3g}); "
+                         f"the layer is kept unthresholded")
             keep[f:] = True
         if not bool(keep.all()):
-            keep_gaussians(g, self.optimizer, keep)
+            keep_gaussians(g, trainer.optimizer, keep)
         self.layer_sizes.append(len(g) - f)
-        self.strategy.frozen = len(g)
-        self.strategy.reset(len(g))
-        self._snapshot = self._take_snapshot()
-
-    def log_event(self, text: str) -> None:
-        if self.progress and self.log is not None:
-            self.log(text)
-
-    def _warn(self, text: str) -> None:
-        if self.log is not None:
-            self.log(text)
-
-    # -- one step -----------------------------------------------------------------------------
-    def train_step(self, step: int) -> dict:
-        self._current_step = step
-        layer = self.layer_of(step)
-        self.train_views = self.views_of(layer)
-        record = super().train_step(step)
-        record["layer"] = layer
-        if step + 1 == self.layer_end(layer):
-            self._finish_layer(layer)
-            record["layer_sizes"] = list(self.layer_sizes)
-            record["gaussians"] = len(self.model.gaussians)
-        return record
-
-    # -- state ------------------------------------------------------------------------------
-    def _build(self, state) -> None:
-        self._resumed_lod = None if state is None else state.get("lod")
-        super()._build(state)
-
-    def lod_state(self) -> dict:
-        return {"levels": self.levels, "layer_sizes": list(self.layer_sizes),
-                "downscales": list(self.downscales), "iterations": self.layer_iterations,
-                "opacity_threshold": float(self.cfg.lod.opacity_threshold)}
-
-    def checkpoint_state(self) -> dict:
-        state = super().checkpoint_state()
-        state["lod"] = self.lod_state()
-        return state
-
-    def model_state(self) -> dict:
-        state = super().model_state()
-        sizes = list(self.layer_sizes)
-        rest = len(self.model.gaussians) - sum(sizes)
-        if rest:  # an unfinished layer (model_state of a run stopped early)
-            sizes.append(rest)
-        state["layer"] = torch.from_numpy(layer_ids(sizes))
-        state["lod"] = {**self.lod_state(), "layer_sizes": sizes}
-        return state
-
-
-def make_trainer(cfg, data_dir, run_dir, resume: bool = False, progress: bool = True,
-                 log=print) -> Trainer:
-    """A `LodTrainer` when cfg.lod.levels > 1, else the ordinary `Trainer`."""
-    cls = LodTrainer if cfg.lod.levels > 1 else Trainer
-    return cls(cfg, data_dir, run_dir, resume=resume, progress=progress, log=log)
+        trainer.strategy.frozen = len(g)
+        trainer.strategy.reset(len(g))
+        self._snapshot = self._take_snapshot(trainer)
 
 
 def run_layers(meta: dict, n: int) -> np.ndarray:
@@ -278,4 +255,4 @@ def run_layers(meta: dict, n: int) -> np.ndarray:
     return arr
 
 
-__all__ = ["LodTrainer", "layer_downscales", "layer_ids", "make_trainer", "run_layers"]
+__all__ = ["LayeredSchedule", "layer_downscales", "layer_ids", "make_trainer", "run_layers"]

@@ -1,4 +1,4 @@
-"""Image losses and similarity in torch (SPEC sections 5 and 9): L1 and SSIM with the 3DGS
+"""Image losses and similarity in torch (docs/design.md sections 5 and 9): L1 and SSIM with the 3DGS
 11-tap Gaussian window (sigma 1.5)."""
 
 from __future__ import annotations
@@ -63,7 +63,7 @@ def ssim(img: torch.Tensor, ref: torch.Tensor, window: int = 11) -> torch.Tensor
 
 
 def photometric_loss(img: torch.Tensor, ref: torch.Tensor, ssim_weight: float = 0.2):
-    """(1 - w) L1 + w D-SSIM with D-SSIM = 1 - SSIM, the 3DGS/4DGS image loss (SPEC section 5)."""
+    """(1 - w) L1 + w D-SSIM with D-SSIM = 1 - SSIM, the 3DGS/4DGS image loss (docs/design.md section 5)."""
     l1 = (img - ref).abs().mean()
     if ssim_weight == 0:
         return l1
@@ -71,6 +71,6 @@ def photometric_loss(img: torch.Tensor, ref: torch.Tensor, ssim_weight: float = 
 
 
 def psnr(img: torch.Tensor, ref: torch.Tensor) -> float:
-    """20 log10(1 / sqrt(MSE)) on [0, 1] images (SPEC section 9)."""
+    """20 log10(1 / sqrt(MSE)) on [0, 1] images (docs/design.md section 9)."""
     mse = torch.mean((img.detach().clamp(0, 1) - ref) ** 2).item()
     return float("inf") if mse == 0 else -10.0 * torch.log10(torch.tensor(mse)).item()

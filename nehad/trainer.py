@@ -1,7 +1,8 @@
-"""The NeHaD trainer (SPEC section 5): a coarse stage of static 3DGS, then a fine stage with the
-deformation field on; Adam with per-parameter learning rates and exponential schedules; the 3DGS
-densification strategy; 0.8 L1 + 0.2 D-SSIM plus the hex-plane regularisers; SH degree schedule;
-atomic checkpoints and exact resume.
+"""The NeHaD trainer (docs/training.md): one loop that follows a schedule object
+(`nehad.schedule`: the coarse stage of static 3DGS, then the fine stage with the deformation field
+on; `nehad.lod.LayeredSchedule` adds streaming layers); Adam with per-parameter learning rates and
+exponential schedules; the 3DGS densification strategy (`nehad.densify`); 0.8 L1 + 0.2 D-SSIM
+plus the hex-plane regularisers; SH degree schedule; atomic checkpoints and exact resume.
 
 Determinism: the views of step s are drawn from a generator seeded by (seed, s) and the split
 noise of step s likewise, so a run resumed from a checkpoint takes the same steps as one that
@@ -25,12 +26,12 @@ from nehad.config import Config, config_from_dict
 from nehad.configtools import ConfigError, diff, dump_yaml, to_dict
 from nehad.data.dnerf import DNeRFScene
 from nehad.data.loader import load_dataset
-from nehad.curriculum import (TimeWindow, eligible_frames, hold_time_planes, resolution_factor,
-                              widen_to_frames, window_at)
+from nehad.curriculum import eligible_frames, hold_time_planes, resolution_factor
 from nehad.densify import DensifySchedule, DensifyStrategy
 from nehad.field.deformation import DeformationField
 from nehad.gaussians import GaussianParameters
 from nehad.losses import photometric_loss, psnr
+from nehad.schedule import Phase, Schedule, schedule_for
 from nehad.splat.rasterize import render_torch
 
 
@@ -122,26 +123,14 @@ def scene_bounds(points: np.ndarray | None) -> np.ndarray:
     return np.stack([lo - pad, hi + pad]).astype(np.float32)
 
 
-def gaussian_bounds(gaussians: GaussianParameters, padding: float,
-                    min_opacity: float = 0.1) -> np.ndarray | None:
-    """(2, 3) box around the Gaussians with opacity >= `min_opacity` (0.5 and 99.5
-    percentiles of their means, so a few stray ones do not stretch it), padded by `padding` of
-    its size on each side; None if fewer than 10 Gaussians qualify."""
-    with torch.no_grad():
-        keep = torch.sigmoid(gaussians.opacity_logits).reshape(-1) >= min_opacity
-        pts = gaussians.means[keep].numpy()
-    if len(pts) < 10:
-        return None
-    lo, hi = np.percentile(pts, 0.5, axis=0), np.percentile(pts, 99.5, axis=0)
-    size = np.maximum(hi - lo, 1e-3)
-    pad = padding * size.max()
-    return np.stack([lo - pad, hi + pad]).astype(np.float32)
-
-
 class Trainer:
+    """Trains a run directory from a dataset, following `schedule` (default: the one `cfg` asks
+    for, `nehad.schedule.schedule_for`); see `make_trainer`."""
+
     def __init__(self, cfg: Config, data_dir, run_dir, resume: bool = False,
-                 progress: bool = True, log=print):
+                 progress: bool = True, log=print, schedule: Schedule | None = None):
         self.cfg = cfg
+        self.schedule = schedule_for(cfg) if schedule is None else schedule
         self.run = Path(run_dir)
         self.data_dir = Path(data_dir)
         self.progress = progress
@@ -164,7 +153,7 @@ class Trainer:
         self._scaled_views: dict = {}
         self.extent = float(self.scene.extent)
         self.aabb = scene_bounds(self.scene.initial_points)
-        self.total_steps = cfg.coarse.iterations + cfg.fine.iterations
+        self.total_steps = self.schedule.total_steps
         self.step = 0
         self._check_run_dir(resume)
         state = self._latest_checkpoint() if resume else None
@@ -228,9 +217,8 @@ class Trainer:
             self.optimizer.load_state_dict(state["optimizer"])
             self.strategy.load_state_dict(state["strategy"])
             self.step = int(state["step"])
-        # (the base class's stage_of: a subclass's may need state set after _build)
-        stage, _, length = Trainer.stage_of(self, min(self.step, max(self.total_steps - 1, 0)))
-        self._enter_stage(stage, length)
+        self.schedule.attach(self, state)
+        self._enter_stage(self.schedule.phase(min(self.step, max(self.total_steps - 1, 0))))
 
     def _make_optimizer(self) -> torch.optim.Optimizer:
         o, g = self.cfg.optim, self.model.gaussians
@@ -249,98 +237,93 @@ class Trainer:
         groups.append({"name": "decoder", "params": list(field_groups["decoder"]), "lr": 0.0})
         return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
 
-    # -- schedule ------------------------------------------------------------------------
-    def stage_of(self, step: int) -> tuple[str, int, int]:
-        """(stage name, iteration within the stage, stage length)."""
-        c = self.cfg.coarse.iterations
-        if step < c:
-            return "coarse", step, c
-        return "fine", step - c, self.cfg.fine.iterations
+    # -- what the schedule asks of the trainer ------------------------------------------
+    def load_views(self, downscale: int) -> Views:
+        """The training split at another image downscale (a streaming layer's)."""
+        cfg = self.cfg
+        scene = load_dataset(self.data_dir, splits=(cfg.data.train_split,),
+                             background=self.load_background, downscale=downscale,
+                             frame_stride=cfg.data.frame_stride)
+        return _views(scene, cfg.data.train_split)
 
-    def _set_learning_rates(self, stage: str, it: int, length: int) -> None:
+    @property
+    def layer_sizes(self) -> list[int]:
+        """Gaussian counts of the finished streaming layers ([] without layers)."""
+        return self.schedule.layer_sizes
+
+    def log_event(self, text: str) -> None:
+        """A line about the run's progress (shown with the progress bar)."""
+        if self.progress and self.log is not None:
+            self.log(text)
+
+    def warn(self, text: str) -> None:
+        if self.log is not None:
+            self.log(text)
+
+    # -- what the schedule decides ------------------------------------------------------
+    def _set_learning_rates(self, phase: Phase) -> None:
+        """Exponential decays over the stage (layer); the groups the schedule freezes get 0."""
         o = self.cfg.optim
-        fine = stage == "fine"
+        it, length = phase.it, phase.length
+        frozen = self.schedule.frozen_groups(phase)
         for group in self.optimizer.param_groups:
             name = group["name"]
             if name in ("means", "mu_eq"):
                 lr = exp_lr(it, length, o.position_lr_init, o.position_lr_final) * self.extent
-                group["lr"] = lr if (name == "means" or fine) else 0.0
             elif name == "t_eq":
-                group["lr"] = o.t_eq_lr if fine else 0.0
+                lr = o.t_eq_lr
             elif name == "grid":
-                group["lr"] = exp_lr(it, length, o.grid_lr_init, o.grid_lr_final) if fine else 0.0
+                lr = exp_lr(it, length, o.grid_lr_init, o.grid_lr_final)
             elif name == "decoder":
                 final = o.decoder_lr if o.decoder_lr_final is None else o.decoder_lr_final
-                group["lr"] = exp_lr(it, length, o.decoder_lr, final) if fine else 0.0
+                lr = exp_lr(it, length, o.decoder_lr, final)
+            else:
+                continue  # constant learning rates
+            group["lr"] = 0.0 if name in frozen else lr
 
-    def stage_config(self, stage: str):
-        return self.cfg.coarse if stage == "coarse" else self.cfg.fine
-
-    def _enter_stage(self, stage: str, length: int) -> None:
-        """Give the densification strategy the schedule of `stage` (nehad.densify)."""
-        self.strategy.schedule = DensifySchedule.for_stage(self.stage_config(stage), length,
+    def _enter_stage(self, phase: Phase) -> None:
+        """Give the densification strategy the schedule of the phase's stage (nehad.densify)."""
+        self.strategy.schedule = DensifySchedule.for_stage(self.schedule.stage_config(phase),
+                                                           phase.length,
                                                            self.cfg.densify.interval)
-        self._stage = (stage, length)
+        self._phase_key = phase.key
 
-    def time_window(self, stage: str, it: int, length: int) -> TimeWindow:
-        """The times step `it` of `stage` may draw frames from (nehad.curriculum)."""
-        config = self.stage_config(stage)
-        window = window_at(config, it, length, self.cfg.train.canonical_time,
-                           self.scene.time_range)
-        return widen_to_frames(window, self.train_views.times, config.min_window_frames)
-
-    def resolution_factor(self, step: int) -> int:
-        """Extra downscale factor of `step` (data.resolution_schedule over all steps)."""
-        return self.warmup_factor(step, self.total_steps)
-
-    def warmup_factor(self, step: int, total: int) -> int:
-        """data.resolution_schedule at `step` of `total`, limited by data.warmup_min_size."""
-        image = self.train_views.images[0] if self.train_views.images else None
+    def warmup_factor(self, views: Views, step: int, total: int) -> int:
+        """data.resolution_schedule at `step` of `total` for `views`, limited by
+        data.warmup_min_size."""
+        image = views.images[0] if views.images else None
         short_side = None if image is None else min(image.shape[0], image.shape[1])
         return resolution_factor(self.cfg.data.resolution_schedule, step, total, short_side,
                                  self.cfg.data.warmup_min_size)
 
-    def views_at(self, step: int) -> Views:
-        """The training views of `step` at its resolution (data.resolution_schedule)."""
-        factor = self.resolution_factor(step)
+    def views_at(self, step: int, phase: Phase | None = None) -> Views:
+        """The training views of `step`: its layer's, at its point of the resolution warm-up."""
+        phase = self.schedule.phase(step) if phase is None else phase
+        views = self.schedule.views(self, phase.layer)
+        warmup = self.schedule.resolution_warmup(step, phase)
+        factor = 1 if warmup is None else self.warmup_factor(views, *warmup)
         if factor == 1:
-            return self.train_views
-        key = (id(self.train_views), factor)
+            return views
+        key = (id(views), factor)
         if key not in self._scaled_views:
-            self._scaled_views[key] = _downscale_views(self.train_views, factor)
+            self._scaled_views[key] = _downscale_views(views, factor)
         return self._scaled_views[key]
 
     def active_sh_degree(self, step: int) -> int:
         return min(self.cfg.train.sh_degree, step // max(self.cfg.train.sh_degree_interval, 1))
 
-    def start_fine_stage(self) -> None:
-        """Called at the first fine step: the BED equilibria start at the Gaussians, t_eq at the
-        canonical time (SPEC 4.7, docs/training.md); layered training (nehad.lod) overrides it
-        to start each enhancement layer instead."""
-        g = self.model.gaussians
-        g.reset_equilibrium(self.cfg.train.canonical_time)
-        if self.cfg.train.fit_box_to_gaussians:
-            box = gaussian_bounds(g, self.cfg.train.fit_box_padding)
-            if box is not None:
-                self.aabb = box
-                self.model.field.set_aabb(torch.as_tensor(box))
-        if self.cfg.train.standardize_trunk and len(g) > 1:
-            self.model.field.standardize_trunk(g.means.detach(), self.cfg.train.canonical_time,
-                                               g.log_scales.detach(), g.quats.detach())
-        self.strategy.reset(len(g))
-
     # -- one step --------------------------------------------------------------------------
     def train_step(self, step: int) -> dict:
-        cfg = self.cfg
-        stage, it, length = self.stage_of(step)
-        if it == 0 or (stage, length) != self._stage:
-            self._enter_stage(stage, length)
-        if stage == "fine" and it == 0:
-            self.start_fine_stage()
-        self._set_learning_rates(stage, it, length)
-        batch = self.stage_config(stage).batch_size
-        window = self.time_window(stage, it, length)
-        views = self.views_at(step)
+        cfg, schedule = self.cfg, self.schedule
+        phase = schedule.phase(step)
+        if phase.it == 0 or phase.key != self._phase_key:
+            self._enter_stage(phase)
+        if phase.it == 0:
+            schedule.begin(self, phase)  # a stage's or layer's first step
+        self._set_learning_rates(phase)
+        batch = schedule.stage_config(phase).batch_size
+        window = schedule.time_window(self, phase)
+        views = self.views_at(step, phase)
         rng = np.random.default_rng([cfg.train.seed, step])
         pool = eligible_frames(views.times, window)
         picks = rng.choice(pool, size=batch, replace=batch > len(pool))
@@ -350,7 +333,7 @@ class Trainer:
         renders = []
         for k in picks:
             cam = views.cameras[k]
-            params = self.model.gaussians_at(views.times[k], deform=stage == "fine")
+            params = self.model.gaussians_at(views.times[k], deform=phase.deforms)
             target, alpha = views.images[k], views.alphas[k]
             background = self.background
             if cfg.data.random_background and alpha is not None:
@@ -366,7 +349,7 @@ class Trainer:
                               if alpha is not None and background != self.background
                               else target))
             renders.append((res, cam))
-        if stage == "fine":
+        if phase.deforms:
             total = total + self.model.field.regularization_loss()
         if not torch.isfinite(total):
             raise RunError(f"step {step + 1}: the loss became {float(total)}; training stopped "
@@ -375,25 +358,31 @@ class Trainer:
         total.backward()
         for res, cam in renders:
             self.strategy.record_view(res.means2d.grad, res.radii, cam.width, cam.height)
+        schedule.before_update(self)
         self.optimizer.step()
-        if stage == "fine" and cfg.train.hold_time_planes:
+        schedule.after_update(self)
+        if phase.deforms and cfg.train.hold_time_planes:
             full = window.lo <= self.scene.time_range[0] and window.hi >= self.scene.time_range[1]
             if not full:
                 hold_time_planes(self.model.field.hexplane, window)
         gen = torch.Generator().manual_seed(int(cfg.train.seed) * 1_000_003 + step)
-        did = self.strategy.step_post_backward(self.model.gaussians, self.optimizer, it + 1, gen)
-        return {"step": step + 1, "stage": stage, "loss": float(total.item()),
-                "psnr": float(np.mean(psnrs)), "gaussians": len(self.model.gaussians),
-                "sh_degree": degree, "window": [round(window.lo, 4), round(window.hi, 4)],
-                "resolution": list(res.rgb.shape[1::-1]),
-                **{k: v for k, v in did.items() if k != "gaussians"}}
+        did = self.strategy.step_post_backward(self.model.gaussians, self.optimizer, phase.it + 1,
+                                               gen)
+        record = {"step": step + 1, "stage": phase.stage, "loss": float(total.item()),
+                  "psnr": float(np.mean(psnrs)), "gaussians": len(self.model.gaussians),
+                  "sh_degree": degree, "window": [round(window.lo, 4), round(window.hi, 4)],
+                  "resolution": list(res.rgb.shape[1::-1]),
+                  **{k: v for k, v in did.items() if k != "gaussians"}}
+        schedule.end(self, phase, step, record)
+        return record
 
     # -- loop ----------------------------------------------------------------------------
     def checkpoint_state(self) -> dict:
         return {"step": self.step, "gaussians": self.model.gaussians.state_dict(),
                 "field": self.model.field.state_dict(),
                 "optimizer": self.optimizer.state_dict(),
-                "strategy": self.strategy.state_dict(), "config": to_dict(self.cfg)}
+                "strategy": self.strategy.state_dict(), "config": to_dict(self.cfg),
+                **self.schedule.state_dict()}
 
     def model_state(self) -> dict:
         return {"format": "nehad-run/1", "gaussians": self.model.gaussians.state_dict(),
@@ -402,7 +391,7 @@ class Trainer:
                 "background": list(self.background),
                 "sh_degree": self.active_sh_degree(self.total_steps),
                 "time_range": list(self.scene.time_range), "steps": self.step,
-                "data_dir": str(self.data_dir.resolve())}
+                "data_dir": str(self.data_dir.resolve()), **self.schedule.model_extras(self)}
 
     def train(self) -> dict:
         from tqdm import tqdm
@@ -429,6 +418,14 @@ class Trainer:
         atomic_torch_save(self.model_state(), self.run / "model.pt")
         return {"steps": self.step, "gaussians": len(self.model.gaussians),
                 "seconds": time.perf_counter() - start_time, "last": record}
+
+
+def make_trainer(cfg: Config, data_dir, run_dir, resume: bool = False, progress: bool = True,
+                 log=print) -> Trainer:
+    """The trainer `nehad train`, `nehad demo` and bench/quality.py run: the schedule follows
+    from `cfg` (coarse + fine stages; streaming layers when lod.levels > 1)."""
+    return Trainer(cfg, data_dir, run_dir, resume=resume, progress=progress, log=log,
+                   schedule=schedule_for(cfg))
 
 
 def cloud_at(model: NeHaDModel, t: float | None, sh_degree: int):

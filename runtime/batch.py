@@ -1,4 +1,4 @@
-"""`nehad batch jobs.yaml`: many videos and still renders from one file (issue 5, SPEC section 10).
+"""`nehad batch jobs.yaml`: many videos and still renders from one file (issue 5, docs/design.md section 10).
 
 ::
 
@@ -25,8 +25,9 @@
         time: 0.5
 
 Keys of a video job: ``name, type, model, output, path, time, frames, fps, size, background,
-frames_dir, frame_format, side_by_side, crf, extrapolate``; of an image job: ``name, type, model,
-output, view, time, size, background, extrapolate``. ``type`` (video or image) follows from the
+frames_dir, frame_format, side_by_side, crf, extrapolate, lod``; of an image job: ``name, type,
+model, output, view, time, size, background, extrapolate, lod``. ``model`` is any scene
+``nehad render`` takes (runtime/scene.py); ``lod`` keeps streaming layers 0..lod. ``type`` (video or image) follows from the
 output's suffix when absent. ``time`` is a number (freeze), ``"A:B"`` or ``[A, B]`` (sweep) or
 ``own``; ``size`` is ``"WxH"`` or ``[W, H]``; ``background`` is ``[R, G, B]`` or ``"R,G,B"``.
 
@@ -45,19 +46,24 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .errors import InputProblem
+
 __all__ = ["BatchError", "BatchSpec", "BatchJob", "JobResult", "load_batch", "run_batch",
            "format_summary", "VIDEO_KEYS", "IMAGE_KEYS", "TOP_KEYS"]
 
 TOP_KEYS = ("jobs", "defaults", "workers", "scheduler", "threads")
 VIDEO_KEYS = ("name", "type", "model", "output", "path", "time", "frames", "fps", "size",
-              "background", "frames_dir", "frame_format", "side_by_side", "crf", "extrapolate")
+              "background", "frames_dir", "frame_format", "side_by_side", "crf", "extrapolate",
+              "lod")
 IMAGE_KEYS = ("name", "type", "model", "output", "view", "time", "size", "background",
-              "extrapolate")
+              "extrapolate", "lod")
+#: How a job's error names the inputs a runtime message leaves as {input} (runtime/errors.py).
+KEY_NAMES = {"extrapolate": "extrapolate: true"}
 ALL_KEYS = tuple(dict.fromkeys(VIDEO_KEYS + IMAGE_KEYS))
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff")
 
 
-class BatchError(ValueError):
+class BatchError(InputProblem):
     """A jobs file that cannot be used; the message names the file, the job and the key."""
 
 
@@ -198,6 +204,10 @@ def _convert(key: str, value, w: _Where, base: Path):
         if value not in ("png", "exr"):
             raise w.err(key, f"expected png or exr, got {value!r}")
         return value
+    if key == "lod":
+        if not _is_int(value) or value < 0:
+            raise w.err(key, f"expected a whole number >= 0, got {value!r}")
+        return int(value)
     if key in ("side_by_side", "extrapolate"):
         if not isinstance(value, bool):
             raise w.err(key, f"expected true or false, got {value!r}")
@@ -357,96 +367,73 @@ def load_batch(path) -> BatchSpec:
 # running
 
 
-def _video_job(job: BatchJob):
+def _video_job(job: BatchJob, openers: tuple = ()):
+    """The VideoJob of a video job; keys the job leaves out keep VideoJob's defaults."""
     from .video import VideoJob
 
     s = job.settings
-    return VideoJob(model=s["model"], output=s.get("output"), path=s.get("path", "orbit"),
-                    time=s.get("time"), frames=s.get("frames"), size=s.get("size"),
-                    fps=s.get("fps", 30.0), frames_dir=s.get("frames_dir"),
-                    frame_format=s.get("frame_format", "png"),
-                    side_by_side=s.get("side_by_side", False), background=s.get("background"),
-                    extrapolate=s.get("extrapolate", False), crf=s.get("crf", 18), name=job.name)
+    given = {k: s[k] for k in ("output", "path", "time", "frames", "size", "fps", "frames_dir",
+                               "frame_format", "side_by_side", "background", "extrapolate",
+                               "crf", "lod") if k in s}
+    return VideoJob(model=s["model"], name=job.name, openers=tuple(openers), **given)
 
 
-def _image_task(job: BatchJob, resume: bool, threads):
-    """The FrameTask of an image job (one camera at one time)."""
-    from .cameras import load_view
+def _image_task(job: BatchJob, resume: bool, threads, openers: tuple = ()):
+    """The FrameTask of an image job (one camera at one time): the scene, camera and time
+    chosen as `nehad render` chooses them (runtime/scene.py)."""
     from .distribute import FrameTask
-    from .paths import PathError, check_time, parse_path_spec, parse_time_spec
     from .memory import check_frame_memory
-    from .video import VideoError, scene_info
+    from .paths import PathError, parse_time_spec
+    from .scene import choose_camera, open_scene, scene_time
+    from .video import VideoError
 
     s = job.settings
     out = Path(s["output"])
     if not out.parent.is_dir():
-        raise VideoError(f"output {out}: folder {out.parent} does not exist")
-    view = s.get("view", "default")
-    spec = parse_path_spec(view)
-    ref, default_bg, n_gaussians = scene_info(s["model"])
-    if spec.kind == "default":
-        if ref.default_camera is None:
-            raise PathError(f"view {view}: the scene has no default camera; give a camera file")
-        cam = ref.default_camera
-    elif spec.kind == "file":
-        cam = load_view(spec.file)
-        if isinstance(cam, list):
-            if len(cam) != 1:
-                raise PathError(f"view {view}: holds {len(cam)} cameras; pick one with FILE:K")
-            cam = cam[0]
-    else:
-        raise PathError(f"view {view}: an image job needs one camera (a camera file, FILE:K or "
-                        f"default)")
+        raise VideoError(f"{{output}} {out}: folder {out.parent} does not exist", "output")
+    scene = open_scene(s["model"], lod=s.get("lod"), openers=tuple(openers))
+    cam = choose_camera(scene, s.get("view", "default"), s.get("size"))
     t = None
-    if ref.time_range is not None:
-        tspec = parse_time_spec(s["time"]) if "time" in s else None
-        if tspec is not None and tspec.mode == "sweep":
-            raise PathError(f"time {s['time']}: an image job renders one time T")
-        t = tspec.start if tspec is not None and tspec.mode == "freeze" else cam.time
-        if t is None:
-            raise PathError(f"view {view}: the camera has no time; give time: T")
-        t = check_time(t, ref, s.get("extrapolate", False), "time", "extrapolate: true")
-    if s.get("size") is not None:
-        cam = cam.with_size(*s["size"])
-    check_frame_memory(cam.width, cam.height, n_gaussians,
+    if "time" in s:
+        tspec = parse_time_spec(s["time"])
+        if tspec.mode == "sweep":
+            raise PathError(f"{{time}} {s['time']}: an image job renders one time T", "time")
+        t = tspec.start if tspec.mode == "freeze" else None
+    t = scene_time(scene, cam, t, s.get("extrapolate", False))
+    check_frame_memory(cam.width, cam.height, scene.num_gaussians,
                        f"size {s['size'][0]}x{s['size'][1]}" if s.get("size") is not None
-                       else f"view {view}")
-    bg = tuple(s.get("background") or default_bg)
+                       else f"view {s.get('view', 'default')}")
+    bg = tuple(s.get("background") or scene.default_background)
     return FrameTask(str(Path(s["model"]).absolute()), 0, cam, t, bg, str(out.absolute()),
-                     None, threads, skip_existing=resume)
+                     None, threads, skip_existing=resume, lod=s.get("lod"),
+                     openers=tuple(openers))
 
 
 def _one_line(e: BaseException) -> str:
-    return " ".join(str(e).split()) or type(e).__name__
+    text = e.message(KEY_NAMES) if isinstance(e, InputProblem) else str(e)
+    return " ".join(text.split()) or type(e).__name__
 
 
 def run_batch(spec: BatchSpec, backend, resume: bool = False, progress: bool = True,
-              on_job=None) -> list[JobResult]:
+              on_job=None, openers: tuple = ()) -> list[JobResult]:
     """Run every job of `spec` on `backend`; a job's failure is recorded and the next one runs.
-    `on_job(result)` is called after each job. KeyboardInterrupt stops the batch."""
-    from .cameras import CameraError
-    from .distribute import RenderError
-    from .images import ImageError
-    from .lock import LockError
-    from .memory import FrameMemoryError
-    from .onnx_model import OnnxModelError
-    from .paths import PathError
-    from .ply import PlyError
-    from .video import VideoError, run_video
+    `on_job(result)` is called after each job; `openers` open scene kinds the runtime cannot
+    (runtime/scene.py). KeyboardInterrupt stops the batch."""
+    from .video import run_video
 
-    user_errors = (VideoError, PathError, CameraError, RenderError, ImageError, OnnxModelError,
-                   PlyError, FrameMemoryError, LockError, OSError)
+    user_errors = (InputProblem, OSError)
     results = []
     for job in spec.jobs:
         start = time.perf_counter()
         try:
             if job.type == "video":
-                rep = run_video(_video_job(job), backend, resume=resume, progress=progress)
+                rep = run_video(_video_job(job, openers), backend, resume=resume,
+                                progress=progress)
                 out = str(rep.output) if rep.output is not None else f"{rep.frames_dir}/"
                 res = JobResult(job, True, rep.frames, rep.rendered,
                                 time.perf_counter() - start, out)
             else:
-                task = _image_task(job, resume, None)
+                task = _image_task(job, resume, None, openers)
                 r = backend.run([task])[0]
                 res = JobResult(job, True, 1, 0 if r.skipped else 1, time.perf_counter() - start,
                                 r.path)

@@ -1,10 +1,10 @@
-"""Pinhole cameras in the conventions of SPEC section 3, and the `--view` file of SPEC section 3.1.
+"""Pinhole cameras in the conventions of docs/design.md section 3, and the `--view` file of docs/design.md section 3.1.
 
 A :class:`Camera` always stores the world-to-camera transform in OpenCV axes (x right, y down,
 z forward). Pixel (i, j) has its centre at (i + 0.5, j + 0.5); a camera-space point (X, Y, Z)
 projects to u = fx X/Z + cx, v = fy Y/Z + cy.
 
-Camera descriptions accepted by :func:`parse_camera` / :func:`load_view` (SPEC 3.1):
+Camera descriptions accepted by :func:`parse_camera` / :func:`load_view` (docs/design.md section 3.1):
 
 * cam.json (canonical form, written by :func:`camera_to_dict` / :func:`save_view`)::
 
@@ -43,8 +43,10 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import InputProblem
+
 # Blender/NeRF/D-NeRF store camera-to-world with OpenGL axes (y up, z back); negating the
-# rotation's columns 1 and 2 turns it into OpenCV axes (SPEC section 3).
+# rotation's columns 1 and 2 turns it into OpenCV axes (docs/design.md section 3).
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 ROTATION_TOLERANCE = 1e-4  # |R^T R - I| (max abs) and |det R - 1| allowed in a camera rotation
@@ -53,7 +55,7 @@ _CONVENTIONS = ("opengl", "opencv")
 _IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".PNG", ".JPG", ".JPEG")
 
 
-class CameraError(ValueError):
+class CameraError(InputProblem):
     """A camera description is missing a field or holds an invalid value (names the field)."""
 
 
@@ -117,7 +119,7 @@ class Camera:
     def project(self, points) -> tuple[np.ndarray, np.ndarray]:
         """Project world points (N, 3) -> (pixel coordinates (N, 2), view depth z (N,)).
 
-        Follows SPEC 3: u = fx X/Z + cx, v = fy Y/Z + cy in OpenCV camera axes.
+        Follows docs/design.md section 3: u = fx X/Z + cx, v = fy Y/Z + cy in OpenCV camera axes.
         """
         p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         cam = p @ self.world_to_camera[:3, :3].T + self.world_to_camera[:3, 3]
@@ -309,7 +311,7 @@ def _is_3dgs_entry(obj: dict) -> bool:
 
 
 def parse_camera(obj: dict, *, source: str = "") -> Camera:
-    """One camera from a cam.json dict or a 3DGS ``cameras.json`` entry (SPEC 3.1).
+    """One camera from a cam.json dict or a 3DGS ``cameras.json`` entry (docs/design.md section 3.1).
 
     `source` (e.g. the file name) prefixes every error message. Raises :class:`CameraError`.
     """
@@ -469,7 +471,7 @@ def _check_index(frame, count: int, source: str, fld: str) -> int:
 
 
 def load_view(path, frame: int | None = None) -> Camera | list[Camera]:
-    """Cameras from a `--view` file (SPEC 3.1).
+    """Cameras from a `--view` file (docs/design.md section 3.1).
 
     `path` is a cam.json (one object -> :class:`Camera`; a list -> a camera path), a 3DGS
     ``cameras.json`` (list), or a D-NeRF/nerfstudio transforms file (``frames``). With a frame
@@ -541,7 +543,7 @@ def frame_image_path(transforms_path, index: int) -> Path:
 
 
 def camera_to_dict(cam: Camera) -> dict:
-    """The canonical cam.json form of `cam` (SPEC 3.1; OpenGL camera-to-world)."""
+    """The canonical cam.json form of `cam` (docs/design.md section 3.1; OpenGL camera-to-world)."""
     c2w = cam.camera_to_world_opengl
     d = {"width": int(cam.width), "height": int(cam.height), "fx": float(cam.fx),
          "fy": float(cam.fy), "cx": float(cam.cx), "cy": float(cam.cy),
@@ -554,7 +556,7 @@ def camera_to_dict(cam: Camera) -> dict:
 
 
 def save_view(path, cam: Camera | list[Camera]) -> Path:
-    """Write one camera (or a camera path) as cam.json, atomically (SPEC 3.1, 10)."""
+    """Write one camera (or a camera path) as cam.json, atomically (docs/design.md section 3.1, 10)."""
     from .images import atomic_path
 
     path = Path(path)

@@ -1,4 +1,4 @@
-"""Frames as independent tasks: one process, a local pool, or a Dask cluster (SPEC section 10).
+"""Frames as independent tasks: one process, a local pool, or a Dask cluster (docs/design.md section 10).
 
 Every frame of a video or batch is a :class:`FrameTask`: a model file, a camera, a time and the
 file to write. :func:`render_frame_task` renders one and returns a :class:`FrameResult` (with the
@@ -40,6 +40,8 @@ from typing import Callable, NamedTuple
 
 import numpy as np
 
+from .errors import InputProblem
+
 __all__ = ["FrameTask", "FrameResult", "RenderError", "render_frame_task", "render_frame_image",
            "cached_scene", "SerialBackend", "PoolBackend", "DaskBackend", "make_backend",
            "MAX_ATTEMPTS"]
@@ -52,7 +54,7 @@ PNG_COMPRESSION = 1
 CONNECT_TIMEOUT = 30.0
 
 
-class RenderError(RuntimeError):
+class RenderError(InputProblem, RuntimeError):
     """A frame could not be rendered (after its retries); the message names the frame."""
 
 
@@ -60,8 +62,9 @@ class RenderError(RuntimeError):
 class FrameTask:
     """One frame to render (picklable: it travels to pool and Dask workers).
 
-    `model`: absolute path of an exported ``.onnx`` (or a static 3DGS ``.ply``), the same path on
-    every worker. `output`: the image to write (``.png`` 8-bit or ``.exr`` float); its folder must
+    `model`: absolute path of a scene (runtime/scene.py: an exported ``.onnx``, a static 3DGS
+    ``.ply``, a split layers folder, or a run folder when `openers` can open it), the same path on
+    every worker; `lod` keeps streaming layers 0..lod. `output`: the image to write (``.png`` 8-bit or ``.exr`` float); its folder must
     exist where the task runs. `ground_truth`: an image drawn to the right of the render
     (side by side), composited over `background` and resized to the render size. `threads`:
     onnxruntime and Numba threads for this frame (None: `host_threads` for this host, else
@@ -78,6 +81,8 @@ class FrameTask:
     threads: int | None = None
     skip_existing: bool = True
     host_threads: tuple = ()  # ((hostname, threads), ...): the Dask backend's per-host default
+    lod: int | None = None
+    openers: tuple = ()  # "module:function" scene openers (runtime/scene.py)
 
 
 class FrameResult(NamedTuple):
@@ -95,18 +100,6 @@ class FrameResult(NamedTuple):
 # the per-process model cache
 
 
-class _StaticScene:
-    """A 3DGS PLY: the same Gaussians at every time."""
-
-    def __init__(self, path: str):
-        from .ply import read_gaussian_ply
-
-        self.cloud = read_gaussian_ply(path)
-
-    def gaussians(self, time):
-        return self.cloud
-
-
 class _SceneCache:
     """Models loaded by this process, at most `size`, least recently used dropped first. Its lock
     guards the cache and, with Numba's workqueue threading layer, serialises the frames of a
@@ -121,18 +114,15 @@ class _SceneCache:
         # kernels at once; omp and tbb allow it. Known after the first frame (drawn locked).
         self.concurrent_frames = False
 
-    def get(self, path: str, threads: int | None):
+    def get(self, path: str, threads: int | None, lod: int | None = None, openers: tuple = ()):
         st = os.stat(path)
-        key = (os.path.abspath(path), st.st_size, st.st_mtime_ns, threads)
+        key = (os.path.abspath(path), st.st_size, st.st_mtime_ns, threads, lod, tuple(openers))
         with self.lock:
             scene = self.scenes.get(key)
             if scene is None:
-                if path.lower().endswith(".ply"):
-                    scene = _StaticScene(path)
-                else:
-                    from .onnx_model import OnnxModel
+                from .scene import open_scene
 
-                    scene = OnnxModel(path, threads=threads)
+                scene = open_scene(path, lod=lod, threads=threads, openers=openers)
                 self.loads += 1
                 self.scenes[key] = scene
                 while len(self.scenes) > self.size:
@@ -145,9 +135,10 @@ class _SceneCache:
 _CACHE = _SceneCache()
 
 
-def cached_scene(path, threads: int | None = None):
-    """This process's loaded model for `path` (an OnnxModel, or a static PLY scene)."""
-    return _CACHE.get(str(path), threads)
+def cached_scene(path, threads: int | None = None, lod: int | None = None,
+                 openers: tuple = ()):
+    """This process's opened scene for `path` (runtime/scene.py)."""
+    return _CACHE.get(str(path), threads, lod, openers)
 
 
 def _task_threads(task: FrameTask) -> int | None:
@@ -197,20 +188,16 @@ def render_frame_image(task: FrameTask) -> np.ndarray:
     """The frame's image (H, W, 3) float32 (W doubled with a ground truth beside it)."""
     import numba
 
-    from .memory import check_frame_memory
-    from .raster import render
+    from .render import render_view
 
     threads = _task_threads(task)
-    scene = _CACHE.get(task.model, threads)
+    scene = _CACHE.get(task.model, threads, task.lod, task.openers)
     with contextlib.nullcontext() if _CACHE.concurrent_frames else _CACHE.lock:
         if threads:  # per calling thread in Numba
             numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
-        cloud = scene.gaussians(task.time)
-        cam = task.camera
-        check_frame_memory(cam.width, cam.height, len(cloud),
-                           f"frame {task.index} on {_worker_name()}",
-                           out_width=cam.width * (2 if task.ground_truth else 1))
-        rgb = render(cloud, task.camera, background=task.background).rgb
+        rgb = render_view(scene, task.camera, task.time, task.background,
+                          check_memory=f"frame {task.index} on {_worker_name()}",
+                          out_width=task.camera.width * (2 if task.ground_truth else 1)).image
         if not _CACHE.concurrent_frames:
             _CACHE.concurrent_frames = numba.threading_layer() in ("omp", "tbb")
     if task.ground_truth:
@@ -229,7 +216,7 @@ def render_frame_task(task: FrameTask) -> FrameResult:
     if not os.path.isdir(folder):
         raise RenderError(f"frame {task.index}: the folder {folder} does not exist on "
                           f"{_worker_name()} (frames must go to storage every worker can see)")
-    if not os.path.isfile(task.model):
+    if not os.path.exists(task.model):
         raise RenderError(f"frame {task.index}: the model {task.model} does not exist on "
                           f"{_worker_name()} (the model must be at the same path on every worker)")
     image = render_frame_image(task)
@@ -414,7 +401,7 @@ class DaskBackend:
             try:
                 from distributed import Client
             except ImportError:
-                raise RenderError("--scheduler needs Dask distributed: pip install "
+                raise RenderError("{scheduler} needs Dask distributed: pip install "
                                   "'dask[distributed]'") from None
             try:
                 self._client = Client(self.address, timeout=self.connect_timeout,
@@ -423,7 +410,7 @@ class DaskBackend:
                 raise RenderError(f"cannot reach the Dask scheduler at {self.address}: "
                                   f"{' '.join(str(e).split())[:200]}") from None
             except ValueError as e:
-                raise RenderError(f"--scheduler {self.address}: {e}") from None
+                raise RenderError(f"{{scheduler}} {self.address}: {e}", "scheduler") from None
         return self._client
 
     @property

@@ -1,4 +1,4 @@
-"""The activated Gaussian set every renderer consumes (SPEC section 7 output layout)."""
+"""The activated Gaussian set every renderer consumes (docs/design.md section 7 output layout)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-# Standard 3DGS spherical-harmonics constants (SPEC section 3).
+# Standard 3DGS spherical-harmonics constants (docs/design.md section 3).
 SH_C0 = 0.28209479177387814
 
 

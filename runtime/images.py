@@ -1,4 +1,4 @@
-"""Image files through OpenImageIO (SPEC section 10): PNG 8/16-bit, JPEG, EXR float.
+"""Image files through OpenImageIO (docs/design.md section 10): PNG 8/16-bit, JPEG, EXR float.
 
 Writes are atomic: a temporary file in the same folder is renamed over the target, so a crash
 never leaves a half-written image behind. :func:`atomic_path` is the helper the other writers of
@@ -13,8 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import InputProblem
 
-class ImageError(IOError):
+
+class ImageError(InputProblem, OSError):
     """An image could not be read or written; the message names the file."""
 
 
@@ -35,7 +37,7 @@ def atomic_path(path, error=OSError, sweep: bool = True):
     The temporary file has the same extension as `path` (format detection by extension), a name
     that says which process wrote it (:mod:`nehad.runtime.tempfiles`) and the permissions an
     ordinary new file would have (mkstemp makes 0600 files). On any exception the temporary file
-    is removed and nothing is left at `path` (SPEC section 10). With `sweep`, the stale
+    is removed and nothing is left at `path` (docs/design.md section 10). With `sweep`, the stale
     temporary files of the same target that a killed writer left are removed first (issue 15);
     writers of many files into one folder (video frames) pass False and sweep the folder once.
     """

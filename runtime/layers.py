@@ -1,4 +1,4 @@
-"""Streaming layers on disk and their torch-free reader (SPEC 7-8; docs/streaming.md).
+"""Streaming layers on disk and their torch-free reader (docs/design.md section 7-8; docs/streaming.md).
 
 `nehad export RUN --split-layers DIR` writes
 
@@ -43,6 +43,8 @@ import numpy as np
 
 from nehad.runtime.images import atomic_write_bytes as atomic_write
 
+from .errors import InputProblem
+
 MANIFEST = "manifest.json"
 MANIFEST_FORMAT = "nehad-layers/1"
 CHUNK_FORMAT = "nehad-layer/1"
@@ -54,7 +56,7 @@ EXTRA_PREFIX = "extra_"
 EXTRA_LAYER = "extra_layer"
 
 
-class LayerError(ValueError):
+class LayerError(InputProblem):
     """A layered model folder, manifest or chunk that cannot be used (the message names it)."""
 
 
@@ -188,7 +190,7 @@ class LayeredModel:
         self.entries = self.manifest["layers"]
         self.num_layers = len(self.entries)
         if max_layer is not None and not 0 <= int(max_layer):
-            raise LayerError(f"--lod {max_layer}: must be >= 0")
+            raise LayerError(f"{{lod}} {max_layer}: must be >= 0", "lod")
         self.max_layer = None if max_layer is None else int(max_layer)
         _check_file(self.folder, self.entries[0])
         self.base = OnnxModel(self.folder / self.entries[0]["file"], threads=threads)

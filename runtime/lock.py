@@ -20,10 +20,12 @@ import socket
 import time
 from pathlib import Path
 
+from .errors import InputProblem
+
 __all__ = ["LockError", "lock_file", "output_lock"]
 
 
-class LockError(RuntimeError):
+class LockError(InputProblem, RuntimeError):
     """The output is being written by another run; the message names it."""
 
 

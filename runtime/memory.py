@@ -28,6 +28,8 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
+from .errors import InputProblem
+
 __all__ = ["BYTES_PER_GAUSSIAN", "BYTES_PER_PIXEL", "CAP_ENV", "FrameMemoryError", "FrameMemory",
            "available_memory", "check_cloud_memory", "check_frame_memory", "check_tile_lists",
            "estimate_frame", "format_bytes", "memory_limit"]
@@ -40,7 +42,7 @@ CAP_ENV = "NEHAD_MAX_FRAME_MEMORY"
 _SMALL = 64 << 20
 
 
-class FrameMemoryError(ValueError):
+class FrameMemoryError(InputProblem):
     """A frame (or cloud) would need more memory than is available; the message names the input
     and both figures."""
 

@@ -1,4 +1,4 @@
-"""Load and run an exported `nehad-onnx/1` model without torch (SPEC 7).
+"""Load and run an exported `nehad-onnx/1` model without torch (docs/design.md section 7).
 
     model = OnnxModel("lego.onnx", threads=4)
     cloud = model.gaussians(0.5)          # GaussianCloud for nehad.runtime.raster.render
@@ -27,6 +27,7 @@ import numpy as np
 
 from .gaussians import GaussianCloud
 from .onnx_proto import ModelSummary, ProtoError, graph_sha256, summarize
+from .errors import InputProblem
 
 FORMAT = "nehad-onnx/1"
 OUTPUTS = ("means", "scales", "quats", "opacities", "sh")
@@ -35,7 +36,7 @@ REQUIRED_METADATA = ("format", "sh_degree", "num_gaussians", "time_range", "back
 DIGEST_KEY = "graph_sha256"
 
 
-class OnnxModelError(ValueError):
+class OnnxModelError(InputProblem):
     """An .onnx file that is not a usable nehad-onnx/1 model (the message names the file)."""
 
 
@@ -239,11 +240,11 @@ class OnnxModel:
 
     def gaussians(self, time: float, max_layer: int | None = None) -> GaussianCloud:
         """The deformed, activated Gaussians at `time` for the shared rasterizer; with
-        `max_layer` K, only those of streaming layers 0..K (SPEC 8: the `layer` output)."""
+        `max_layer` K, only those of streaming layers 0..K (docs/design.md section 8: the `layer` output)."""
         o = self.outputs(time)
         if max_layer is not None:
             if not 0 <= int(max_layer) < self.num_layers:
-                raise OnnxModelError(f"{self.source}: --lod {max_layer}: the model has "
+                raise OnnxModelError(f"{self.source}: {{lod}} {max_layer}: the model has "
                                      f"{self.num_layers} layer(s), 0..{self.num_layers - 1}")
             if "layer" in o:
                 keep = o["layer"] <= int(max_layer)

@@ -11,8 +11,10 @@ from __future__ import annotations
 from collections import Counter
 from dataclasses import dataclass, field
 
+from .errors import InputProblem
 
-class ProtoError(ValueError):
+
+class ProtoError(InputProblem):
     """The bytes are not a well-formed protobuf message."""
 
 

@@ -1,4 +1,4 @@
-"""Camera paths and time schedules for videos (issue 5; conventions of SPEC sections 3 and 3.1).
+"""Camera paths and time schedules for videos (issue 5; conventions of docs/design.md sections 3 and 3.1).
 
 A video is a list of frames, each a :class:`~nehad.runtime.cameras.Camera` at a time t. Two small
 text syntaxes describe it (the CLI's ``--path`` and ``--time``, the keys ``path`` and ``time`` of
@@ -18,7 +18,7 @@ a jobs.yaml):
                                15) and ``zoom=F`` (radius swing as a fraction, default 0.2);
                                ``turns`` defaults to 2.
 ``default``                    the model's default camera, frozen (sweep t: "freeze the camera").
-``FILE`` / ``FILE:K``          a camera file (SPEC 3.1): a cam.json list, a 3DGS cameras.json, a
+``FILE`` / ``FILE:K``          a camera file (docs/design.md section 3.1): a cam.json list, a 3DGS cameras.json, a
                                D-NeRF/nerfstudio transforms file; ``:K`` picks one camera (frozen).
 ``DATA:SPLIT``                 a dataset folder in the D-NeRF layout and a split (``test``, ``val``,
                                ``train``): each view at its own time, with its ground-truth image
@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from .cameras import Camera, CameraError, frame_image_path, load_view
+from .errors import InputProblem
 
 __all__ = ["PathError", "PathSpec", "TimeSpec", "PlannedFrame", "Reference", "OrbitParams",
            "parse_path_spec", "parse_time_spec", "look_at", "orbit_params_from_cameras",
@@ -60,7 +61,7 @@ _SPIRAL_KEYS = _ORBIT_KEYS + ("amplitude", "zoom")
 _AXES = {"x": (1, 0, 0), "y": (0, 1, 0), "z": (0, 0, 1)}
 
 
-class PathError(ValueError):
+class PathError(InputProblem):
     """A camera path or time schedule that cannot be used; the message names the spec and key."""
 
 
@@ -232,7 +233,7 @@ def _time_value(s: str, spec: str) -> float:
 
 def look_at(eye, target, up) -> np.ndarray:
     """World-to-camera (4x4, OpenCV axes: x right, y down, z forward) of a camera at `eye`
-    looking at `target` with `up` (world) pointing up in the image (SPEC 3)."""
+    looking at `target` with `up` (world) pointing up in the image (docs/design.md section 3)."""
     eye, target, up = (np.asarray(v, np.float64) for v in (eye, target, up))
     z = target - eye
     nz = np.linalg.norm(z)
@@ -486,14 +487,15 @@ def _path_cameras(spec: PathSpec, frames: int | None, ref: Reference):
     return [cams], None, "frozen"
 
 
-def check_time(t: float, ref: Reference, extrapolate: bool, what: str,
-               allow: str = "--extrapolate") -> float:
-    """`t`, or PathError when it lies outside the trained range and `extrapolate` is off."""
-    lo, hi = ref.time_range
-    if not extrapolate and not (lo - 1e-9 <= t <= hi + 1e-9):
-        raise PathError(f"{what}: time {t:g} is outside the trained time range [{lo:g}, {hi:g}] "
-                        f"(allow it with {allow})")
-    return float(t)
+def check_time(t: float, ref: Reference, extrapolate: bool, what: str) -> float:
+    """`t`, or an error when it lies outside the trained range and `extrapolate` is off: the
+    scene's one time check (runtime/scene.py), as a PathError."""
+    from .scene import SceneError, check_time as check_scene_time
+
+    try:
+        return check_scene_time(ref.time_range, t, extrapolate, what)
+    except SceneError as e:
+        raise PathError(e.template, "time") from None
 
 
 def plan_frames(path: PathSpec | str, time: TimeSpec | str | None = None,
@@ -507,11 +509,11 @@ def plan_frames(path: PathSpec | str, time: TimeSpec | str | None = None,
     :data:`DEFAULT_FRAMES`); a camera list has its own count (a different `frames` is an error).
     `reference`: the scene's default camera, box and time range (None range: a static scene,
     every time is None).
-    `labels` names the inputs in messages (``{"path": "--path", "time": "--time", "frames":
-    "--frames"}`` for the CLI; the jobs.yaml keys by default).
+    `labels` names the inputs in messages (default: the placeholders of runtime/errors.py,
+    ``{path}``, ``{time}``, ``{frames}``, ``{extrapolate}``, which each caller shows in its words).
     """
-    lab = {"path": "path", "time": "time", "frames": "frames",
-           "extrapolate": "extrapolate: true", **(labels or {})}
+    lab = {"path": "{path}", "time": "{time}", "frames": "{frames}",
+           "extrapolate": "{extrapolate}", **(labels or {})}
     ref = reference or Reference()
     spec = path if isinstance(path, PathSpec) else parse_path_spec(path)
     tspec = time if isinstance(time, TimeSpec) or time is None else parse_time_spec(time)
@@ -520,7 +522,7 @@ def plan_frames(path: PathSpec | str, time: TimeSpec | str | None = None,
     try:
         cams, gts, kind = _path_cameras(spec, frames, ref)
     except PathError as e:
-        raise PathError(f"{lab['path']} {e}") from None
+        raise PathError(f"{lab['path']} {e.template}") from None
     if kind == "frozen":
         n = frames or DEFAULT_FRAMES
         if frames is None and (ref.time_range is None or (tspec is not None
@@ -544,17 +546,15 @@ def plan_frames(path: PathSpec | str, time: TimeSpec | str | None = None,
             if any(t is None for t in own):
                 raise PathError(f"{lab['time']} own: some cameras of {lab['path']} {spec.text} "
                                 f"have no time")
-            times = [check_time(float(t), ref, extrapolate, f"{lab['path']} {spec.text}",
-                                lab["extrapolate"])
+            times = [check_time(float(t), ref, extrapolate, f"{lab['path']} {spec.text}")
                      for t in own]
         elif mode == "freeze":
-            times = [check_time(tspec.start, ref, extrapolate, f"{lab['time']} {tspec.text}",
-                                lab["extrapolate"])] * n
+            times = [check_time(tspec.start, ref, extrapolate, f"{lab['time']} {tspec.text}")] * n
         else:
             lo, hi = (tspec.start, tspec.end) if tspec is not None else ref.time_range
             what = f"{lab['time']} {tspec.text}" if tspec is not None else lab["time"]
-            check_time(lo, ref, extrapolate, what, lab["extrapolate"])
-            check_time(hi, ref, extrapolate, what, lab["extrapolate"])
+            check_time(lo, ref, extrapolate, what)
+            check_time(hi, ref, extrapolate, what)
             times = [float(v) for v in (np.linspace(lo, hi, n) if n > 1 else [lo])]
     out = []
     for k, cam in enumerate(cams):

@@ -1,6 +1,6 @@
 """The standard 3DGS Gaussian PLY (the INRIA layout), read and written without torch.
 
-One ``vertex`` element with float properties (SPEC section 3 conventions)::
+One ``vertex`` element with float properties (docs/design.md section 3 conventions)::
 
     x y z nx ny nz f_dc_0 f_dc_1 f_dc_2 f_rest_0 .. f_rest_{3(K-1)-1}
     opacity scale_0 scale_1 scale_2 rot_0 rot_1 rot_2 rot_3
@@ -9,7 +9,7 @@ Stored values are raw: log-scales, the opacity logit, an unnormalised quaternion
 ``f_rest`` is channel-major as the INRIA code writes it: property ``f_rest_{c (K-1) + k - 1}`` holds
 SH coefficient k >= 1 of channel c. :func:`read_gaussian_ply` returns an activated
 :class:`~nehad.runtime.gaussians.GaussianCloud`; :func:`write_gaussian_ply` is its inverse and
-writes atomically (SPEC section 10).
+writes atomically (docs/design.md section 10).
 
 The reader accepts binary (little or big endian) and ascii files, properties in any order and of
 any numeric type, and ignores extra properties (``nx ny nz``, ...) and other elements.
@@ -24,9 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from .gaussians import GaussianCloud
+from .errors import InputProblem
 
 
-class PlyError(ValueError):
+class PlyError(InputProblem):
     """A PLY file cannot be read as (or written from) 3DGS Gaussians; the message names the file."""
 
 
@@ -184,7 +185,7 @@ def _check_finite(table: np.ndarray, names: list[str], wanted: list[str], source
 
 
 def read_gaussian_ply(path) -> GaussianCloud:
-    """Read a 3DGS PLY into an activated :class:`GaussianCloud` (SPEC sections 3 and 7).
+    """Read a 3DGS PLY into an activated :class:`GaussianCloud` (docs/design.md sections 3 and 7).
 
     scales = exp(scale_*), opacities = sigmoid(opacity), quats = rot_* normalised (w, x, y, z),
     sh[:, 0, c] = f_dc_c, sh[:, k, c] = f_rest_{c (K-1) + k - 1}. Raises :class:`PlyError`.
@@ -274,7 +275,7 @@ def ply_property_names(sh_degree: int) -> list[str]:
 
 
 def write_gaussian_ply(path, cloud: GaussianCloud) -> Path:
-    """Write `cloud` as a binary little-endian 3DGS PLY, atomically (SPEC sections 3, 10).
+    """Write `cloud` as a binary little-endian 3DGS PLY, atomically (docs/design.md sections 3, 10).
 
     Inverse of :func:`read_gaussian_ply`: log-scales, opacity logits (opacities clipped to
     [1e-15, 1 - 1e-15] so that 0 and 1 stay finite), quaternions as given, normals 0.

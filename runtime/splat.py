@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from .gaussians import SH_C0, GaussianCloud
+from .errors import InputProblem
 
 ROW_BYTES = 32
 SPLAT_DTYPE = np.dtype([("position", "<f4", (3,)), ("scale", "<f4", (3,)),
@@ -31,7 +32,7 @@ SPLAT_DTYPE = np.dtype([("position", "<f4", (3,)), ("scale", "<f4", (3,)),
 assert SPLAT_DTYPE.itemsize == ROW_BYTES
 
 
-class SplatError(ValueError):
+class SplatError(InputProblem):
     """A .splat file cannot be written or read (the message names the file)."""
 
 
@@ -80,7 +81,7 @@ def splat_bytes(cloud: GaussianCloud) -> bytes:
 
 
 def write_splat(path, cloud: GaussianCloud) -> Path:
-    """Write `cloud` as a .splat file, atomically (SPEC section 10). Returns the path."""
+    """Write `cloud` as a .splat file, atomically (docs/design.md section 10). Returns the path."""
     from .images import atomic_path
 
     path = Path(path)

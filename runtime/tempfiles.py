@@ -1,5 +1,5 @@
 """Temporary files of atomic writes: names that say who wrote them, and removal of the stale ones
-(SPEC section 10: a temporary file in the same folder, renamed over the target; issue 15).
+(docs/design.md section 10: a temporary file in the same folder, renamed over the target; issue 15).
 
 A write to ``DIR/model.onnx`` goes through ``DIR/.model.nehad-<pid>-<host>-<random>.tmp.onnx``:
 hidden, the target's name and extension (format detection by extension), and the process and

@@ -1,4 +1,4 @@
-"""Videos: frames rendered by any backend into a folder, then encoded (SPEC section 10, issue 5).
+"""Videos: frames rendered by any backend into a folder, then encoded (docs/design.md section 10, issue 5).
 
     job = VideoJob(model="model.onnx", output="orbit.mp4", path="orbit", frames=120, fps=30,
                    size=(400, 400))
@@ -8,8 +8,8 @@
 How a video is made:
 
 1. :func:`plan_video` turns the job into frames (camera path and time schedule of
-   :mod:`nehad.runtime.paths`), checks the output and size (H.264 yuv420p needs an even width and
-   height) and names the frame folder: ``--frames-dir`` when given (kept), else ``OUT.mp4.frames``
+   :mod:`nehad.runtime.paths`), checks the output and size (an odd width or height is padded by
+   one repeated column or row when encoded: runtime/mp4.py) and names the frame folder: ``--frames-dir`` when given (kept), else ``OUT.mp4.frames``
    beside the video (removed once the video is written). Nothing is rendered yet.
 2. :func:`prepare_frames` readies the folder: ``nehad-frames.json`` (a manifest: model hash, frame
    count, size, background, a hash of every camera and time) and, with ``resume``, the frames
@@ -21,8 +21,8 @@ How a video is made:
 3. The backend renders the missing frames (``frame_00000.png`` ...; PNG 8-bit or EXR float),
    each written atomically, so an interrupted run (Ctrl-C, SIGKILL, a lost server) leaves only
    whole frames and ``resume`` renders only the missing ones.
-4. :func:`encode_video` writes the mp4 atomically: H.264 (libx264) yuv420p through PyAV, or
-   OpenCV's ``mp4v`` when PyAV is missing. With ``resume``, a video that is already there and
+4. :func:`encode_video` writes the mp4 atomically with the one encoder of runtime/mp4.py: H.264
+   (libx264) yuv420p through PyAV, or OpenCV's ``mp4v`` when PyAV is missing. With ``resume``, a video that is already there and
    whose work folder is gone (an earlier run finished it) is kept as it is.
 
 With ``side_by_side`` (a ``DATA:SPLIT`` path), each frame is the render with the dataset's image
@@ -41,7 +41,6 @@ import re
 import sys
 import time
 from dataclasses import dataclass, field
-from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -49,10 +48,12 @@ import numpy as np
 from .distribute import FrameResult, FrameTask, PoolBackend
 from .lock import output_lock
 from .memory import check_frame_memory
+from .errors import InputProblem
+from .mp4 import DEFAULT_CRF, DEFAULT_FPS, encode, video_rate  # noqa: F401  (video_rate: API)
 from .paths import PathError, Reference, parse_path_spec, parse_time_spec, plan_frames
 
 __all__ = ["VideoError", "VideoJob", "VideoPlan", "VideoReport", "plan_video", "prepare_frames",
-           "run_video", "encode_video", "probe_video", "scene_info", "scene_reference",
+           "run_video", "encode_video", "probe_video", "scene_reference",
            "frame_name", "video_rate", "count_frames", "VIDEO_SUFFIXES", "FRAME_FORMATS",
            "MANIFEST"]
 
@@ -64,7 +65,7 @@ _FRAME_RE = re.compile(r"^frame_\d{5}\.(png|exr)$")
 _TMP_RE = re.compile(r"^\.(frame_\d{5}\..*\.tmp\.(png|exr)|nehad-frames\..*\.tmp\.json)$")
 
 
-class VideoError(ValueError):
+class VideoError(InputProblem):
     """A video job that cannot be done as given; the message names the input."""
 
 
@@ -82,15 +83,17 @@ class VideoJob:
     time: str | None = None  # "A:B", "T", "own"; None: the path's own times or the time range
     frames: int | None = None
     size: tuple[int, int] | None = None
-    fps: float = 30.0
+    fps: float = DEFAULT_FPS
     frames_dir: Path | None = None
     frame_format: str = "png"
     side_by_side: bool = False
     background: tuple[float, float, float] | None = None
     extrapolate: bool = False
-    crf: int = 18
+    crf: int = DEFAULT_CRF
     encoder: str = "auto"  # auto (PyAV, else OpenCV), pyav, opencv
     name: str = ""
+    lod: int | None = None  # streaming layers 0..lod (None: all)
+    openers: tuple = ()  # scene openers for a training run folder (runtime/scene.py)
 
 
 @dataclass
@@ -131,43 +134,11 @@ class VideoReport:
 # planning
 
 
-def scene_reference(model) -> tuple[Reference, tuple]:
-    """(Reference, default background) of a model file, read without an onnxruntime session:
-    an exported ``.onnx`` (its metadata) or a static 3DGS ``.ply`` (no default camera, no time)."""
-    ref, bg, _ = scene_info(model)
-    return ref, bg
-
-
-def scene_info(model) -> tuple[Reference, tuple, int]:
-    """:func:`scene_reference` and the number of Gaussians (for the memory bound)."""
-    p = Path(model)
-    suffix = p.suffix.lower()
-    if p.is_dir():
-        raise VideoError(f"{p}: a training run; export it first (nehad export {p} -o model.onnx) "
-                         f"and render the .onnx")
-    if suffix == ".onnx":
-        from .onnx_model import read_model_info
-
-        info = read_model_info(p)
-        return (Reference(info.default_camera, info.aabb, tuple(info.time_range)),
-                tuple(info.background), info.num_gaussians)
-    if suffix == ".ply":
-        from .ply import read_gaussian_ply
-
-        cloud = read_gaussian_ply(p)
-        aabb = np.stack([cloud.means.min(0), cloud.means.max(0)]) if len(cloud) else None
-        return Reference(None, aabb, None), (0.0, 0.0, 0.0), len(cloud)
-    if not p.exists():
-        raise VideoError(f"{p}: no such file")
-    raise VideoError(f"{p}: expected an exported .onnx model (or a static 3DGS .ply)")
-
-
-def _file_sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
+def scene_reference(scene) -> tuple[Reference, tuple]:
+    """(Reference, default background) of an opened scene (runtime/scene.py)."""
+    time_range = tuple(scene.time_range) if scene.dynamic else None
+    return Reference(scene.default_camera, scene.aabb, time_range), \
+        tuple(scene.default_background)
 
 
 def _plan_hash(frames) -> str:
@@ -182,10 +153,9 @@ def _plan_hash(frames) -> str:
 
 
 def _opt(job: VideoJob, key: str) -> str:
-    """How an input is called in messages: the CLI's option, or the jobs.yaml key."""
-    if job.name:
-        return key
-    return {"output": "-o", "frames_dir": "--frames-dir"}.get(key, "--" + key.replace("_", "-"))
+    """An input named in a message: a placeholder each caller shows in its own words
+    (runtime/errors.py; the CLI's options, a jobs.yaml's keys)."""
+    return "{" + key + "}"
 
 
 def plan_video(job: VideoJob, threads: int | None = None) -> VideoPlan:
@@ -212,7 +182,7 @@ def plan_video(job: VideoJob, threads: int | None = None) -> VideoPlan:
     if not 0 <= int(job.crf) <= 51:
         raise VideoError(f"{o('crf')} {job.crf}: must be in 0..51")
     if job.encoder not in ("auto", "pyav", "opencv"):
-        raise VideoError(f"encoder {job.encoder!r}: expected auto, pyav or opencv")
+        raise VideoError(f"{o('encoder')} {job.encoder!r}: expected auto, pyav or opencv")
     if job.frames_dir is not None:
         fd = Path(job.frames_dir)
         if fd.exists() and not fd.is_dir():
@@ -222,27 +192,27 @@ def plan_video(job: VideoJob, threads: int | None = None) -> VideoPlan:
     try:
         pspec = parse_path_spec(job.path)
     except PathError as e:
-        raise PathError(f"{o('path')} {e}") from None
+        raise PathError(f"{o('path')} {e.template}") from None
     try:
         tspec = parse_time_spec(job.time) if job.time is not None else None
     except PathError as e:
-        raise PathError(f"{o('time')} {e}") from None
+        raise PathError(f"{o('time')} {e.template}") from None
     if job.side_by_side and pspec.kind != "dataset":
         raise VideoError(f"{o('side_by_side')} needs a dataset path with ground truth (DATA:test), "
                          f"not {job.path!r}")
-    ref, default_bg, n_gaussians = scene_info(model)
+    from .scene import open_scene
+
+    scene = open_scene(model, lod=job.lod, openers=tuple(job.openers))
+    ref, default_bg = scene_reference(scene)
+    n_gaussians = scene.num_gaussians
     bg = tuple(float(v) for v in (job.background or default_bg))
     frames = plan_frames(pspec, tspec, job.frames, job.size, ref, job.extrapolate,
-                         {**{k: o(k) for k in ("path", "time", "frames")},
-                          "extrapolate": "extrapolate: true" if job.name else "--extrapolate"})
+                         {k: o(k) for k in ("path", "time", "frames", "extrapolate")})
     w, h = frames[0].camera.width, frames[0].camera.height
     if any((f.camera.width, f.camera.height) != (w, h) for f in frames):
         raise VideoError(f"{o('path')} {job.path}: the cameras have different image sizes; "
                          f"give {o('size')} WxH")
-    fw = 2 * w if job.side_by_side else w
-    if out is not None and (fw % 2 or h % 2):
-        raise VideoError(f"{o('size')} {fw}x{h}: H.264 yuv420p needs an even width and height "
-                         f"(give {o('size')} WxH with even numbers)")
+    fw = 2 * w if job.side_by_side else w  # an odd size is padded by the encoder (runtime/mp4.py)
     # one frame must fit here: it is drawn here, or read back here to be encoded (issue 15)
     check_frame_memory(w, h, n_gaussians, _size_input(job, o, w, h), out_width=fw)
     if job.frames_dir is not None:
@@ -253,10 +223,11 @@ def plan_video(job: VideoJob, threads: int | None = None) -> VideoPlan:
     model_abs = str(model.absolute())
     tasks = [FrameTask(model_abs, f.index, f.camera, f.time, bg,
                        str(frames_dir / frame_name(f.index, job.frame_format)),
-                       f.ground_truth if job.side_by_side else None, threads)
+                       f.ground_truth if job.side_by_side else None, threads,
+                       lod=job.lod, openers=tuple(job.openers))
              for f in frames]
     manifest = {"format": MANIFEST_FORMAT, "model": model_abs,
-                "model_sha256": _file_sha256(model), "frames": len(frames), "width": fw,
+                "model_sha256": scene.digest(), "lod": job.lod, "frames": len(frames), "width": fw,
                 "height": h, "frame_format": job.frame_format, "background": list(bg),
                 "side_by_side": bool(job.side_by_side), "plan_sha256": _plan_hash(frames)}
     return VideoPlan(job, frames, tasks, frames_dir, keep, fw, h, bg, manifest, n_gaussians)
@@ -309,112 +280,11 @@ def prepare_frames(plan: VideoPlan, resume: bool) -> list[int]:
 # encoding
 
 
-def _quantise(img: np.ndarray) -> np.ndarray:
-    """uint8 RGB exactly as write_image stores a PNG."""
-    img = np.asarray(img, np.float32)
-    if img.shape[2] == 1:
-        img = np.repeat(img, 3, axis=2)
-    clean = np.clip(np.nan_to_num(img[:, :, :3], nan=0.0), 0.0, 1.0)
-    return np.ascontiguousarray(np.round(clean * 255.0).astype(np.uint8))
-
-
-def _read_frame(path) -> np.ndarray:
-    from .images import read_image
-
-    return _quantise(read_image(path))
-
-
-def _have_pyav() -> bool:
-    try:
-        import av  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-def video_rate(fps: float) -> Fraction:
-    """The exact frame rate of `fps`: whole numbers as they are, 29.97 / 59.94 / 23.976 as the
-    NTSC rates N*1000/1001, anything else to 1/1000."""
-    whole = round(fps)
-    if abs(fps - whole) < 1e-9:
-        return Fraction(whole)
-    ntsc = round(fps * 1.001)
-    if abs(fps - ntsc / 1.001) < 5e-3:
-        return Fraction(ntsc * 1000, 1001)
-    return Fraction(fps).limit_denominator(1000)
-
-
-def _encode_pyav(frames, tmp: str, fps: float, width: int, height: int, crf: int) -> None:
-    import av
-
-    rate = video_rate(fps)
-    with av.open(tmp, mode="w", format="mp4") as container:
-        stream = container.add_stream("libx264", rate=rate)
-        stream.width, stream.height = width, height
-        stream.pix_fmt = "yuv420p"
-        stream.options = {"crf": str(int(crf)), "preset": "medium"}
-        for img in frames:
-            frame = av.VideoFrame.from_ndarray(img, format="rgb24")
-            for packet in stream.encode(frame):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
-
-
-def _encode_opencv(frames, tmp: str, fps: float, width: int, height: int) -> None:
-    import cv2
-
-    writer = cv2.VideoWriter(tmp, cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (width, height))
-    if not writer.isOpened():
-        raise VideoError(f"{tmp}: OpenCV cannot open an mp4v writer")
-    try:
-        for img in frames:
-            writer.write(np.ascontiguousarray(img[:, :, ::-1]))
-    finally:
-        writer.release()
-
-
-def encode_video(frames, output, fps: float = 30.0, crf: int = 18, encoder: str = "auto") -> str:
-    """Encode `frames` (file paths, or uint8/float (H, W, 3) arrays) into the mp4 `output`,
-    atomically. H.264 yuv420p through PyAV (libx264); OpenCV ``mp4v`` when PyAV is missing
-    (`encoder` "auto"), or as asked ("pyav", "opencv"). Returns the encoder used."""
-    from .images import atomic_path
-
-    frames = list(frames)
-    if not frames:
-        raise VideoError(f"{output}: no frames to encode")
-
-    def images():
-        for f in frames:
-            if isinstance(f, (str, os.PathLike)):
-                yield _read_frame(f)
-            else:
-                a = np.asarray(f)
-                yield a if a.dtype == np.uint8 else _quantise(a)
-
-    first = next(images())
-    height, width = first.shape[:2]
-    if encoder == "auto":
-        encoder = "pyav" if _have_pyav() else "opencv"
-    if encoder == "pyav" and (width % 2 or height % 2):
-        raise VideoError(f"{output}: {width}x{height}: H.264 yuv420p needs an even width and "
-                         f"height")
-
-    def checked():
-        for k, img in enumerate(images()):
-            if img.shape[:2] != (height, width):
-                raise VideoError(f"{output}: frame {k} is {img.shape[1]}x{img.shape[0]}, the "
-                                 f"first is {width}x{height}")
-            yield img
-
-    with atomic_path(output, VideoError) as tmp:
-        if encoder == "pyav":
-            _encode_pyav(checked(), tmp, fps, width, height, crf)
-        elif encoder == "opencv":
-            _encode_opencv(checked(), tmp, fps, width, height)
-        else:
-            raise VideoError(f"encoder {encoder!r}: expected auto, pyav or opencv")
-    return "H.264 yuv420p (PyAV)" if encoder == "pyav" else "mp4v (OpenCV)"
+def encode_video(frames, output, fps: float = DEFAULT_FPS, crf: int = DEFAULT_CRF,
+                 encoder: str = "auto") -> str:
+    """Encode `frames` (image paths, or uint8/float (H, W, 3) arrays) into the mp4 `output`
+    atomically, with the one encoder of runtime/mp4.py; returns the encoder used."""
+    return encode(frames, output, fps, crf, encoder, error=VideoError)
 
 
 def probe_video(path) -> dict:

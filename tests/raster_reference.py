@@ -1,4 +1,4 @@
-"""Independent brute-force references for the rasterizer tests (SPEC section 6).
+"""Independent brute-force references for the rasterizer tests (docs/design.md section 6).
 
 Nothing here calls the project's kernels: tile membership is recomputed from the 3-sigma rule,
 every Gaussian of a tile is evaluated at every pixel of the tile in float64, and the compositing
@@ -211,7 +211,7 @@ def _reference_rotation(q):
 def reference_project(means, scales, quats, opacities, sh, camera, sh_degree=None,
                       near=0.2, dilation=0.3, clamp=1.3):
     """float64 matrix-form EWA projection of activated 3D Gaussians through a `Camera`
-    (SPEC sections 3 and 6), one Gaussian at a time.
+    (docs/design.md sections 3 and 6), one Gaussian at a time.
 
     Sigma = R S S^T R^T; p = W mu + t (world_to_camera, OpenCV axes); cull z <= `near`;
     J = [[fx/z, 0, -fx x/z^2], [0, fy/z, -fy y/z^2]] with x/z, y/z clamped to

@@ -106,7 +106,7 @@ def test_cli_runs_every_job_and_reports_failures(model, tmp_path):
     assert set(rows) == {"orbit", "broken", "still", "late", "seq"}
     assert " ok " in rows["orbit"] and str(tmp_path / "out" / "orbit.mp4") in rows["orbit"]
     assert "FAILED" in rows["broken"] and "missing.onnx: no such file" in rows["broken"]
-    assert "FAILED" in rows["late"] and "time 3 is outside the trained time range" in rows["late"]
+    assert "FAILED" in rows["late"] and "time 3: time 3 is outside the trained time range [0, 1] (allow it with extrapolate: true)" in rows["late"]
     assert " ok " in rows["still"] and " ok " in rows["seq"]
     assert lines[-1] == "3 of 5 jobs done, 2 failed"
     info = probe_video(tmp_path / "out" / "orbit.mp4")

@@ -1,4 +1,4 @@
-"""Cameras and the `--view` file (SPEC sections 3 and 3.1)."""
+"""Cameras and the `--view` file (docs/design.md sections 3 and 3.1)."""
 
 from __future__ import annotations
 

@@ -103,7 +103,7 @@ def test_imports_stay_light_and_torch_free():
             for info in pkgutil.walk_packages(pkg.__path__, pkg.__name__ + "."):
                 importlib.import_module(info.name)
                 names.append(info.name)
-        assert "nehad.runtime.raster" in names and "nehad.cli.sources" in names, names
+        assert "nehad.runtime.raster" in names and "nehad.cli.scenes" in names, names
         assert "torch" not in sys.modules, "torch was imported"
         print("ok", len(names))
     """)

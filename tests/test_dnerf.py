@@ -35,7 +35,7 @@ def scene_copy(synth_root, tmp_path):
 
 
 def _project(cam: Camera, point) -> tuple[float, float, float]:
-    """u, v, depth of a world point, written out from SPEC section 3 (not via the library)."""
+    """u, v, depth of a world point, written out from docs/design.md section 3 (not via the library)."""
     x = cam.world_to_camera[:3, :3] @ np.asarray(point, dtype=np.float64) + cam.world_to_camera[:3, 3]
     return cam.fx * x[0] / x[2] + cam.cx, cam.fy * x[1] / x[2] + cam.cy, x[2]
 

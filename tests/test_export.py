@@ -1,4 +1,4 @@
-"""`nehad export`: the nehad-onnx/1 file of SPEC 7 (operators, checker, metadata, parity with the
+"""`nehad export`: the nehad-onnx/1 file of docs/design.md section 7 (operators, checker, metadata, parity with the
 torch model and with torch-side renders, fp16 weights, bad inputs)."""
 
 from __future__ import annotations

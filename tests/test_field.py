@@ -1,4 +1,4 @@
-"""NeHaD deformation field (SPEC section 4): hex-plane, HNN decoder, adapters, BED, Verlet,
+"""NeHaD deformation field (docs/design.md section 4): hex-plane, HNN decoder, adapters, BED, Verlet,
 rigidity clamp, switches and the 4DGS baseline decoder."""
 
 from __future__ import annotations
@@ -251,7 +251,7 @@ def test_decoder_modes_agree_and_work_without_grad():
 
 
 def test_relu_would_starve_upstream_but_smooth_activation_does_not():
-    """Why F1, F2 use tanh (SPEC 4.3): grad_h of a ReLU net has a zero Jacobian in h."""
+    """Why F1, F2 use tanh (docs/design.md section 4.3): grad_h of a ReLU net has a zero Jacobian in h."""
     torch.manual_seed(0)
     relu = torch.nn.Sequential(torch.nn.Linear(8, 16), torch.nn.ReLU(),
                                torch.nn.Linear(16, 1)).double()

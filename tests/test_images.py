@@ -1,4 +1,4 @@
-"""Image I/O through OpenImageIO, atomic writes (SPEC section 10)."""
+"""Image I/O through OpenImageIO, atomic writes (docs/design.md section 10)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Layered progressive optimisation and streaming export (SPEC 7-8; nehad.lod, nehad.export.layers,
+"""Layered progressive optimisation and streaming export (docs/design.md section 7-8; nehad.lod, nehad.export.layers,
 nehad.runtime.layers): per-layer resolutions, frozen lower layers, opacity threshold, resume
 inside a layer, the `layer` output, ONNX parity of every prefix of layers, chunk checks and the
 fall back to the layers that arrived intact, and `nehad render --lod`."""
@@ -51,16 +51,16 @@ def trained(scene, tmp_path_factory):
     """A 3-layer run stepped by hand, with snapshots at each layer end; then its model.pt with a
     clearly non-identity field (random adapters) for the export tests."""
     from nehad.checkpoint import atomic_torch_save, load_state
-    from nehad.lod import LodTrainer
+    from nehad.lod import make_trainer
 
     run = tmp_path_factory.mktemp("lodrun") / "run"
-    tr = LodTrainer(_config(), scene, run, progress=False)
+    tr = make_trainer(_config(), scene, run, progress=False)
     snaps, fields, records = {}, {}, []
     while tr.step < tr.total_steps:
         records.append(tr.train_step(tr.step))
         tr.step += 1
-        for layer in range(tr.levels):
-            if tr.step == tr.layer_end(layer):
+        for layer in range(tr.schedule.levels):
+            if tr.step == tr.schedule.layer_end(layer):
                 g = tr.model.gaussians
                 snaps[layer] = {n: getattr(g, n).detach().clone() for n in g.NAMES}
                 fields[layer] = {k: v.clone() for k, v in tr.model.field.state_dict().items()}
@@ -85,7 +85,7 @@ def test_layer_downscales_and_views(trained):
     assert layer_downscales(3, 2) == [8, 4, 2] and layer_downscales(1, 1) == [1]
     assert layer_ids([2, 0, 3]).tolist() == [0, 0, 2, 2, 2]
     tr = trained["trainer"]
-    sizes = [tr.views_of(k).images[0].shape[:2] for k in range(3)]
+    sizes = [tr.schedule.views(tr, k).images[0].shape[:2] for k in range(3)]
     assert sizes == [(8, 8), (16, 16), (32, 32)]  # 32 px scene: 1/4, 1/2, full
     # each step trained on its layer's resolution, and the layers follow each other
     assert [r["layer"] for r in trained["records"]] == [0] * 24 + [1] * 12 + [2] * 12
@@ -123,11 +123,11 @@ def test_model_pt_layers(trained):
 
 
 def test_opacity_threshold_controls_layer_size(scene, tmp_path):
-    from nehad.lod import LodTrainer
+    from nehad.lod import make_trainer
 
     def run(thr, name):
-        tr = LodTrainer(_config([f"lod.opacity_threshold={thr}", "lod.levels=2"]), scene,
-                        tmp_path / name, progress=False, log=None)
+        tr = make_trainer(_config([f"lod.opacity_threshold={thr}", "lod.levels=2"]), scene,
+                          tmp_path / name, progress=False, log=None)
         tr.train()
         return tr
 
@@ -146,20 +146,20 @@ def test_opacity_threshold_controls_layer_size(scene, tmp_path):
 def test_layer_caps(scene, tmp_path):
     """lod.base_max_gaussians caps layer 0; densify.max_gaussians caps each enhancement layer
     on its own (it counts the trainable Gaussians, not the frozen ones below)."""
-    from nehad.lod import LodTrainer
+    from nehad.lod import make_trainer
 
-    free = LodTrainer(_config(["lod.levels=2", "lod.opacity_threshold=0",
-                               "densify.max_gaussians=0"]), scene,
-                      tmp_path / "free", progress=False, log=None)
+    free = make_trainer(_config(["lod.levels=2", "lod.opacity_threshold=0",
+                                 "densify.max_gaussians=0"]), scene,
+                        tmp_path / "free", progress=False, log=None)
     free.train()
     n0, n1 = free.layer_sizes
     base_cap = n0 - 40
     layer_cap = n0 + 5  # below what layer 1 grows to, above the n0 children it starts with
     assert n1 > layer_cap, free.layer_sizes
-    capped = LodTrainer(_config(["lod.levels=2", "lod.opacity_threshold=0",
-                                 f"lod.base_max_gaussians={base_cap}",
-                                 f"densify.max_gaussians={layer_cap}"]), scene,
-                        tmp_path / "capped", progress=False, log=None)
+    capped = make_trainer(_config(["lod.levels=2", "lod.opacity_threshold=0",
+                                   f"lod.base_max_gaussians={base_cap}",
+                                   f"densify.max_gaussians={layer_cap}"]), scene,
+                          tmp_path / "capped", progress=False, log=None)
     capped.train()
     c0, c1 = capped.layer_sizes
     print(f"layers without caps {free.layer_sizes}, with caps {capped.layer_sizes}")
@@ -169,16 +169,16 @@ def test_layer_caps(scene, tmp_path):
 
 def test_resume_inside_an_enhancement_layer(scene, tmp_path, trained):
     from nehad.checkpoint import save_checkpoint
-    from nehad.lod import LodTrainer
+    from nehad.lod import make_trainer
 
     run = tmp_path / "r"
-    tr = LodTrainer(_config(), scene, run, progress=False)
+    tr = make_trainer(_config(), scene, run, progress=False)
     while tr.step < 30:  # 6 steps into layer 1
         tr.train_step(tr.step)
         tr.step += 1
     save_checkpoint(run, tr.step, tr.checkpoint_state(), 2)
     del tr
-    resumed = LodTrainer(_config(), scene, run, resume=True, progress=False)
+    resumed = make_trainer(_config(), scene, run, resume=True, progress=False)
     assert resumed.step == 30 and resumed.layer_sizes == trained["trainer"].layer_sizes[:1]
     assert resumed.strategy.frozen == resumed.layer_sizes[0]
     resumed.train()
@@ -187,6 +187,33 @@ def test_resume_inside_an_enhancement_layer(scene, tmp_path, trained):
     assert resumed.layer_sizes == trained["trainer"].layer_sizes
     for name in got.NAMES:
         assert torch.allclose(getattr(got, name), getattr(ref, name), atol=1e-6), name
+
+
+def test_every_construction_follows_the_config_schedule(scene, tmp_path):
+    """The schedule follows from the config wherever the trainer is built: `Trainer(cfg)`,
+    `make_trainer` (`nehad train`, bench/quality.py) and `nehad demo` all train the layers
+    lod.levels asks for."""
+    from nehad.checkpoint import load_state
+    from nehad.configtools import ConfigError
+    from nehad.demo import run_demo
+    from nehad.lod import LayeredSchedule, make_trainer
+    from nehad.schedule import StagedSchedule, schedule_for
+    from nehad.trainer import Trainer
+
+    assert type(schedule_for(_config(["lod.levels=1"]))) is StagedSchedule
+    assert type(schedule_for(_config())) is LayeredSchedule
+    tr = Trainer(_config(["lod.levels=2"]), scene, tmp_path / "direct", progress=False)
+    assert isinstance(tr.schedule, LayeredSchedule) and tr.total_steps == 36
+    # enhancement layers without steps: refused before anything is written
+    with pytest.raises(ConfigError, match="lod.iterations"):
+        make_trainer(_config(["lod.iterations=0", "fine.iterations=0"]), scene, tmp_path / "no")
+    assert not (tmp_path / "no").exists()
+    out = run_demo(tmp_path / "demo", resolution=24, frames=8, preset="test",
+                   overrides=["lod.levels=2", "coarse.iterations=6", "fine.iterations=6",
+                              "lod.iterations=4"], progress=False, log=lambda *a: None)
+    state = load_state(out["run"] / "model.pt")
+    assert state["steps"] == 16 and state["lod"]["levels"] == 2
+    assert np.bincount(state["layer"].numpy()).tolist() == state["lod"]["layer_sizes"]
 
 
 def test_export_layer_output_parity(trained, tmp_path):
@@ -419,7 +446,7 @@ def test_split_export_refuses_runs_without_layers(scene, tmp_path):
     assert "Traceback" not in res.output and not (tmp_path / "s").exists()
     res = CliRunner().invoke(main, ["export", str(run)])
     assert res.exit_code != 0 and "--split-layers" in res.output
-    # without layers the file is exactly SPEC 7's: no `layer` output, no lod metadata
+    # without layers the file is exactly docs/design.md section 7's: no `layer` output, no lod metadata
     export_run(run, tmp_path / "plain.onnx")
     proto = onnx.load(str(tmp_path / "plain.onnx"))
     assert [o.name for o in proto.graph.output] == list(OUTPUTS)
@@ -440,3 +467,46 @@ def test_layered_runtime_without_torch(split, tmp_path):
     assert res.returncode == 0, res.stderr
     man = json.loads((split / "manifest.json").read_text())
     assert res.stdout.split() == ["3", str(man["layers"][-1]["cumulative_gaussians"])]
+
+
+def test_video_and_batch_take_every_scene_kind_with_lod(split, trained, tmp_path):
+    """`nehad video` and `nehad batch` open scenes as `nehad render` does (runtime/scene.py):
+    a run folder, an .onnx and a split layers folder, each with --lod / lod:, give the frame
+    `nehad render` gives for the same camera, time and layers."""
+    import textwrap
+
+    from nehad.runtime.images import read_image
+
+    run = trained["export_run"]
+    onnx_path = tmp_path / "full.onnx"
+    export_run(run, onnx_path)
+    cam = f"{trained['trainer'].data_dir / 'transforms_test.json'}:0"
+    runner = CliRunner()
+    for name, src in (("run", run), ("onnx", onnx_path), ("split", split)):
+        ref = tmp_path / f"{name}_ref.exr"
+        res = runner.invoke(main, ["render", str(src), "--view", cam, "--time", "0.3", "--lod",
+                                   "0", "-o", str(ref)])
+        assert res.exit_code == 0, res.output
+        reference = read_image(ref)
+        frames = tmp_path / f"{name}_frames"
+        res = runner.invoke(main, ["video", str(src), "--path", cam, "--time", "0.3",
+                                   "--frames", "1", "--frames-dir", str(frames),
+                                   "--frame-format", "exr", "--lod", "0", "--workers", "1",
+                                   "--quiet"])
+        assert res.exit_code == 0, res.output
+        np.testing.assert_array_equal(read_image(frames / "frame_00000.exr"), reference)
+        jobs = tmp_path / f"{name}_jobs.yaml"
+        jobs.write_text(textwrap.dedent(f"""\
+            workers: 1
+            jobs:
+              - {{name: still, model: {src}, output: {tmp_path / name}_still.exr, view: {cam},
+                  time: 0.3, lod: 0}}
+            """))
+        res = runner.invoke(main, ["batch", str(jobs), "--quiet"])
+        assert res.exit_code == 0, res.output
+        np.testing.assert_array_equal(read_image(tmp_path / f"{name}_still.exr"), reference)
+    # the layer count is checked before anything is drawn, in the scene's words
+    res = runner.invoke(main, ["video", str(split), "--lod", "3", "-o",
+                               str(tmp_path / "x.mp4"), "--quiet"])
+    assert res.exit_code != 0 and "--lod 3:" in res.output and "has 3 layer(s)" in res.output
+    assert not (tmp_path / "x.mp4").exists()

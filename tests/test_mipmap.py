@@ -1,4 +1,4 @@
-"""Scale-aware anisotropic mipmapping of the hex-plane (SPEC 8, nehad.field.mipmap): the level
+"""Scale-aware anisotropic mipmapping of the hex-plane (docs/design.md section 8, nehad.field.mipmap): the level
 formula, the pyramids, trilinear sampling against an independent grid_sample reference, training
 gradients, and ONNX parity with the switch on."""
 
@@ -225,7 +225,7 @@ def test_mipmap_config_validation():
         FieldConfig(mipmap_levels=-1).validate()
     with pytest.raises(ValueError, match="mipmap"):
         FieldConfig(mipmap="yes").validate()
-    assert FieldConfig().mipmap is False  # off by default (SPEC 8)
+    assert FieldConfig().mipmap is False  # off by default (docs/design.md section 8)
 
 
 def test_mipmap_split_layers_parity(tmp_path):

@@ -1,4 +1,4 @@
-"""The 3DGS Gaussian PLY (INRIA layout, SPEC sections 3 and 7)."""
+"""The 3DGS Gaussian PLY (INRIA layout, docs/design.md sections 3 and 7)."""
 
 from __future__ import annotations
 

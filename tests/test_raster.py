@@ -1,4 +1,4 @@
-"""The shared rasterizer against independent references (SPEC section 6).
+"""The shared rasterizer against independent references (docs/design.md section 6).
 
 Forward: the brute-force float64 rasterizer of raster_reference.py (every Gaussian of a tile at every
 pixel). Backward: torch autograd through a dense torch compositing, plus float64 finite

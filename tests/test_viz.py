@@ -167,7 +167,7 @@ def test_bed_weights_equal_one_minus_m_pos_of_the_field(tiny_model):
 
 
 def test_bed_weights_match_the_formula_and_fraction(tiny_model):
-    """An independent float64 evaluation of SPEC 4.7 from the stored parameters."""
+    """An independent float64 evaluation of docs/design.md section 4.7 from the stored parameters."""
     from nehad.viz.masks import bed_weights, dynamic_fraction
 
     model, _ = tiny_model

@@ -1,5 +1,5 @@
 """A subprocess environment in which `import torch` fails: the runtime and the CLI's rendering
-paths must work there (SPEC section 2)."""
+paths must work there (docs/design.md section 2)."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Helpers shared by the HyperNeRF and DyNeRF readers and their synthetic writers (numpy only).
 
-Conventions are those of SPEC section 3: cameras are :class:`~nehad.runtime.cameras.Camera`
+Conventions are those of docs/design.md section 3: cameras are :class:`~nehad.runtime.cameras.Camera`
 objects (OpenCV axes, pixel (i, j) centred at (i + 0.5, j + 0.5)); images are float32 (H, W, 3) in
 [0, 1]; every problem with a file is a :class:`~nehad.data.dnerf.DatasetError` naming the file.
 """
@@ -161,7 +161,7 @@ def undistortion_maps(width: int, height: int, fx: float, fy: float, cx: float, 
     same size with intrinsics (fx, fy, cx, cy) and no skew: output pixel centre (u, v) looks up
     the source at ``(fx xd + skew yd + cx, fy yd + cy)`` where (xd, yd) is the distorted image of
     its normalised ray (nerfies `Camera.project`). OpenCV puts pixel centres at integers, so both
-    coordinates shift by 0.5 (SPEC 3 puts them at i + 0.5)."""
+    coordinates shift by 0.5 (docs/design.md section 3 puts them at i + 0.5)."""
     u = np.arange(width, dtype=np.float64) + 0.5
     v = np.arange(height, dtype=np.float64) + 0.5
     x = ((u - cx) / fx)[None, :].repeat(height, 0)
@@ -182,7 +182,7 @@ def remap(image: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray
 
 
 # --------------------------------------------------------------------------------------------
-# atomic writes (SPEC section 10)
+# atomic writes (docs/design.md section 10)
 
 
 def atomic_write_json(path: Path, obj) -> None:

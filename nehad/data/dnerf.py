@@ -1,4 +1,4 @@
-"""Reader for dynamic scenes in the D-NeRF "blender" layout (SPEC sections 3 and 5).
+"""Reader for dynamic scenes in the D-NeRF "blender" layout (docs/design.md sections 3 and 5).
 
 A scene folder holds ``transforms_{train,val,test}.json`` and the images they name::
 
@@ -13,14 +13,14 @@ A scene folder holds ``transforms_{train,val,test}.json`` and the images they na
 - Intrinsics: ``fx = 0.5 W / tan(camera_angle_x / 2)``, ``fy = fx``, principal point at the image
   centre; per-frame ``fl_x, fl_y, cx, cy, w, h`` (or the same keys at the top level of the file,
   nerfstudio style) take precedence when present.
-- Times are normalised to [0, 1] (SPEC section 3): kept when the file's times already lie there,
+- Times are normalised to [0, 1] (docs/design.md section 3): kept when the file's times already lie there,
   otherwise min-max normalised over every split file present in the folder.
 - RGBA images are composited over the caller's background (``rgb a + bg (1 - a)`` with the file's
-  straight colour; white for D-NeRF RGBA data, black for ``dnerf_lego_100``, SPEC section 5); RGB
+  straight colour; white for D-NeRF RGBA data, black for ``dnerf_lego_100``, docs/design.md section 5); RGB
   images are used as they are. ``read_image`` returns RGBA with premultiplied colour (OpenImageIO's
   associated alpha), so the code adds ``bg (1 - a)`` to what it returns.
 - ``fused.ply``, ``points3d.ply`` or ``points3D.ply`` (first found), when present, gives the initial
-  point cloud (SPEC section 5: otherwise the trainer draws random points in [-1.3, 1.3]^3).
+  point cloud (docs/design.md section 5: otherwise the trainer draws random points in [-1.3, 1.3]^3).
 
 Bad data raises :class:`DatasetError` naming the file and the field. Numpy only, no torch.
 """
@@ -44,7 +44,7 @@ __all__ = ["DatasetError", "Frame", "DNeRFScene", "load_dnerf", "SPLITS", "POINT
 SPLITS = ("train", "val", "test")
 #: Initial point clouds looked for in the scene folder, in this order.
 POINT_CLOUD_NAMES = ("fused.ply", "points3d.ply", "points3D.ply")
-#: Half side of the cube D-NeRF initialises random points in (SPEC section 5).
+#: Half side of the cube D-NeRF initialises random points in (docs/design.md section 5).
 DNERF_INIT_BOUND = 1.3
 
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
@@ -97,7 +97,7 @@ class DNeRFScene:
     def extent(self) -> float:
         """Scene extent as 3DGS computes it (``getNerfppNorm``): 1.1 x the largest distance of a
         train camera centre from the mean centre (all loaded cameras if train was not loaded).
-        Used to scale position learning rates and sigma_s (SPEC sections 4 and 5)."""
+        Used to scale position learning rates and sigma_s (docs/design.md sections 4 and 5)."""
         frames = self.frames.get("train") or [f for fs in self.frames.values() for f in fs]
         if not frames:
             return 1.0

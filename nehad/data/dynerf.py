@@ -1,5 +1,5 @@
 """Reader for DyNeRF ("Neural 3D Video", Li et al. 2022) multi-view video captures, read the way
-4DGS reads them (``scene/neural_3D_dataset_NDC.py``; SPEC sections 3 and 5).
+4DGS reads them (``scene/neural_3D_dataset_NDC.py``; docs/design.md sections 3 and 5).
 
 Layout::
 
@@ -29,7 +29,7 @@ Layout::
   2704 x 2028 videos, the paper's resolution, which 4DGS gets by LANCZOS resizing).
 - Time: the videos are cut to a common length n = min(frame counts, `max_frames` = 300, 4DGS's
   cap) and frame k has ``t = k / (n - 1)``, so the 300 frames of a DyNeRF video span [0, 1]
-  (SPEC 3; 4DGS uses k / 300). `frame_stride` keeps every s-th frame (k = 0, s, 2s, ...) with
+  (docs/design.md section 3; 4DGS uses k / 300). `frame_stride` keeps every s-th frame (k = 0, s, 2s, ...) with
   the same times, so a strided run and a full one agree on what t means.
 
 Memory: every loaded frame is an (H, W, 3) float32 array; 19 train cameras x 300 frames at

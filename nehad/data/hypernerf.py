@@ -1,4 +1,4 @@
-"""Reader for HyperNeRF / nerfies captures, read the way 4DGS reads them (SPEC sections 3 and 5).
+"""Reader for HyperNeRF / nerfies captures, read the way 4DGS reads them (docs/design.md sections 3 and 5).
 
 Layout (Google's nerfies / HyperNeRF release; 4DGS ``scene/hyper_loader.py``)::
 
@@ -17,7 +17,7 @@ What the reader does, and where it comes from:
 - Cameras (nerfies ``camera.py``): ``orientation`` is the world-to-camera rotation in OpenCV axes
   (x right, y down, z forward), ``position`` the camera centre; a point projects to
   ``u = f x + skew y + px``, ``v = f * pixel_aspect_ratio * y + py`` with pixel centres at
-  i + 0.5, the SPEC 3 convention, so ``fx = f``, ``fy = f * pixel_aspect_ratio``, ``cx = px``,
+  i + 0.5, the docs/design.md section 3 convention, so ``fx = f``, ``fy = f * pixel_aspect_ratio``, ``cx = px``,
   ``cy = py``. 4DGS ignores the principal point and the aspect ratio; we keep them.
 - World frame (nerfies / TiNeuVox / early 4DGS ``Load_hyper_data``): positions and points are
   normalised as ``(x - center) * scale`` with ``scene.json``'s values; ``near``/``far`` are kept
@@ -25,7 +25,7 @@ What the reader does, and where it comes from:
   ``hypernerf2colmap.py`` triangulates from the same camera files) are in the raw frame and are
   normalised the same way.
 - Time (4DGS): ``t = warp_id / max(warp_id)`` over all ids (``time_id`` when there is no
-  ``warp_id``), so t lies in [0, 1] (SPEC 3).
+  ``warp_id``), so t lies in [0, 1] (docs/design.md section 3).
 - Splits (4DGS): ``train`` = the ``train_ids``, ``test`` (alias ``val``) = the ``val_ids``, both in
   the order of ``ids``. A scene without ``val_ids`` (the "interp" scenes) is split as 4DGS does:
   train = every 4th image (index % 4 == 0), test = train + 2 (without the last).

@@ -1,4 +1,4 @@
-"""One entry point for every dataset layout the trainer reads (SPEC section 5).
+"""One entry point for every dataset layout the trainer reads (docs/design.md section 5).
 
 :func:`load_dataset` looks at the folder and hands it to the right reader:
 

@@ -2,8 +2,8 @@
 
 The images come from exact ray-sphere and ray-box intersections with Lambertian shading, so they
 share nothing with a Gaussian rasteriser: a model that fits them has learnt the scene, not the
-renderer. The output is what a D-NeRF "blender" scene looks like on disk (SPEC section 5 readers,
-SPEC section 3 conventions):
+renderer. The output is what a D-NeRF "blender" scene looks like on disk (docs/design.md section 5 readers,
+docs/design.md section 3 conventions):
 
 - ``train/``, ``val/``, ``test/``: 8-bit RGBA PNGs (straight colour in the file, like D-NeRF's),
   alpha = pixel coverage from supersampling, transparent background;
@@ -13,12 +13,12 @@ SPEC section 3 conventions):
 - ``points3d.ply`` (optional): points on the object surfaces at mid time, ``x y z red green blue``.
 
 The world is z-up like the Blender scenes; every object stays inside [-1.3, 1.3]^3, the cube
-D-NeRF's random initialisation fills (SPEC section 5). Cameras sit on a sphere of radius 4 and look
+D-NeRF's random initialisation fills (docs/design.md section 5). Cameras sit on a sphere of radius 4 and look
 at the origin. Train frame k has time k/(frames-1) and its own camera (monocular per timestamp, like
 D-NeRF); val and test hold about 10% as many frames each at other cameras and times.
 
 Everything is numpy, vectorised over pixels, and deterministic for a seed. Files are written
-atomically (SPEC section 10).
+atomically (docs/design.md section 10).
 """
 
 from __future__ import annotations
@@ -197,7 +197,7 @@ def render_view(objects, camera: Camera, supersample: int = 3, return_coverage: 
     """Ray-cast `objects` from `camera` (a :class:`~nehad.runtime.cameras.Camera`, OpenCV axes).
 
     Each pixel is sampled on a ``supersample x supersample`` grid (pixel (i, j) spans
-    [i, i+1) x [j, j+1), SPEC section 3). Returns float32 (H, W, 4) with *premultiplied* colour
+    [i, i+1) x [j, j+1), docs/design.md section 3). Returns float32 (H, W, 4) with *premultiplied* colour
     (the mean over all samples, background samples counting as 0) and alpha = fraction of samples
     that hit an object; uncovered pixels are (0, 0, 0, 0). Premultiplied is the in-memory RGBA
     convention of ``nehad.runtime.images`` (OpenImageIO's associated alpha): ``write_image``

@@ -1,5 +1,5 @@
 """The synthetic scenes of :mod:`nehad.data.synth` written in the HyperNeRF and DyNeRF layouts
-(the readers' test fixtures, SPEC section 5), each optionally with its D-NeRF "twin".
+(the readers' test fixtures, docs/design.md section 5), each optionally with its D-NeRF "twin".
 
 The same analytic ray caster draws the images; what changes is the capture and the files:
 
@@ -14,7 +14,8 @@ The same analytic ray caster draws the images; what changes is the capture and t
 - ``dynerf`` (multi-view video, as the Neural 3D Video release): C cameras on an arc facing the
   scene record F synchronised frames; ``cam00`` (the test camera) sits in the middle.
   ``poses_bounds.npy`` (LLFF rows), ``camXX.mp4`` per camera (H.264 in its lossless RGB profile,
-  ``libx264rgb`` at crf 0, through PyAV) or, with ``video="png"``, pre-extracted
+  ``libx264rgb`` at crf 0, through PyAV: :func:`nehad.runtime.mp4.encode` with ``lossless``; any
+  size, odd ones included, is kept exactly) or, with ``video="png"``, pre-extracted
   ``camXX/images/0000.png ...``; ``points3D_downsample2.ply`` (4DGS's name) in the world frame.
 
 The twin (``twin=DIR``) is the D-NeRF version of exactly the same views: ``transforms_*.json``
@@ -38,7 +39,8 @@ from nehad.data.dynerf import camera_to_world_to_llff
 from nehad.data.synth import (SCENES, _ply_bytes, _surface_points, orbit_camera_to_world,
                               render_view, scene_objects, synthesize_scene)
 from nehad.runtime.cameras import Camera
-from nehad.runtime.images import atomic_path, write_image
+from nehad.runtime.images import write_image
+from nehad.runtime.mp4 import DEFAULT_FPS, encode
 
 __all__ = ["FORMATS", "synthesize_format", "planned_images", "write_dnerf_twin"]
 
@@ -219,23 +221,6 @@ def _npy_bytes(arr: np.ndarray) -> bytes:
 # DyNeRF
 
 
-def _write_video(path: Path, frames_u8: list[np.ndarray], fps: int = 30) -> None:
-    """Lossless H.264 (libx264rgb, crf 0) in an mp4, atomically (`runtime.images.atomic_path`)."""
-    import av
-
-    h, w = frames_u8[0].shape[:2]
-    with atomic_path(path) as tmp:
-        with av.open(tmp, "w", format="mp4") as container:
-            stream = container.add_stream("libx264rgb", rate=fps)
-            stream.width, stream.height, stream.pix_fmt = w, h, "rgb24"
-            stream.options = {"crf": "0", "preset": "ultrafast"}
-            for arr in frames_u8:
-                for pkt in stream.encode(av.VideoFrame.from_ndarray(arr, format="rgb24")):
-                    container.mux(pkt)
-            for pkt in stream.encode():
-                container.mux(pkt)
-
-
 def _write_dynerf(out: Path, scene, size, frames, seed, fixed_time, points, progress, bg, twin,
                   cameras, video, fov_deg, supersample):
     w, h = size
@@ -276,7 +261,7 @@ def _write_dynerf(out: Path, scene, size, frames, seed, fixed_time, points, prog
             else:
                 twin_views["train"].append(entry)
         if video == "mp4":
-            _write_video(out / f"{name}.mp4", frames_u8)
+            encode(frames_u8, out / f"{name}.mp4", DEFAULT_FPS, lossless=True)
         else:
             (out / name / "images").mkdir(parents=True, exist_ok=True)
             for kk, arr in enumerate(frames_u8):

@@ -1,4 +1,4 @@
-"""NeHaD deformation field (SPEC section 4): hex-plane encoder, trunk, Hamiltonian decoder
+"""NeHaD deformation field (docs/design.md section 4): hex-plane encoder, trunk, Hamiltonian decoder
 (or the 4DGS MLP baseline), adapters, Boltzmann equilibrium masks, position Verlet and the
 rotation rigidity clamp. Imports torch (training side only; `import nehad` stays torch-free)."""
 

@@ -1,5 +1,5 @@
 """Detect graph capture (ONNX export, torch.jit tracing, torch.compile/dynamo export), where the
-field must take its export-friendly paths: closed-form HNN gradients (SPEC 4.4, 7) and a single
+field must take its export-friendly paths: closed-form HNN gradients (docs/design.md section 4.4, 7) and a single
 grid_sample batch."""
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Attribute adapters (paper Sec. "Neural Hamiltonian Deformation Fields": dmu = A_mu v,
-ds = A_s v, dr = A_r v; SPEC 4.5) and the Verlet force F = A_mu' v_c (SPEC 4.5-4.6)."""
+ds = A_s v, dr = A_r v; docs/design.md section 4.5) and the Verlet force F = A_mu' v_c (docs/design.md section 4.5-4.6)."""
 
 from __future__ import annotations
 
@@ -53,7 +53,7 @@ class Adapters(nn.Module):
         return AdapterOutput(self.mu(v), self.scale(v), q, d_o, d_sh)
 
     def force(self, v_c: torch.Tensor) -> torch.Tensor:
-        """F = A_mu' v_c: A_mu's weight without its bias (SPEC 4.5), (N, 3)."""
+        """F = A_mu' v_c: A_mu's weight without its bias (docs/design.md section 4.5), (N, 3)."""
         return v_c @ self.mu.weight.t()
 
 

@@ -1,5 +1,5 @@
 """Boltzmann equilibrium decomposition masks (paper Sec. "Boltzmann Equilibrium Decomposition",
-Alg. 1 "Boltzmann equilibrium masks"; SPEC 4.7):
+Alg. 1 "Boltzmann equilibrium masks"; docs/design.md section 4.7):
 
     dd = |mu - mu_eq| / sigma_s,   dtau = (t - t_eq) / sigma_t,
     E_st = (dd^2 + dtau^2) / 2 + lam dd dtau,        M_pos = (1 - gamma) exp(-beta E_st) + gamma,

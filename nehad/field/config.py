@@ -1,7 +1,7 @@
-"""Configuration of the NeHaD deformation field (SPEC sections 4 and 5).
+"""Configuration of the NeHaD deformation field (docs/design.md sections 4 and 5).
 
 Every knob of the field lives in :class:`FieldConfig`; defaults are the D-NeRF preset of the
-paper / 4DGS where the paper gives a value, and the SPEC's documented choice where it does not
+paper / 4DGS where the paper gives a value, and docs/design.md's documented choice where it does not
 (BED constants, `dt`, `phi_max`). `validate()` raises a ValueError that names the offending field.
 """
 
@@ -12,7 +12,7 @@ import math
 from dataclasses import dataclass
 from typing import Any, Mapping
 
-#: Smooth activations allowed in the scalar networks F1, F2 (SPEC 4.3).
+#: Smooth activations allowed in the scalar networks F1, F2 (docs/design.md section 4.3).
 SMOOTH_ACTIVATIONS = ("tanh", "softplus", "silu")
 DECODERS = ("hnn", "mlp")
 HNN_GRAD_MODES = ("autograd", "closed_form")
@@ -23,12 +23,12 @@ SPATIAL_REGULARIZERS = ("tv", "second_order")
 class FieldConfig:
     """Hex-plane encoder + trunk + decoder (HNN or 4DGS MLP) + physics switches.
 
-    Ablation switches (paper Tab. "ablation", SPEC 4 last paragraph) each turn one NeHaD component
+    Ablation switches (paper Tab. "ablation", docs/design.md section 4 last paragraph) each turn one NeHaD component
     off on its own; the formula used when a switch is off is documented in
     :class:`nehad.field.deformation.DeformationField`.
     """
 
-    # ---------------- hex-plane encoder (SPEC 4.1, 4DGS `kplanes_config`) ----------------
+    # ---------------- hex-plane encoder (docs/design.md section 4.1, 4DGS `kplanes_config`) ----------------
     out_dim: int = 32
     """Feature channels per plane (4DGS `output_coordinate_dim`; D-NeRF 32, HyperNeRF/DyNeRF 16)."""
     resolution: tuple[int, int, int, int] = (64, 64, 64, 25)
@@ -48,7 +48,7 @@ class FieldConfig:
     along both axes) or "second_order" (what the 4DGS code computes under the name plane_tv:
     squared second differences along the plane's first axis)."""
     mipmap: bool = False
-    """Scale-aware anisotropic mipmapping of the hex-plane lookups (SPEC 8, paper appendix):
+    """Scale-aware anisotropic mipmapping of the hex-plane lookups (docs/design.md section 8, paper appendix):
     each plane gets a 2x average-pooled pyramid and a Gaussian samples it trilinearly at a level
     set by its world-axis scales relative to the plane cells (`nehad.field.mipmap`). Off by
     default; present in training and in the exported graph alike."""
@@ -56,21 +56,21 @@ class FieldConfig:
     """Most pyramid levels per scale with `mipmap` (0 = as many as the plane sizes allow)."""
     reg_plane_weight: float = 1e-3
     """Weight of the spatial-plane smoothness in `regularization_loss()`: 10x 4DGS's 1e-4
-    (SPEC 5). Smoother spatial planes deform neighbouring Gaussians alike, which keeps rigid
+    (docs/design.md section 5). Smoother spatial planes deform neighbouring Gaussians alike, which keeps rigid
     objects from fraying: +0.9 dB on two MuJoCo scenes, two seeds each (docs/training.md)."""
     reg_time_smoothness_weight: float = 1e-2
-    """Weight of the second-order time smoothness of the space-time planes (SPEC 5)."""
+    """Weight of the second-order time smoothness of the space-time planes (docs/design.md section 5)."""
     reg_time_l1_weight: float = 1e-4
-    """Weight of the L1 distance of the space-time planes to 1 (SPEC 5)."""
+    """Weight of the L1 distance of the space-time planes to 1 (docs/design.md section 5)."""
 
-    # ---------------- trunk M (SPEC 4.2) ----------------
+    # ---------------- trunk M (docs/design.md section 4.2) ----------------
     width: int = 64
-    """W: latent width of h = M(f). Must be even: h = (q, p) with d = W/2 each (SPEC 4.2).
+    """W: latent width of h = M(f). Must be even: h = (q, p) with d = W/2 each (docs/design.md section 4.2).
     64 for D-NeRF, 128 for the real-world presets."""
     depth: int = 1
     """D: Linear(F, W) followed by (D-1) x [ReLU, Linear(W, W)]."""
 
-    # ---------------- decoder (SPEC 4.3-4.5) ----------------
+    # ---------------- decoder (docs/design.md section 4.3-4.5) ----------------
     decoder: str = "hnn"
     """"hnn" (NeHaD) or "mlp" (the 4DGS baseline row of the ablation: per-attribute ReLU heads,
     mu + dmu, s + ds, r + dr; no BED, no Verlet, no rigidity clamp)."""
@@ -90,7 +90,7 @@ class FieldConfig:
     out almost the same for every Gaussian (docs/training.md)."""
     hnn_grad: str = "autograd"
     """How grad_h F is computed: "autograd" (`torch.autograd.grad(..., create_graph=True)`, the
-    training path of SPEC 4.4) or "closed_form" (the explicit formula of SPEC 4.4 used by the ONNX
+    training path of docs/design.md section 4.4) or "closed_form" (the explicit formula of docs/design.md section 4.4 used by the ONNX
     export; mathematically identical). Under `torch.inference_mode()` closed form is always used,
     because autograd cannot be re-enabled there."""
     use_hnn: bool = True
@@ -99,14 +99,14 @@ class FieldConfig:
     roles of v_c and v_s (v = v_c + v_s); everything downstream (adapters, force, BED, rigidity)
     is unchanged. Only the curl-free / divergence-free structure is removed."""
 
-    # ---------------- position Verlet (SPEC 4.6) ----------------
+    # ---------------- position Verlet (docs/design.md section 4.6) ----------------
     verlet: bool = True
     """Position Verlet mu~ = mu + dt dmu + dt^2/2 F; off: mu~ = mu + dt dmu (no force term)."""
     dt: float = 1.0
     """Integrator step. 1.0: with dt = 1/T the learnable displacement would shrink by the frame
-    count and learn T times slower (SPEC 4.6)."""
+    count and learn T times slower (docs/design.md section 4.6)."""
 
-    # ---------------- Boltzmann equilibrium decomposition (SPEC 4.7) ----------------
+    # ---------------- Boltzmann equilibrium decomposition (docs/design.md section 4.7) ----------------
     bed_position: bool = True
     """Blend positions with M_pos; off: mu' = mu~ (equivalent to M_pos = 0)."""
     bed_scale: bool = True
@@ -124,13 +124,13 @@ class FieldConfig:
     norm_eps: float = 1e-12
     """eps of the safe norms sqrt(|x|^2 + eps) (BED distance, rigidity axis, normalisations)."""
 
-    # ---------------- local rigidity (SPEC 4.8) ----------------
+    # ---------------- local rigidity (docs/design.md section 4.8) ----------------
     rigidity: bool = True
     """Clamp the rotation angle of the quaternion delta; off: r' = N(r (x) q) unclamped."""
     phi_max: float = math.pi
     """Maximum rotation angle per deformation, phi' = phi_max tanh(phi / phi_max)."""
 
-    # ---------------- appearance (SPEC 4.9) ----------------
+    # ---------------- appearance (docs/design.md section 4.9) ----------------
     deform_opacity_sh: bool = False
     """Also deform opacity logits and SH coefficients (4DGS does for DyNeRF; off for D-NeRF):
     o' = o + A_o v, c' = c + A_c v (MLP decoder: extra heads). Not masked by BED."""
@@ -225,7 +225,7 @@ class FieldConfig:
     # ------------------------------------------------------------------------------------------
     @classmethod
     def preset(cls, name: str, **overrides: Any) -> "FieldConfig":
-        """4DGS hex-plane presets of SPEC 5: "dnerf", "hypernerf", "dynerf"; `overrides` win."""
+        """4DGS hex-plane presets of docs/design.md section 5: "dnerf", "hypernerf", "dynerf"; `overrides` win."""
         presets = {
             "dnerf": dict(out_dim=32, resolution=(64, 64, 64, 25), multires=(1, 2), width=64),
             "hypernerf": dict(out_dim=16, resolution=(64, 64, 64, 150), multires=(1, 2, 4),

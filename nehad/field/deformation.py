@@ -1,4 +1,4 @@
-"""The NeHaD deformation field (paper Sec. 4 and Alg. 1; SPEC 4 steps 1-9).
+"""The NeHaD deformation field (paper Sec. 4 and Alg. 1; docs/design.md section 4 steps 1-9).
 
 `DeformationField(cfg, aabb, extent)(means, log_scales, quats, t, mu_eq, t_eq)` maps canonical
 Gaussians to their deformed state at time t in [0, 1].
@@ -57,7 +57,7 @@ def time_column(t: TimeLike, n: int, like: torch.Tensor) -> torch.Tensor:
 
 
 class DeformationField(nn.Module):
-    """Hex-plane encoder + trunk + decoder (SPEC 4).
+    """Hex-plane encoder + trunk + decoder (docs/design.md section 4).
 
     Args:
         cfg: FieldConfig (validated here).
@@ -65,7 +65,7 @@ class DeformationField(nn.Module):
             `set_aabb`).
         extent: scene extent; sigma_s = cfg.sigma_s_fraction * extent (a buffer).
 
-    HNN decoder, in order (SPEC 4):
+    HNN decoder, in order (docs/design.md section 4):
       1. f = HexPlane(normalize_aabb(mu), 2t - 1) of the CANONICAL mean mu;
       2. h = M(f);
       3-4. v_c = grad_h F1, v_s = (grad_h F2) M^T, v = v_c + v_s;
@@ -89,7 +89,7 @@ class DeformationField(nn.Module):
         self.cfg = dataclasses.replace(cfg).validate()  # own copy: later edits of `cfg` don't leak
         self.hexplane = HexPlane(cfg.out_dim, cfg.resolution, cfg.multires, cfg.plane_init_low,
                                  cfg.plane_init_high, cfg.time_plane_init)
-        self.hexplane.mipmap_levels = cfg.mipmap_levels  # used only with cfg.mipmap (SPEC 8)
+        self.hexplane.mipmap_levels = cfg.mipmap_levels  # used only with cfg.mipmap (docs/design.md section 8)
         self.trunk = Trunk(self.hexplane.feature_dim, cfg.width, cfg.depth)
         if cfg.decoder == "mlp":
             self.field = None
@@ -155,14 +155,14 @@ class DeformationField(nn.Module):
 
     def param_groups(self) -> dict[str, list[nn.Parameter]]:
         """{"grid": hex-plane planes, "decoder": trunk, F1/F2 (or heads) and adapters}; the
-        trainer gives them different learning rates (SPEC 5: grid 1.6e-3 -> 1.6e-4, decoder
+        trainer gives them different learning rates (docs/design.md section 5: grid 1.6e-3 -> 1.6e-4, decoder
         1e-3)."""
         grid = list(self.hexplane.parameters())
         ids = {id(p) for p in grid}
         return {"grid": grid, "decoder": [p for p in self.parameters() if id(p) not in ids]}
 
     def regularization_terms(self) -> dict[str, torch.Tensor]:
-        """Hex-plane regularisers of 4DGS (SPEC 5), unweighted."""
+        """Hex-plane regularisers of 4DGS (docs/design.md section 5), unweighted."""
         return {"plane_smoothness": self.hexplane.plane_smoothness(self.cfg.spatial_regularizer),
                 "time_smoothness": self.hexplane.time_smoothness(),
                 "time_l1": self.hexplane.time_l1()}
@@ -180,7 +180,7 @@ class DeformationField(nn.Module):
                  log_scales: Optional[torch.Tensor] = None,
                  quats: Optional[torch.Tensor] = None) -> torch.Tensor:
         """Step 1-2: h = M(HexPlane(normalize_aabb(mu), 2t - 1)), (N, W). With cfg.mipmap the
-        lookups are mipmapped by the canonical Gaussians' world-axis scales (SPEC 8), which
+        lookups are mipmapped by the canonical Gaussians' world-axis scales (docs/design.md section 8), which
         then need `log_scales` and `quats`."""
         aabb = self.aabb.to(means.dtype)
         sigma = None

@@ -1,7 +1,7 @@
 """Multi-resolution hex-plane encoder (paper Eq. (k-planes) / Alg. 1 "hex-plane feature";
-SPEC 4.1; 4DGS `HexPlaneField`).
+docs/design.md section 4.1; 4DGS `HexPlaneField`).
 
-For u = (x, y, z, t') in [-1, 1]^4 (x, y, z = `normalize_aabb(mu)`, t' = 2t - 1, SPEC 3) and each
+For u = (x, y, z, t') in [-1, 1]^4 (x, y, z = `normalize_aabb(mu)`, t' = 2t - 1, docs/design.md section 3) and each
 scale, the feature is the product over the six planes xy, xz, xt, yz, yt, zt of the bilinear sample
 psi(P_k, pi_k(u)); the scales are concatenated. Sampling is `F.grid_sample(mode="bilinear",
 align_corners=True, padding_mode="border")` in torch. Under export it is written out as the same
@@ -106,7 +106,7 @@ class HexPlane(nn.Module):
             self.planes.append(scale)
         #: grid_sample point batches; 0 = automatic (see `_num_batches`), 1 = a single batch.
         self.sample_batches = 0
-        #: SPEC 8 mipmapping: the most pyramid levels per scale (0 = as many as the planes allow).
+        #: docs/design.md section 8 mipmapping: the most pyramid levels per scale (0 = as many as the planes allow).
         self.mipmap_levels = 0
 
     @property
@@ -136,7 +136,7 @@ class HexPlane(nn.Module):
         """Features of points x (N, 3) in [-1, 1]^3 (already `normalize_aabb`-ed) at times
         t (N, 1) in [-1, 1] (already mapped 2t - 1). Returns (N, out_dim * len(multires)).
         With `sigma` (N, 3), the Gaussians' world-axis standard deviations in the same
-        normalised units as x, the planes are sampled through their mip pyramids (SPEC 8,
+        normalised units as x, the planes are sampled through their mip pyramids (docs/design.md section 8,
         `nehad.field.mipmap`)."""
         if sigma is not None:
             return self._forward_mipmap(x, t, sigma)
@@ -174,7 +174,7 @@ class HexPlane(nn.Module):
         return out[:n] if pad > 0 else out
 
     def mip_levels(self) -> list[int]:
-        """L_max of each scale (SPEC 8): halvings until a spatial side is 1, capped by
+        """L_max of each scale (docs/design.md section 8): halvings until a spatial side is 1, capped by
         `mipmap_levels` when that is > 0."""
         from nehad.field.mipmap import auto_levels
 
@@ -199,7 +199,7 @@ class HexPlane(nn.Module):
 
     def _forward_mipmap(self, x: torch.Tensor, t: torch.Tensor,
                         sigma: torch.Tensor) -> torch.Tensor:
-        """Scale-aware anisotropic mipmapping (SPEC 8): per scale, the level l_hat of each point
+        """Scale-aware anisotropic mipmapping (docs/design.md section 8): per scale, the level l_hat of each point
         from its footprint in cells, then a trilinear sample of every plane's pyramid; the
         product over planes and the concatenation over scales as without mipmapping."""
         from nehad.field.mipmap import PlanePyramid, build_pyramid, mip_level
@@ -223,7 +223,7 @@ class HexPlane(nn.Module):
             feats.append(f)
         return torch.cat(feats, dim=1)
 
-    # ------------------------------------------------------------------ regularisers (SPEC 5)
+    # ------------------------------------------------------------------ regularisers (docs/design.md section 5)
     def plane_smoothness(self, kind: str = "tv") -> torch.Tensor:
         """Smoothness of the spatial planes xy, xz, yz, summed over planes and scales: "tv" =
         K-Planes total variation; "second_order" = the 4DGS code's `_plane_regulation`."""

@@ -1,11 +1,11 @@
-"""Hamiltonian decoder (paper Eq. (field), Alg. 1 "Hamiltonian prediction"; SPEC 4.3-4.4).
+"""Hamiltonian decoder (paper Eq. (field), Alg. 1 "Hamiltonian prediction"; docs/design.md section 4.3-4.4).
 
 Two scalar networks F1, F2: R^W -> R generate
     v_c = grad_h F1(h)                      (conservative: its Jacobian, a Hessian, is symmetric)
     g = grad_h F2(h) = (g_q, g_p),  v_s = g M^T = (g_p, -g_q)   (solenoidal: trace of J = 0)
 with M = [[0, I], [-I, 0]] the symplectic matrix, d = W/2, and v = v_c + v_s.
 
-The input gradient is computed either by autograd (training, SPEC 4.4: `torch.autograd.grad(
+The input gradient is computed either by autograd (training, docs/design.md section 4.4: `torch.autograd.grad(
 F.sum(), h, create_graph=True)`) or in closed form (`scalar_net_input_grad`, used by the ONNX
 export; for a tanh MLP grad = W1^T[(1 - a1^2) * W2^T[(1 - a2^2) * w3]]). Both are the same
 function.
@@ -28,7 +28,7 @@ from nehad.field.config import SMOOTH_ACTIVATIONS
 
 
 def activation_with_derivative(z: torch.Tensor, name: str) -> tuple[torch.Tensor, torch.Tensor]:
-    """(act(z), act'(z)) for the smooth activations of SPEC 4.3, written with plain ops
+    """(act(z), act'(z)) for the smooth activations of docs/design.md section 4.3, written with plain ops
     (Tanh, Sigmoid, Softplus, Mul, Add) so that they export to ONNX."""
     if name == "tanh":
         a = torch.tanh(z)
@@ -83,7 +83,7 @@ class ScalarNet(nn.Module):
 
 
 def scalar_net_input_grad(net: ScalarNet, h: torch.Tensor) -> torch.Tensor:
-    """Closed-form grad_h net(h) (N, W), no autograd (SPEC 4.4 export form):
+    """Closed-form grad_h net(h) (N, W), no autograd (docs/design.md section 4.4 export form):
     grad = W1^T [act'(z1) * W2^T [act'(z2) * ... W_L^T [act'(z_L) * w_out]]], batched as row
     vectors: delta_L = act'(z_L) * w_out; delta_k = act'(z_k) * (delta_{k+1} W_{k+1});
     grad = delta_1 W_1. Differentiable by ordinary (first-order) autograd."""
@@ -113,7 +113,7 @@ class FieldOutput(NamedTuple):
 
 
 class HamiltonianDecoder(nn.Module):
-    """F1, F2 -> (v, v_c, v_s) (SPEC 4.3-4.4).
+    """F1, F2 -> (v, v_c, v_s) (docs/design.md section 4.3-4.4).
 
     `grad_mode` "autograd": `torch.autograd.grad` with `create_graph` when grad mode is on (so the
     loss on v trains F1, F2 and everything upstream); under `torch.no_grad()` autograd is enabled

@@ -1,4 +1,4 @@
-"""Scale-aware anisotropic mipmapping of the hex-plane (SPEC 8; paper appendix "Detailed
+"""Scale-aware anisotropic mipmapping of the hex-plane (docs/design.md section 8; paper appendix "Detailed
 Methodology of Streaming", the equation for l_hat and beta(rho)).
 
 Read as anti-aliasing of the hex-plane lookups: a Gaussian that spans many plane cells should see
@@ -7,21 +7,21 @@ the plane averaged over its footprint, not a point sample of it.
 * Pyramids. Every plane gets a mip pyramid by 2x average pooling (`pool2x`). Spatial planes (xy,
   xz, yz) are pooled along both axes; space-time planes (xt, yt, zt) along their spatial axis only:
   a Gaussian has no temporal extent, so halving the time axis would only blur the motion (our
-  reading; SPEC 8 does not say). Odd sizes drop the last row/column (floor, as `avg_pool2d`).
+  reading; docs/design.md section 8 does not say). Odd sizes drop the last row/column (floor, as `avg_pool2d`).
   Level k of a scale has 2^k times the level-0 cell; level L_max is the last one whose spatial
   sides are all >= 1 (or `FieldConfig.mipmap_levels` when that is smaller).
 * Levels. For a Gaussian with world-axis standard deviations s = (s_x, s_y, s_z) (the square roots
   of the diagonal of R diag(exp(2 log_s)) R^T: its extent along each world axis, so a rotated
   needle gets the right per-axis footprint) and a scale whose cell is cell_a = (aabb_max -
   aabb_min)_a / (res_a - 1) (align_corners=True sampling has res - 1 intervals):
-      l_a   = clamp(log2(s_a / cell_a), 0, L_max)          (per axis, SPEC 8)
+      l_a   = clamp(log2(s_a / cell_a), 0, L_max)          (per axis, docs/design.md section 8)
       L     = max_a l_a   (the dominant axis),  L_bar = mean_a l_a
       rho   = max(l) / min(l)   (guard: min(l) is replaced by 1e-6 when smaller, so rho -> inf
               when an axis is at level 0 while another is not, and beta takes its limit 1/2;
               when all levels are 0, L - L_bar = 0 and beta does not matter)
       beta  = tanh(rho/3 - 1) / (1 + tanh(rho/3 - 1))
       l_hat = clamp(L - beta (L - L_bar), 0, L_max)
-  beta is negative for rho < 3 (the formula, taken as the SPEC writes it, then pushes l_hat above
+  beta is negative for rho < 3 (the formula, taken as docs/design.md writes it, then pushes l_hat above
   L), zero at rho = 3 and tends to 1/2 as rho grows; the final clamp keeps l_hat a valid level.
   The level is computed from the canonical scales and rotation with gradients stopped: the scales
   are not trained to pick a texture level.
@@ -40,7 +40,7 @@ from typing import Sequence
 
 import torch
 
-#: rho's guard: min(l) below this is replaced by it (SPEC 8: "guard min = 0").
+#: rho's guard: min(l) below this is replaced by it (docs/design.md section 8: "guard min = 0").
 RHO_EPS = 1e-6
 _INV_LN2 = 1.0 / math.log(2.0)
 
@@ -86,7 +86,7 @@ def world_axis_sigma(log_scales: torch.Tensor, quats: torch.Tensor,
 
 
 def beta_of_rho(rho: torch.Tensor) -> torch.Tensor:
-    """beta(rho) = tanh(rho/3 - 1) / (1 + tanh(rho/3 - 1)) (paper appendix, SPEC 8)."""
+    """beta(rho) = tanh(rho/3 - 1) / (1 + tanh(rho/3 - 1)) (paper appendix, docs/design.md section 8)."""
     th = torch.tanh(rho * (1.0 / 3.0) - 1.0)
     return th / (1.0 + th)
 

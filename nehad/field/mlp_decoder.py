@@ -1,4 +1,4 @@
-"""4DGS baseline decoder (`decoder: mlp`, the first row of the paper's ablation; SPEC 4 last
+"""4DGS baseline decoder (`decoder: mlp`, the first row of the paper's ablation; docs/design.md section 4 last
 paragraph; paper Sec. "Dynamic Gaussian Splatting": dmu = D_mu(f), ds = D_s(f), dr = D_r(f)).
 
 Per-attribute heads ReLU-Linear(W, W)-ReLU-Linear(W, k) on the trunk output h, as 4DGS's

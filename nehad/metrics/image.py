@@ -1,4 +1,4 @@
-"""Full-reference image metrics in torch, as 3DGS/4DGS report them (SPEC section 9).
+"""Full-reference image metrics in torch, as 3DGS/4DGS report them (docs/design.md section 9).
 
 All functions take a rendered image and its reference as (H, W, C) or (N, H, W, C) arrays or
 tensors with values in [0, 1] (NumPy arrays, torch tensors, or uint8/uint16 images, which are

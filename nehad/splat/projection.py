@@ -1,5 +1,5 @@
 """EWA projection of 3D Gaussians in torch (differentiable), the twin of
-`nehad.runtime.raster.projection` (SPEC section 6); tests hold the two against each other.
+`nehad.runtime.raster.projection` (docs/design.md section 6); tests hold the two against each other.
 
 Sigma = R S S^T R^T; cull z <= 0.2; J with x/z, y/z clamped to 1.3 tan(fov/2);
 Sigma2D = J W Sigma W^T J^T + 0.3 I; conic = Sigma2D^-1; radius = ceil(3 sqrt(lambda_max)).

@@ -1,5 +1,5 @@
 """Differentiable rasterization for training: a `torch.autograd.Function` around the shared Numba
-kernels of `nehad.runtime.raster` (SPEC section 6), so what trains is what renders.
+kernels of `nehad.runtime.raster` (docs/design.md section 6), so what trains is what renders.
 
 The backward pass gives gradients for the 2D means, conics, colours and opacities; torch autograd
 carries them through `project_gaussians_torch` to the 3D parameters. Densification reads the

@@ -1,4 +1,4 @@
-"""Spherical-harmonics colour in torch, the twin of `nehad.runtime.raster.sh` (SPEC section 3)."""
+"""Spherical-harmonics colour in torch, the twin of `nehad.runtime.raster.sh` (docs/design.md section 3)."""
 
 from __future__ import annotations
 

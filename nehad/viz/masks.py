@@ -1,4 +1,4 @@
-"""The Boltzmann equilibrium split (paper Sec. "Boltzmann Equilibrium Decomposition", SPEC 4.7):
+"""The Boltzmann equilibrium split (paper Sec. "Boltzmann Equilibrium Decomposition", docs/design.md section 4.7):
 which Gaussians BED lets the deformation move at time t, how that looks, and how well it matches
 the objects that really move.
 

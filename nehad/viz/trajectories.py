@@ -13,21 +13,20 @@ times; nothing is smoothed or interpolated.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Callable, Iterable
 
 import numpy as np
 
 from nehad.runtime.gaussians import GaussianCloud
+from nehad.runtime.mp4 import DEFAULT_CRF
 
 from . import VizError
 from .plots import PALETTE, colormap, to_uint8
 
 GaussiansAt = Callable[[float], GaussianCloud]
 
-#: Points closer than this to the camera plane are not drawn (the rasterizer's cull, SPEC 6).
+#: Points closer than this to the camera plane are not drawn (the rasterizer's cull, docs/design.md section 6).
 NEAR = 0.2
 SELECT_MODES = ("moving", "random")
 COLOR_MODES = ("time", "track")
@@ -38,7 +37,7 @@ class Tracks:
     """K tracked Gaussians at T times.
 
     times (T,); ids (K,) indices into the cloud; world (T, K, 3) deformed means; pixels (T, K, 2)
-    projections (u, v) with pixel centres at +0.5 (SPEC 3); depth (T, K) view depth z;
+    projections (u, v) with pixel centres at +0.5 (docs/design.md section 3); depth (T, K) view depth z;
     path_length (K,) summed world distance between consecutive times."""
 
     times: np.ndarray
@@ -232,49 +231,18 @@ def trajectory_frames(gaussians_at: GaussiansAt, camera, tracks: Tracks, backgro
         yield draw_tracks(base, tracks, upto=k, trail=trail, color_by=color_by)
 
 
-def write_video(path, frames: Iterable[np.ndarray], fps: float = 24.0, crf: int = 18) -> int:
-    """Encode uint8 RGB frames as H.264 (libx264, yuv420p) in an .mp4 through PyAV, atomically
-    (a temporary file in the same folder, renamed when complete). Odd sizes are padded by one
-    pixel (yuv420p needs even sizes). Returns the number of frames written."""
-    import av
+def write_video(path, frames: Iterable[np.ndarray], fps: float = 24.0,
+                crf: int = DEFAULT_CRF) -> int:
+    """Encode RGB frames (uint8 or float [0, 1]) as an .mp4 through :mod:`nehad.runtime.mp4`
+    (H.264 yuv420p through PyAV, OpenCV mp4v without it; atomically; odd sizes padded by
+    repeating the last row/column). Returns the number of frames written; problems with the
+    input raise VizError naming the file."""
+    from nehad.runtime.mp4 import Mp4Writer
 
-    from nehad.runtime.images import atomic_path
-
-    path = Path(path)
-    if not (fps > 0 and math.isfinite(fps)):
-        raise VizError(f"fps: expected a positive number, got {fps}")
-    count = 0
-    with atomic_path(path, VizError) as tmp:
-        container = av.open(str(tmp), mode="w", format="mp4")
-        try:
-            stream = None
-            for frame in frames:
-                a = to_uint8(frame)[..., :3]
-                h, w = a.shape[:2]
-                if h % 2 or w % 2:
-                    a = np.pad(a, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge")
-                if stream is None:
-                    from fractions import Fraction
-
-                    stream = container.add_stream("libx264",
-                                                  rate=Fraction(fps).limit_denominator(1001))
-                    stream.width, stream.height = a.shape[1], a.shape[0]
-                    stream.pix_fmt = "yuv420p"
-                    stream.options = {"crf": str(int(crf))}
-                elif (a.shape[1], a.shape[0]) != (stream.width, stream.height):
-                    raise VizError(f"{path}: frame {count} is {a.shape[1]}x{a.shape[0]}, the "
-                                   f"first was {stream.width}x{stream.height}")
-                vf = av.VideoFrame.from_ndarray(np.ascontiguousarray(a), format="rgb24")
-                for packet in stream.encode(vf):
-                    container.mux(packet)
-                count += 1
-            if stream is None:
-                raise VizError(f"{path}: no frames to write")
-            for packet in stream.encode():
-                container.mux(packet)
-        finally:
-            container.close()
-    return count
+    with Mp4Writer(path, fps, crf, error=VizError) as video:
+        for frame in frames:
+            video.write(frame)
+    return video.frames
 
 
 __all__ = ["COLOR_MODES", "NEAR", "SELECT_MODES", "Tracks", "all_positions", "compute_tracks",

@@ -1,4 +1,4 @@
-"""The shared CPU Gaussian rasterizer (SPEC section 6), as plain functions.
+"""The shared CPU Gaussian rasterizer (docs/design.md section 6), as plain functions.
 
 Stages, each small and testable on its own (the gsplat layout):
   1. `project_gaussians` (projection.py): 3D Gaussians + camera -> screen-space Gaussians.

@@ -1,4 +1,4 @@
-"""Tile binning: which Gaussians touch which 16x16 tile, front to back (SPEC section 6).
+"""Tile binning: which Gaussians touch which 16x16 tile, front to back (docs/design.md section 6).
 
 A Gaussian belongs to every tile its 3-sigma box overlaps (the 3DGS rule), intersected with the
 tiles where its alpha can reach 1/255 at all: the ellipse d^T conic d <= 2 ln(255 opacity). The

@@ -1,4 +1,4 @@
-"""Numba tile rasterizer, forward and backward (SPEC section 6): the one implementation shared by
+"""Numba tile rasterizer, forward and backward (docs/design.md section 6): the one implementation shared by
 training (through `nehad.splat.rasterize`) and the torch-free runtime.
 
 Each tile (16x16 pixels) is one parallel task (handed out a few tiles at a time, so that the

@@ -1,4 +1,4 @@
-"""Projection of 3D Gaussians to screen space (EWA splatting), NumPy/Numba side (SPEC section 6).
+"""Projection of 3D Gaussians to screen space (EWA splatting), NumPy/Numba side (docs/design.md section 6).
 
 Its torch twin is `nehad.splat.projection`; tests hold the two against each other.
 Sigma = R S S^T R^T; cull z <= 0.2; J with x/z, y/z clamped to 1.3 tan(fov/2);
@@ -23,7 +23,7 @@ TILE = 16
 
 @dataclass
 class Projected:
-    """Screen-space Gaussians: the rasterizer's inputs (SPEC section 6).
+    """Screen-space Gaussians: the rasterizer's inputs (docs/design.md section 6).
 
     means2d (N, 2) pixels; conics (N, 3) = (a, b, c) of [[a, b], [b, c]]; depths (N,) view z;
     radii (N,) int32, 0 for culled Gaussians; colors (N, 3); opacities (N,).

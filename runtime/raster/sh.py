@@ -1,4 +1,4 @@
-"""Real spherical harmonics up to degree 3 with the standard 3DGS constants (SPEC section 3).
+"""Real spherical harmonics up to degree 3 with the standard 3DGS constants (docs/design.md section 3).
 
 rgb = max(sum_k sh_k * basis_k(dir) + 0.5, 0), dir = normalize(mu - camera_centre).
 """

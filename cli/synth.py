@@ -1,0 +1,108 @@
+"""`nehad synth`: write a synthetic dynamic scene (D-NeRF, HyperNeRF or DyNeRF layout)."""
+
+from __future__ import annotations
+
+import shlex
+import sys
+import time
+from pathlib import Path
+
+import click
+
+from .errors import user_errors
+
+
+@click.command()
+@click.argument("out", type=click.Path(file_okay=False, path_type=Path))
+@click.option("--scene", default="spheres", show_default=True,
+              help="Which synthetic scene: spheres or boxes.")
+@click.option("--resolution", type=click.IntRange(min=4), default=64, show_default=True,
+              help="Image width and height in pixels.")
+@click.option("--frames", type=click.IntRange(min=1), default=50, show_default=True,
+              help="Number of train frames (val and test get about 10% as many each).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the cameras and times.")
+@click.option("--fixed-time", type=click.FloatRange(0.0, 1.0), default=None,
+              help="Give every frame this time in [0, 1]: a static scene.")
+@click.option("--gaussians", "num_gaussians", type=click.IntRange(min=0), default=5000,
+              show_default=True,
+              help="Number of Gaussians in gaussians.ply, a 3DGS PLY approximating the scene at "
+                   "t = 0.5 (or --fixed-time); 0 writes none. D-NeRF format only.")
+@click.option("--format", "fmt", type=click.Choice(["dnerf", "hypernerf", "dynerf"]),
+              default="dnerf", show_default=True,
+              help="Dataset layout: dnerf (transforms_*.json, RGBA PNGs), hypernerf (nerfies "
+                   "camera/, rgb/1x, rgb/2x, dataset.json, ...) or dynerf (camXX.mp4 videos and "
+                   "poses_bounds.npy; --frames is then the frames per video).")
+@click.option("--cameras", type=click.IntRange(min=2), default=4, show_default=True,
+              help="dynerf: number of cameras (cam00 is the test camera).")
+def synth(out, scene, resolution, frames, seed, fixed_time, num_gaussians, fmt, cameras):
+    """Write a synthetic dynamic scene to the folder OUT (D-NeRF layout unless --format).
+
+    D-NeRF: OUT gets train/, val/, test/ (RGBA PNGs), transforms_{train,val,test}.json,
+    points3d.ply (initial points) and gaussians.ply (a ready-made 3DGS PLY of the scene, to
+    render). HyperNeRF and DyNeRF: the files of those releases, RGB over black (see README).
+    """
+    from nehad.data.synth import SCENES, synthesize_scene
+
+    if fmt != "dnerf":
+        return _synth_other_format(out, fmt, scene, resolution, frames, seed, fixed_time, cameras)
+    if scene not in SCENES:
+        raise click.BadParameter(f"unknown scene {scene!r}; expected one of {', '.join(SCENES)}",
+                                 param_hint="'--scene'")
+    if out.exists() and not out.is_dir():
+        raise click.BadParameter(f"{out} exists and is not a folder", param_hint="'OUT'")
+    held = max(1, int(round(0.1 * frames)))  # val/test frame count of synthesize_scene
+    start = time.perf_counter()
+    with user_errors():
+        from tqdm import tqdm
+
+        with tqdm(total=frames + 2 * held, desc="synth", unit="frame", delay=1.0, disable=None,
+                  leave=False, file=sys.stderr) as bar:
+            synthesize_scene(out, scene=scene, resolution=resolution, frames=frames, seed=seed,
+                             fixed_time=fixed_time, progress=lambda: bar.update(1))
+        t_ply = 0.5 if fixed_time is None else fixed_time
+        if num_gaussians > 0:
+            from nehad.data.synth_gaussians import scene_gaussians
+            from nehad.runtime.ply import write_gaussian_ply
+
+            cloud = scene_gaussians(scene, t_ply, num_gaussians)
+            write_gaussian_ply(out / "gaussians.ply", cloud)
+    elapsed = time.perf_counter() - start
+    click.echo(f"wrote {out}/ (scene {scene!r}, seed {seed}, {elapsed:.1f} s):")
+    click.echo(f"  train/ {frames} frames, val/ {held}, test/ {held}: {resolution}x{resolution} RGBA "
+               f"PNGs, cameras in transforms_{{train,val,test}}.json")
+    click.echo(f"  points3d.ply: initial points on the surfaces at t = {t_ply:g}")
+    if num_gaussians > 0:
+        click.echo(f"  gaussians.ply: {len(cloud)} Gaussians approximating the scene at t = {t_ply:g}")
+        q = shlex.quote(str(out))
+        click.echo(f"try: nehad render {q}/gaussians.ply --view {q}/transforms_test.json:0 "
+                   f"-o render.png --background 1,1,1")
+
+
+def _synth_other_format(out, fmt, scene, resolution, frames, seed, fixed_time, cameras):
+    from nehad.data.synth import SCENES
+    from nehad.data.synth_formats import planned_images, synthesize_format
+
+    if scene not in SCENES:
+        raise click.BadParameter(f"unknown scene {scene!r}; expected one of {', '.join(SCENES)}",
+                                 param_hint="'--scene'")
+    if out.exists() and not out.is_dir():
+        raise click.BadParameter(f"{out} exists and is not a folder", param_hint="'OUT'")
+    start = time.perf_counter()
+    with user_errors():
+        from tqdm import tqdm
+
+        with tqdm(total=planned_images(fmt, frames, cameras), desc="synth", unit="frame",
+                  delay=1.0, disable=None, leave=False, file=sys.stderr) as bar:
+            synthesize_format(out, fmt, scene=scene, resolution=resolution, frames=frames,
+                              seed=seed, fixed_time=fixed_time, cameras=cameras,
+                              progress=lambda: bar.update(1))
+    what = (f"{cameras} cameras x {frames} frames (cam00.mp4 .. is the test camera), "
+            f"poses_bounds.npy, points3D_downsample2.ply" if fmt == "dynerf" else
+            f"{planned_images(fmt, frames)} images in rgb/1x and rgb/2x, camera/*.json, "
+            f"dataset.json, metadata.json, scene.json, points.npy")
+    click.echo(f"wrote {out}/ ({fmt} layout, scene {scene!r}, seed {seed}, "
+               f"{time.perf_counter() - start:.1f} s): {what}")
+    click.echo(f"try: nehad train {shlex.quote(str(out))} -o run --preset test")
+
+
+__all__ = ["synth"]

@@ -1,0 +1,98 @@
+"""A training run as a runtime scene (runtime/scene.py): the adapter that lets every command
+draw a run folder with its torch model. The runtime never imports it; the command line names it
+(``nehad.run_scene:open_run``) among the scene openers it passes to ``open_scene``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from nehad.runtime.scene import Scene, SceneError
+
+#: How callers name this opener for nehad.runtime.scene.open_scene.
+OPENER = "nehad.run_scene:open_run"
+
+
+class RunScene(Scene):
+    """RUN/model.pt: the deformed Gaussians at any time, computed by the torch model; the
+    background the run was trained with; the first test camera of its dataset as the default
+    camera (when the dataset is still there)."""
+
+    kind = "run"
+
+    def __init__(self, path, lod: int | None = None):
+        super().__init__(path)
+        from nehad.trainer import load_run  # torch: only for this scene kind
+
+        self.model, self.meta = load_run(self.path)
+        self.default_background = tuple(float(v) for v in self.meta["background"])
+        self.time_range = tuple(float(v) for v in self.meta["time_range"])
+        self.sh_degree = int(self.meta["sh_degree"])
+        self.lod = lod
+        self._keep = None
+        total = len(self.model.gaussians)
+        self.num_gaussians = total
+        if lod is not None:
+            from nehad.lod import run_layers
+
+            layers = run_layers(self.meta, total)
+            count = int(layers.max()) + 1 if len(layers) else 1
+            if not 0 <= lod < count:
+                raise SceneError(f"{{lod}} {lod}: run {self.path} has {count} layer(s), "
+                                 f"0..{count - 1}", "lod")
+            self._keep = layers <= lod
+            self.num_gaussians = int(self._keep.sum())
+        means = self.model.gaussians.means.detach().cpu().numpy()
+        if len(means):
+            import numpy as np
+
+            self.aabb = np.stack([means.min(0), means.max(0)])
+        self.default_camera = _first_test_camera(self.meta)
+
+    def gaussians(self, time=None):
+        from nehad.trainer import cloud_at
+
+        cloud = cloud_at(self.model, self.middle_time() if time is None else time,
+                         self.sh_degree)
+        if self._keep is not None:
+            from nehad.runtime.gaussians import GaussianCloud
+
+            k = self._keep
+            cloud = GaussianCloud(cloud.means[k], cloud.scales[k], cloud.quats[k],
+                                  cloud.opacities[k], cloud.sh[k])
+        return cloud
+
+    def describe(self) -> str:
+        total = len(self.model.gaussians)
+        if self._keep is not None:
+            return (f"run {self.path.name}: layers 0..{self.lod}, {self.num_gaussians} of "
+                    f"{total} Gaussians, SH degree {self.sh_degree}")
+        return f"run {self.path.name}: {total} Gaussians, SH degree {self.sh_degree}"
+
+    def digest(self) -> str:
+        from nehad.runtime.scene import _sha256
+
+        return _sha256(self.path / "model.pt")
+
+
+def _first_test_camera(meta: dict):
+    test = Path(meta.get("data_dir", "")) / "transforms_test.json"
+    if not test.is_file():
+        return None
+    from nehad.runtime.cameras import CameraError, load_view
+
+    try:
+        cams = load_view(f"{test}:0")
+    except CameraError:
+        return None
+    return cams[0] if isinstance(cams, list) else cams
+
+
+def open_run(path, lod: int | None = None, threads: int | None = None):
+    """The scene opener of a training run folder (RUN/model.pt), else None."""
+    p = Path(path)
+    if not (p.is_dir() and (p / "model.pt").is_file()):
+        return None
+    return RunScene(p, lod=lod)
+
+
+__all__ = ["RunScene", "open_run", "OPENER"]

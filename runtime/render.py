@@ -1,0 +1,97 @@
+"""Render one view of a scene and write what it produced, all or nothing (docs/design.md,
+"Scenes" and "Bad inputs and atomic writes").
+
+    scene = open_scene("model.onnx")
+    camera = choose_camera(scene, "cam.json")
+    view = render_view(scene, camera, scene_time(scene, camera, 0.5))
+    write_all([("out.png", view.image)])
+
+`nehad render`, `nehad ply`, the stills of `nehad batch` and every video frame go through
+these functions (the frame tasks of runtime/distribute.py call :func:`render_view`).
+"""
+
+from __future__ import annotations
+
+import time as _time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .scene import SceneError
+
+#: Image formats a still can be written as (OpenImageIO picks the writer from the suffix).
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff")
+#: Those with an alpha channel (JPEG has none).
+ALPHA_SUFFIXES = (".png", ".exr", ".tif", ".tiff")
+
+
+@dataclass
+class RenderedView:
+    """One drawn view: `image` (H, W, 3) RGB over the background, or (H, W, 4) colour over
+    transparency with `alpha`; `depth` the expected view depth (0 where nothing is drawn);
+    `covered` whether any Gaussian reached a pixel; `seconds` of rasterization."""
+
+    image: np.ndarray
+    depth: np.ndarray
+    covered: bool
+    seconds: float
+
+
+def render_view(scene, camera, time: float | None, background=None, sh_degree: int | None = None,
+                alpha: bool = False, check_memory: str | None = None,
+                out_width: int | None = None) -> RenderedView:
+    """Draw `scene` at `time` (checked by the caller: runtime.scene.scene_time) through
+    `camera`. `background`: default the scene's; `alpha`: colour over a transparent background
+    (RGBA). `check_memory`: the input to name when the frame would not fit in memory (None: not
+    checked; `out_width`: the width of the frame the image goes into, when wider)."""
+    from .raster import render as rasterize
+
+    cloud = scene.gaussians(time)
+    if check_memory is not None:
+        from .memory import check_frame_memory
+
+        check_frame_memory(camera.width, camera.height, len(cloud), check_memory,
+                           out_width=out_width)
+    bg = (0.0, 0.0, 0.0) if alpha else tuple(background or scene.default_background)
+    start = _time.perf_counter()
+    out = rasterize(cloud, camera, background=bg, sh_degree=sh_degree)
+    seconds = _time.perf_counter() - start
+    image = np.concatenate([out.rgb, out.alpha[:, :, None]], axis=2) if alpha else out.rgb
+    depth = np.where(out.alpha > 0, out.depth, 0.0).astype(np.float32)
+    return RenderedView(image, depth, bool((out.alpha > 0).any()), seconds)
+
+
+def check_output(path: Path, suffixes, what: str, input: str = "output") -> None:
+    """Refuse an output path before any work: an unknown format, a missing folder, a folder."""
+    path = Path(path)
+    if path.suffix.lower() not in suffixes:
+        raise SceneError(f"{{{input}}} {path}: {what} must end in {', '.join(suffixes)}", input)
+    if not path.parent.is_dir():
+        raise SceneError(f"{{{input}}} {path}: output folder {path.parent} does not exist", input)
+    if path.is_dir():
+        raise SceneError(f"{{{input}}} {path}: is a folder", input)
+
+
+def write_all(outputs) -> None:
+    """Write each (path, array-or-writer) atomically; if one fails, remove those this call
+    already wrote, so a failed command leaves no partial set. An array is written as an image
+    (runtime/images.py); a writer is called with the path and writes it atomically itself."""
+    from .images import write_image
+
+    done = []
+    try:
+        for path, what in outputs:
+            if callable(what):
+                what(path)
+            else:
+                write_image(path, what)
+            done.append(Path(path))
+    except BaseException:
+        for p in done:
+            p.unlink(missing_ok=True)
+        raise
+
+
+__all__ = ["RenderedView", "render_view", "check_output", "write_all", "IMAGE_SUFFIXES",
+           "ALPHA_SUFFIXES"]
