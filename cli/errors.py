@@ -44,7 +44,8 @@ OPTION_NAMES = {
     "frame_format": "--frame-format", "fps": "--fps", "crf": "--crf", "encoder": "--encoder",
     "side_by_side": "--side-by-side", "threads": "--threads", "workers": "--workers",
     "scheduler": "--scheduler", "depth": "--depth", "alpha": "--alpha",
-    "sh_degree": "--sh-degree", "format": "--format",
+    "sh_degree": "--sh-degree", "format": "--format", "host": "--host", "port": "--port",
+    "mode": "--mode", "cameras": "--cameras",
 }
 
 #: Top-level packages of the `train` extra (pyproject.toml) and how to install them.

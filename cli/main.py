@@ -1,7 +1,7 @@
 """The `nehad` command line: thin commands that parse, validate and call the library
 (docs/design.md, "Layout"). This file only registers them; each family lives in its own file:
 synth.py, train.py (train, eval, demo), model.py (export, info), render.py (render, ply),
-video.py, batch.py and viz.py (viz, report).
+video.py, batch.py, view.py and viz.py (viz, report).
 
 Import cost matters: ``nehad --help`` must not load numpy/numba, and nothing here may import
 torch (the runtime works without it). Library modules are imported inside the commands.
@@ -25,6 +25,7 @@ from .synth import synth
 from .threads import apply_thread_defaults
 from .train import demo, eval_, train
 from .video import video
+from .view import view
 from .viz import report, viz
 
 
@@ -41,7 +42,8 @@ def main():
     """
 
 
-for _command in (synth, train, eval_, demo, export_, info, render, ply, video, batch, viz, report):
+for _command in (synth, train, eval_, demo, export_, info, render, ply, video, batch, view, viz,
+                 report):
     main.add_command(_command)
 
 

@@ -18,7 +18,8 @@ from collections.abc import Mapping
 INPUTS = frozenset({
     "scene", "view", "time", "lod", "output", "size", "background", "extrapolate", "path",
     "frames", "frames_dir", "frame_format", "fps", "crf", "encoder", "side_by_side", "threads",
-    "workers", "scheduler", "depth", "alpha", "sh_degree", "format",
+    "workers", "scheduler", "depth", "alpha", "sh_degree", "format", "host", "port", "mode",
+    "cameras",
 })
 _PLACEHOLDER = re.compile(r"\{(" + "|".join(sorted(INPUTS)) + r")\}")
 
