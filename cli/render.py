@@ -108,7 +108,7 @@ def ply(scene, output, time_, frames, extrapolate, fmt, lod):
 
     import numpy as np
 
-    from nehad.runtime.render import check_output, write_all
+    from nehad.runtime.render import check_output, write_all, write_sequence
     from nehad.runtime.scene import check_time
 
     if (time_ is None) == (frames is None):
@@ -149,25 +149,16 @@ def ply(scene, output, time_, frames, extrapolate, fmt, lod):
             return
         lo, hi = source.time_range
         times = np.linspace(lo, hi, frames) if frames > 1 else np.array([lo])
-        created = not output.exists()
-        output.mkdir(exist_ok=True)
-        count, written = 0, []
-        try:
-            # one frame in memory at a time; a failed frame removes those written before it
+        counts = []
+
+        def items():
             for k, t in enumerate(times):
                 count, write = frame(float(t))
-                path = output / f"frame_{k:04d}.{fmt}"
-                write_all([(path, write)])
-                written.append(path)
-        except BaseException:
-            for p in written:
-                p.unlink(missing_ok=True)
-            if created:
-                try:
-                    output.rmdir()
-                except OSError:
-                    pass
-            raise
+                counts.append(count)
+                yield f"frame_{k:04d}.{fmt}", write
+
+        write_sequence(output, items())
+        count = counts[-1]
     click.echo(f"{output}/: {frames} frames frame_0000.{fmt} .. frame_{frames - 1:04d}.{fmt} "
                f"at t = {lo:g} .. {hi:g}, {count} Gaussians each")
 

@@ -93,5 +93,29 @@ def write_all(outputs) -> None:
         raise
 
 
-__all__ = ["RenderedView", "render_view", "check_output", "write_all", "IMAGE_SUFFIXES",
-           "ALPHA_SUFFIXES"]
+def write_sequence(folder, items) -> int:
+    """Write the files `items` yields, (name, writer) pairs, into `folder` (created if
+    missing), one at a time so that only one is in memory; if one fails, remove those written
+    and the folder if this call created it. Returns how many were written."""
+    folder = Path(folder)
+    created = not folder.exists()
+    folder.mkdir(exist_ok=True)
+    written = []
+    try:
+        for name, writer in items:
+            write_all([(folder / name, writer)])
+            written.append(folder / name)
+    except BaseException:
+        for p in written:
+            p.unlink(missing_ok=True)
+        if created:
+            try:
+                folder.rmdir()
+            except OSError:
+                pass
+        raise
+    return len(written)
+
+
+__all__ = ["RenderedView", "render_view", "check_output", "write_all", "write_sequence",
+           "IMAGE_SUFFIXES", "ALPHA_SUFFIXES"]

@@ -24,6 +24,7 @@ import time
 import zipfile
 from pathlib import Path
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 
@@ -714,3 +715,31 @@ def test_module_stays_torch_free():
     proc = subprocess.run([sys.executable, "-c", code], env=ENV, capture_output=True, text=True)
     assert proc.stdout.strip() == "False", proc.stderr
 
+
+
+def test_write_sequence_and_write_all_leave_nothing_on_a_failure(tmp_path):
+    """runtime/render.py: a failure in the third file removes the two written before it (and
+    the folder the call created); write_all removes its earlier outputs too."""
+    from nehad.runtime.render import write_all, write_sequence
+
+    def writer(k):
+        def write(path):
+            if k == 2:
+                raise OSError(28, "No space left on device", str(path))
+            path.write_text(str(k))
+        return write
+
+    folder = tmp_path / "frames"
+    with pytest.raises(OSError):
+        write_sequence(folder, ((f"f{k}.txt", writer(k)) for k in range(4)))
+    assert not folder.exists()
+    folder.mkdir()
+    (folder / "keep.txt").write_text("mine")
+    with pytest.raises(OSError):
+        write_sequence(folder, ((f"f{k}.txt", writer(k)) for k in range(4)))
+    assert sorted(p.name for p in folder.iterdir()) == ["keep.txt"]  # an existing folder stays
+    assert write_sequence(folder, ((f"f{k}.txt", writer(k)) for k in range(2))) == 2
+    with pytest.raises(OSError):
+        write_all([(tmp_path / "a.png", np.zeros((4, 4, 3), np.float32)),
+                   (tmp_path / "b.txt", writer(2))])
+    assert not (tmp_path / "a.png").exists()
