@@ -46,10 +46,9 @@ def view(scene, host, port, mode, cameras_file, lod, background, threads):
 
         check_port(host, port)  # before the scene loads: a port in use is said at once
         first = open_cli_scene(scene, lod=lod, threads=threads)
-        layers = _layer_count(first)
         scenes = {lod: first}
-        if layers > 1:
-            for k in range(layers):
+        if first.num_layers > 1:
+            for k in range(first.num_layers):
                 if k != lod:
                     scenes[k] = open_cli_scene(scene, lod=k, threads=threads)
             if lod is not None:
@@ -67,27 +66,14 @@ def view(scene, host, port, mode, cameras_file, lod, background, threads):
         click.echo("stopped", err=True)
 
 
-def _layer_count(scene) -> int:
-    for attr in ("num_layers",):
-        if hasattr(scene, attr):
-            return int(getattr(scene, attr))
-    model = getattr(scene, "model", None)
-    return int(getattr(model, "num_layers", 1) or 1)
-
-
 def _cameras(scene, cameras_file):
+    """--cameras, else the cameras the scene comes with (runtime/scene.py, Scene.cameras)."""
+    if cameras_file is None:
+        return scene.cameras()
     from nehad.runtime.cameras import load_view
 
-    if cameras_file is not None:
-        cams = load_view(cameras_file)
-        return cams if isinstance(cams, list) else [cams]
-    meta = getattr(scene, "meta", None)
-    if meta is not None:
-        test = Path(meta.get("data_dir", "")) / "transforms_test.json"
-        if test.is_file():
-            cams = load_view(test)
-            return cams if isinstance(cams, list) else [cams]
-    return [scene.default_camera] if scene.default_camera is not None else []
+    cams = load_view(cameras_file)
+    return cams if isinstance(cams, list) else [cams]
 
 
 __all__ = ["view"]

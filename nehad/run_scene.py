@@ -6,16 +6,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from nehad.runtime.scene import Scene, SceneError
-
-#: How callers name this opener for nehad.runtime.scene.open_scene.
-OPENER = "nehad.run_scene:open_run"
+from nehad.runtime.scene import Scene, SceneError, file_sha256
 
 
 class RunScene(Scene):
     """RUN/model.pt: the deformed Gaussians at any time, computed by the torch model; the
-    background the run was trained with; the first test camera of its dataset as the default
-    camera (when the dataset is still there)."""
+    background the run was trained with; its dataset's test cameras (when the dataset is still
+    there), the first of them the default camera."""
 
     kind = "run"
 
@@ -32,21 +29,32 @@ class RunScene(Scene):
         total = len(self.model.gaussians)
         self.num_gaussians = total
         if lod is not None:
-            from nehad.lod import run_layers
-
-            layers = run_layers(self.meta, total)
-            count = int(layers.max()) + 1 if len(layers) else 1
+            count = self.num_layers
             if not 0 <= lod < count:
                 raise SceneError(f"{{lod}} {lod}: run {self.path} has {count} layer(s), "
                                  f"0..{count - 1}", "lod")
-            self._keep = layers <= lod
+            self._keep = self._layers() <= lod
             self.num_gaussians = int(self._keep.sum())
         means = self.model.gaussians.means.detach().cpu().numpy()
         if len(means):
             import numpy as np
 
             self.aabb = np.stack([means.min(0), means.max(0)])
-        self.default_camera = _first_test_camera(self.meta)
+        first = _test_cameras(self.meta, ":0")  # one frame: no work for the whole split here
+        self.default_camera = first[0] if first else None
+
+    def _layers(self):
+        from nehad.lod import run_layers
+
+        return run_layers(self.meta, len(self.model.gaussians))
+
+    @property
+    def num_layers(self) -> int:
+        layers = self._layers()
+        return int(layers.max()) + 1 if len(layers) else 1
+
+    def cameras(self) -> list:
+        return _test_cameras(self.meta)
 
     def gaussians(self, time=None):
         from nehad.trainer import cloud_at
@@ -69,22 +77,22 @@ class RunScene(Scene):
         return f"run {self.path.name}: {total} Gaussians, SH degree {self.sh_degree}"
 
     def digest(self) -> str:
-        from nehad.runtime.scene import _sha256
-
-        return _sha256(self.path / "model.pt")
+        return file_sha256(self.path / "model.pt")
 
 
-def _first_test_camera(meta: dict):
+def _test_cameras(meta: dict, frame: str = "") -> list:
+    """The cameras of the run's dataset's test split, or of its frame `frame` (":0"); [] when
+    the dataset is gone or unreadable."""
     test = Path(meta.get("data_dir", "")) / "transforms_test.json"
     if not test.is_file():
-        return None
+        return []
     from nehad.runtime.cameras import CameraError, load_view
 
     try:
-        cams = load_view(f"{test}:0")
+        cams = load_view(f"{test}{frame}")
     except CameraError:
-        return None
-    return cams[0] if isinstance(cams, list) else cams
+        return []
+    return cams if isinstance(cams, list) else [cams]
 
 
 def open_run(path, lod: int | None = None, threads: int | None = None):
@@ -95,4 +103,4 @@ def open_run(path, lod: int | None = None, threads: int | None = None):
     return RunScene(p, lod=lod)
 
 
-__all__ = ["RunScene", "open_run", "OPENER"]
+__all__ = ["RunScene", "open_run"]

@@ -43,10 +43,12 @@ class Scene:
     kind: "ply", "onnx", "layers" or "run"; path: what was opened; dynamic: whether it moves;
     time_range: the trained (lo, hi) (a static PLY says (0, 1) and ignores time);
     default_background, default_camera (or None), aabb ((2, 3) or None), num_gaussians,
-    sh_degree; problems: warnings found while opening (a damaged layer chunk)."""
+    sh_degree, num_layers (streaming layers; 1 without); problems: warnings found while opening
+    (a damaged layer chunk)."""
 
     kind = "scene"
     dynamic = True
+    num_layers = 1
     time_range: tuple[float, float] = (0.0, 1.0)
     default_background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     default_camera = None
@@ -66,13 +68,18 @@ class Scene:
 
     def digest(self) -> str:
         """sha256 of what defines the scene's content (a moved copy has the same digest)."""
-        return _sha256(self.path)
+        return file_sha256(self.path)
 
     def middle_time(self) -> float:
         return 0.5 * (self.time_range[0] + self.time_range[1])
 
+    def cameras(self) -> list:
+        """The cameras the scene comes with (a run: its dataset's test split); the first is
+        `default_camera`. Empty when it has none."""
+        return [self.default_camera] if self.default_camera is not None else []
 
-def _sha256(path: Path) -> str:
+
+def file_sha256(path: Path) -> str:
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for chunk in iter(lambda: f.read(1 << 20), b""):
@@ -171,6 +178,7 @@ class LayeredScene(Scene):
         self.aabb = getattr(m.base, "aabb", None)
         self.sh_degree = m.sh_degree
         self.num_gaussians = m.num_gaussians
+        self.num_layers = m.num_layers
         self.problems = list(m.problems)
 
     def gaussians(self, time=None):
@@ -182,7 +190,7 @@ class LayeredScene(Scene):
                 f"{m.num_gaussians} Gaussians, SH degree {self.sh_degree}")
 
     def digest(self) -> str:
-        return _sha256(self.path / "manifest.json")  # it holds every chunk's sha256
+        return file_sha256(self.path / "manifest.json")  # it holds every chunk's sha256
 
 
 def _load_opener(spec: str):

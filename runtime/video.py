@@ -152,7 +152,7 @@ def _plan_hash(frames) -> str:
     return h.hexdigest()
 
 
-def _opt(job: VideoJob, key: str) -> str:
+def _opt(key: str) -> str:
     """An input named in a message: a placeholder each caller shows in its own words
     (runtime/errors.py; the CLI's options, a jobs.yaml's keys)."""
     return "{" + key + "}"
@@ -160,7 +160,7 @@ def _opt(job: VideoJob, key: str) -> str:
 
 def plan_video(job: VideoJob, threads: int | None = None) -> VideoPlan:
     """Validate `job` and turn it into frame tasks (nothing is rendered or written)."""
-    o = lambda key: _opt(job, key)  # noqa: E731
+    o = _opt
     model = Path(job.model)
     out = Path(job.output) if job.output is not None else None
     if out is None and job.frames_dir is None:
@@ -329,7 +329,7 @@ def run_video(job: VideoJob, backend, resume: bool = False, progress: bool = Tru
     if workers > 1:
         f0 = plan.frames[0].camera
         check_frame_memory(f0.width, f0.height, plan.gaussians,
-                           _size_input(job, lambda k: _opt(job, k), f0.width, f0.height),
+                           _size_input(job, _opt, f0.width, f0.height),
                            parallel=workers, out_width=plan.width)
     with contextlib.ExitStack() as locks:
         for target in ([Path(job.output)] if job.output is not None else []) + [plan.frames_dir]:

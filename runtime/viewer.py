@@ -37,42 +37,18 @@ class ViewerError(InputProblem):
 
 
 # ---------------------------------------------------------------------------------------------
-# cameras: viser's (OpenCV axes, camera-to-world rotation, vertical field of view) <-> ours
-
-
-def _matrix_to_wxyz(r: np.ndarray) -> np.ndarray:
-    """Unit quaternion (w, x, y, z) of a rotation matrix (Shepperd's method)."""
-    m = np.asarray(r, np.float64)
-    tr = m[0, 0] + m[1, 1] + m[2, 2]
-    if tr > 0:
-        s = 2.0 * math.sqrt(tr + 1.0)
-        q = [0.25 * s, (m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s]
-    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2])
-        q = [(m[2, 1] - m[1, 2]) / s, 0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s]
-    elif m[1, 1] > m[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2])
-        q = [(m[0, 2] - m[2, 0]) / s, (m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s]
-    else:
-        s = 2.0 * math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1])
-        q = [(m[1, 0] - m[0, 1]) / s, (m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s]
-    q = np.asarray(q)
-    return q / np.linalg.norm(q)
-
-
-def _wxyz_to_matrix(q) -> np.ndarray:
-    w, x, y, z = np.asarray(q, np.float64) / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+# cameras: viser's (OpenCV axes, camera-to-world rotation, vertical field of view) <-> ours;
+# quaternions through viser.transforms (viser is this module's dependency anyway)
 
 
 def camera_from_view(position, wxyz, fov_y: float, width: int, height: int,
                      time: float | None = None) -> Camera:
     """Our camera for a browser view: OpenCV axes (as viser), camera-to-world rotation `wxyz`,
     vertical field of view `fov_y` (radians), square pixels, centred principal point."""
+    from viser import transforms
+
     c2w = np.eye(4)
-    c2w[:3, :3] = _wxyz_to_matrix(wxyz)
+    c2w[:3, :3] = transforms.SO3(np.asarray(wxyz, np.float64)).as_matrix()
     c2w[:3, 3] = np.asarray(position, np.float64)
     fy = 0.5 * height / math.tan(0.5 * fov_y)
     return Camera(int(width), int(height), fy, fy, 0.5 * width, 0.5 * height,
@@ -81,23 +57,22 @@ def camera_from_view(position, wxyz, fov_y: float, width: int, height: int,
 
 def view_of_camera(camera: Camera) -> tuple[np.ndarray, np.ndarray, float]:
     """(position, wxyz, vertical fov) that show `camera`'s view in the browser."""
+    from viser import transforms
+
     c2w = np.linalg.inv(np.asarray(camera.world_to_camera, np.float64))
     fov_y = 2.0 * math.atan(0.5 * camera.height / camera.fy)
-    return c2w[:3, 3].copy(), _matrix_to_wxyz(c2w[:3, :3]), fov_y
+    return c2w[:3, 3].copy(), transforms.SO3.from_matrix(c2w[:3, :3]).wxyz, fov_y
 
 
 def splat_arrays(cloud):
     """(centres, covariances, rgb, opacity) of a GaussianCloud for viser's splat renderer:
     Sigma = R S S^T R^T, and the SH degree-0 colour 0.5 + C0 dc (no view dependence)."""
+    from viser import transforms
+
     from .gaussians import SH_C0
 
     q = cloud.quats.astype(np.float64)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    w, x, y, z = q.T
-    r = np.stack([np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-                  np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-                  np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)],
-                 axis=1)
+    r = transforms.SO3(q / np.linalg.norm(q, axis=1, keepdims=True)).as_matrix()
     rs = r * cloud.scales.astype(np.float64)[:, None, :]
     cov = np.einsum("nij,nkj->nik", rs, rs).astype(np.float32)
     rgb = np.clip(0.5 + SH_C0 * cloud.sh[:, 0, :], 0.0, 1.0).astype(np.float32)
@@ -163,7 +138,7 @@ class Viewer:
     """A viser server showing `scenes` (layer count -> Scene; key None: all layers).
 
     `cameras`: the dataset cameras the page offers to jump to (the first is where a new tab
-    starts; the scene's default camera when none). `mode`: "server" or "browser" (module doc).
+    starts; default: the cameras the scene comes with, Scene.cameras). `mode`: "server" or "browser" (module doc).
     """
 
     def __init__(self, scenes: dict, cameras=(), mode: str = "server", background=None,
@@ -174,10 +149,7 @@ class Viewer:
         self.lod = None if None in scenes else max(k for k in scenes)
         self.scene = scenes[self.lod]
         self.caches = {k: TimeCache(s) for k, s in scenes.items()}
-        cams = list(cameras)
-        if not cams and self.scene.default_camera is not None:
-            cams = [self.scene.default_camera]
-        self.cameras = cams
+        self.cameras = list(cameras) or self.scene.cameras()
         self.mode = mode
         self.background = tuple(background or self.scene.default_background)
         self.host, self.port, self.image_format = host, port, image_format
