@@ -1,16 +1,26 @@
-"""Frames per second of `nehad render` in a warm process: deformation (onnxruntime on the exported
-model, a new time every frame, so the per-time cache never hits) plus rasterization, at the
-widths given (default 400 and 800: a MuJoCo scene trained at 400x400 and its 800x800 render).
+"""Frames per second of `nehad render` in a warm process, split into deformation and rasterization.
 
-    python bench/render.py MODEL [--sizes 400,800] [--frames 30] [--threads 2]
+Each frame is what `nehad render` and every video frame do (runtime/render.py `render_view`):
+the deformation at a new time (onnxruntime on the exported model; a new time every frame, so
+the per-time cache never hits) and the rasterizer, at the widths given (default 400 and 800: a
+MuJoCo scene trained at 400x400 and its 800x800 render). The camera is the model's default
+camera (the dataset's first test view).
+
+    python bench/render.py MODEL [--sizes 400,800] [--frames 30] [--threads N] [--busy K]
 
 MODEL is an exported model.onnx or a training run directory (exported to a temporary file
-first). The camera is the model's default camera (the dataset's first test view).
+first). Threads: by default what a user gets (numba's pool and onnxruntime's default, the
+rasterizer's count following the load, runtime/threads.py); --threads N fixes both at N. Run
+with NUMBA_NUM_THREADS=1 OMP_NUM_THREADS=1 for the one-thread figure. --busy K starts K
+processes that spin on a core each after the warm-up frame (another user's job arriving while
+frames are drawn) and stops them at the end. Prints the load average before and after.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import subprocess
 import sys
 import tempfile
 import time
@@ -21,18 +31,28 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 
+def load_average() -> str:
+    try:
+        return "%.2f %.2f %.2f" % os.getloadavg()
+    except OSError:
+        return "n/a"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("model", type=Path)
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--sizes", default="400,800", help="image widths (height keeps the aspect)")
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=None,
+                    help="fix numba's and onnxruntime's threads (default: as a user gets them)")
+    ap.add_argument("--busy", type=int, default=0,
+                    help="processes spinning on a core each while the frames are timed")
     args = ap.parse_args()
 
     import numba
 
-    from nehad.runtime.onnx_model import OnnxModel
-    from nehad.runtime.raster import render
+    from nehad.runtime.render import render_view
+    from nehad.runtime.scene import open_scene
 
     tmp = None
     path = args.model
@@ -42,33 +62,46 @@ def main() -> None:
         tmp = tempfile.TemporaryDirectory()
         path = Path(tmp.name) / "model.onnx"
         export_run(args.model, path)
-    numba.set_num_threads(args.threads)
-    model = OnnxModel(path, threads=args.threads)
-    camera = model.default_camera
+    scene = open_scene(path, threads=args.threads)
+    fixed = {}
+    if args.threads is not None:
+        numba.set_num_threads(args.threads)
+        fixed = {"adapt_threads": False}
+    camera = scene.default_camera
     if camera is None:
         sys.exit(f"{path}: no default camera in the metadata")
-    lo, hi = model.time_range
+    lo, hi = scene.time_range
     times = np.linspace(lo, hi, args.frames + 1)
-    print(f"{path.name}: {model.num_gaussians} Gaussians; threads: onnxruntime {args.threads}, "
-          f"numba {numba.get_num_threads()}")
-    for width in (int(w) for w in args.sizes.split(",")):
-        cam = camera.with_size(width, round(width * camera.height / camera.width))
-        render(model.gaussians(float(times[-1])), cam, model.background)  # warm-up
-        deform_s = raster_s = 0.0
-        t_all = time.perf_counter()
-        for t in times[:-1]:
-            t0 = time.perf_counter()
-            cloud = model.gaussians(float(t))
-            t1 = time.perf_counter()
-            render(cloud, cam, model.background)
-            t2 = time.perf_counter()
-            deform_s += t1 - t0
-            raster_s += t2 - t1
-        total = time.perf_counter() - t_all
-        n = len(times) - 1
-        print(f"{cam.width}x{cam.height}: {n / total:.1f} FPS "
-              f"(deformation {1e3 * deform_s / n:.1f} ms + rasterization {1e3 * raster_s / n:.1f} ms "
-              f"per frame)")
+    print(f"{path.name}: {scene.num_gaussians} Gaussians; threads: onnxruntime "
+          f"{args.threads or 'default'}, numba pool {numba.config.NUMBA_NUM_THREADS}"
+          f"{'' if fixed else ' (count follows the load)'}; busy processes {args.busy}; "
+          f"load average {load_average()}")
+    busy = []
+    try:
+        for width in (int(w) for w in args.sizes.split(",")):
+            cam = camera.with_size(width, round(width * camera.height / camera.width))
+            render_view(scene, cam, float(times[-1]), **fixed)  # warm-up
+            if args.busy and not busy:
+                busy = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
+                        for _ in range(args.busy)]
+                time.sleep(1.0)
+            deform_s = raster_s = 0.0
+            t_all = time.perf_counter()
+            for t in times[:-1]:
+                t0 = time.perf_counter()
+                view = render_view(scene, cam, float(t), **fixed)
+                total = time.perf_counter() - t0
+                raster_s += view.seconds
+                deform_s += total - view.seconds
+            wall = time.perf_counter() - t_all
+            n = len(times) - 1
+            print(f"{cam.width}x{cam.height}: {n / wall:.1f} FPS (deformation and the rest "
+                  f"{1e3 * deform_s / n:.1f} ms + rasterization {1e3 * raster_s / n:.1f} ms per "
+                  f"frame; numba threads at the end {numba.get_num_threads()})", flush=True)
+    finally:
+        for p in busy:
+            p.kill()
+    print(f"load average at the end: {load_average()}")
     if tmp is not None:
         tmp.cleanup()
 

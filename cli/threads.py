@@ -22,16 +22,10 @@ import math
 import os
 import time
 
+from nehad.runtime.threads import usable_cores
+
 #: the variables the choice writes (bench/threads.py removes them for its `library` row)
 VARIABLES = ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "MKL_NUM_THREADS")
-
-
-def usable_cores() -> int:
-    """Cores this process may run on (its affinity mask, else the machine's count)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
 
 
 def _cpu_times() -> tuple[float, float] | None:

@@ -197,7 +197,8 @@ def render_frame_image(task: FrameTask) -> np.ndarray:
             numba.set_num_threads(max(1, min(threads, numba.config.NUMBA_NUM_THREADS)))
         rgb = render_view(scene, task.camera, task.time, task.background,
                           check_memory=f"frame {task.index} on {_worker_name()}",
-                          out_width=task.camera.width * (2 if task.ground_truth else 1)).image
+                          out_width=task.camera.width * (2 if task.ground_truth else 1),
+                          adapt_threads=not threads).image
         if not _CACHE.concurrent_frames:
             _CACHE.concurrent_frames = numba.threading_layer() in ("omp", "tbb")
     if task.ground_truth:

@@ -40,11 +40,13 @@ class RenderedView:
 
 def render_view(scene, camera, time: float | None, background=None, sh_degree: int | None = None,
                 alpha: bool = False, check_memory: str | None = None,
-                out_width: int | None = None) -> RenderedView:
+                out_width: int | None = None, adapt_threads: bool = True) -> RenderedView:
     """Draw `scene` at `time` (checked by the caller: runtime.scene.scene_time) through
     `camera`. `background`: default the scene's; `alpha`: colour over a transparent background
     (RGBA). `check_memory`: the input to name when the frame would not fit in memory (None: not
-    checked; `out_width`: the width of the frame the image goes into, when wider)."""
+    checked; `out_width`: the width of the frame the image goes into, when wider).
+    `adapt_threads`: draw with the threads the machine's load leaves free (runtime/threads.py);
+    False when the caller set the thread count."""
     from .raster import render as rasterize
 
     cloud = scene.gaussians(time)
@@ -55,7 +57,8 @@ def render_view(scene, camera, time: float | None, background=None, sh_degree: i
                            out_width=out_width)
     bg = (0.0, 0.0, 0.0) if alpha else tuple(background or scene.default_background)
     start = _time.perf_counter()
-    out = rasterize(cloud, camera, background=bg, sh_degree=sh_degree)
+    out = rasterize(cloud, camera, background=bg, sh_degree=sh_degree,
+                    adapt_threads=adapt_threads)
     seconds = _time.perf_counter() - start
     image = np.concatenate([out.rgb, out.alpha[:, :, None]], axis=2) if alpha else out.rgb
     depth = np.where(out.alpha > 0, out.depth, 0.0).astype(np.float32)

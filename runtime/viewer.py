@@ -337,7 +337,8 @@ class Viewer:
 
     def draw(self, camera: Camera) -> np.ndarray:
         """The server-mode picture of `camera` at the current time and layers: what
-        `nehad render` draws for it."""
+        `nehad render` draws for it (with the threads the machine's load leaves free,
+        runtime/threads.py)."""
         from .raster import render
 
         start = _time.perf_counter()

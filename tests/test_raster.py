@@ -261,9 +261,9 @@ def test_hidden_gaussians_get_exactly_zero_gradient():
 
 @pytest.mark.skipif(not __import__("sys").platform.startswith("linux"), reason="glibc only")
 def test_heap_keeps_freed_frame_buffers():
-    """With NEHAD_KEEP_HEAP=1, importing the rasterizer raises glibc's mmap/trim thresholds
-    (runtime/raster/heap.py): a 16 MB array then comes from the heap (below the program break)
-    instead of fresh mmap pages; by default the allocator is left alone."""
+    """Importing the rasterizer raises glibc's mmap/trim thresholds (runtime/raster/heap.py): a
+    16 MB array then comes from the heap (below the program break) instead of fresh mmap pages;
+    with NEHAD_KEEP_HEAP=0 the allocator is left alone."""
     import subprocess
     import sys
 
@@ -274,8 +274,60 @@ def test_heap_keeps_freed_frame_buffers():
              "print(k(), a.ctypes.data < brk)")
     env = {k: v for k, v in __import__("os").environ.items() if k != "NEHAD_KEEP_HEAP"}
     on = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True,
-                        env={**env, "NEHAD_KEEP_HEAP": "1"})
+                        env=env)
     off = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True,
-                         env=env)
+                         env={**env, "NEHAD_KEEP_HEAP": "0"})
     assert on.stdout.split() == ["True", "True"], on.stdout + on.stderr
     assert off.stdout.split() == ["False", "False"], off.stdout + off.stderr
+
+
+def test_fma32_rounds_once():
+    """intrinsics.fma32 is a fused multiply-add: (1 + 2^-12)^2 - (1 + 2^-11) is 2^-24 exactly,
+    which a float32 multiply then add rounds away."""
+    import numba
+
+    from nehad.runtime.raster.intrinsics import fma32
+
+    @numba.njit
+    def both(a, b, c):
+        return fma32(a, b, c), a * b + c
+
+    a = np.float32(1 + 2 ** -12)
+    fused, separate = both(a, a, np.float32(-(1 + 2 ** -11)))
+    assert fused == np.float32(2 ** -24)
+    assert separate == 0.0
+
+
+def test_frames_and_tile_lists_do_not_depend_on_the_thread_count(monkeypatch):
+    """The thread count (which runtime/threads.py changes with the load) and the number of
+    binning chunks change no byte of a frame or of its tile lists."""
+    import numba
+
+    from nehad.runtime.raster import binning
+
+    rng = np.random.default_rng(5)
+    n = 40_000  # enough for several binning chunks per thread
+    q = rng.normal(size=(n, 4))
+    cloud = GaussianCloud(rng.uniform(-1, 1, (n, 3)), rng.uniform(0.005, 0.03, (n, 3)),
+                          q / np.linalg.norm(q, axis=1, keepdims=True), rng.uniform(0.05, 0.9, n),
+                          rng.normal(size=(n, 1, 3)))
+    c2w = np.eye(4)  # OpenCV axes: x right, y down, z forward; the camera at y = -3.5 looks at 0
+    c2w[:3, :3] = [[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]
+    c2w[:3, 3] = [0.0, -3.5, 0.0]
+    cam = Camera.from_camera_to_world(c2w, 160, 120, 130.0, 130.0, convention="opencv")
+    outs = []
+    try:
+        for threads, chunks in ((1, 1), (numba.config.NUMBA_NUM_THREADS, 4),
+                                (numba.config.NUMBA_NUM_THREADS, 1)):
+            numba.set_num_threads(threads)
+            monkeypatch.setattr(binning, "_CHUNKS_PER_THREAD", chunks)
+            outs.append(render(cloud, cam, adapt_threads=False))
+    finally:
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+    first = outs[0]
+    assert (first.alpha > 0.5).mean() > 0.3  # a real picture
+    for out in outs[1:]:
+        np.testing.assert_array_equal(out.rgb, first.rgb)
+        np.testing.assert_array_equal(out.stop, first.stop)
+        np.testing.assert_array_equal(out.bins.gauss_ids, first.bins.gauss_ids)
+        np.testing.assert_array_equal(out.bins.tile_offsets, first.bins.tile_offsets)

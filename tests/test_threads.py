@@ -48,3 +48,74 @@ def test_a_set_mkl_count_is_kept():
 def test_idle_cores_is_a_share_of_the_machine():
     idle = idle_cores(sample_seconds=0.05)
     assert 0.0 <= idle <= (os.cpu_count() or 1) + 1e-6
+
+
+# --- the rasterizer's thread count while frames are drawn (nehad/runtime/threads.py) ---
+
+from nehad.runtime import threads as rt  # noqa: E402
+
+
+@pytest.mark.parametrize("others, usable, ceiling, expected", [
+    (0.0, 2, 2, 2),   # nobody else: every thread the process started with
+    (0.3, 2, 2, 2),   # background noise does not cost a thread
+    (0.5, 2, 2, 1),   # a spinning process sharing our second core (it gets about half of it)
+    (1.0, 2, 2, 1),   # ... and once we yield the core it takes all of it: stay at one
+    (3.0, 2, 2, 1),   # never below one
+    (1.0, 8, 4, 4),   # never above what the process started with
+    (5.4, 8, 8, 3),
+])
+def test_frame_threads_leave_the_cores_others_use(others, usable, ceiling, expected):
+    assert rt.threads_for(others, usable, ceiling) == expected
+
+
+def test_governor_samples_the_machine_minus_this_process(monkeypatch):
+    """Other processes' CPU = the machine's busy seconds minus this process's, per wall
+    second, re-sampled only every SAMPLE_SECONDS."""
+    clock = {"wall": 100.0, "busy": 1000.0, "own": 10.0}
+    monkeypatch.setattr(rt.time, "monotonic", lambda: clock["wall"])
+    monkeypatch.setattr(rt, "_machine_busy_seconds", lambda: clock["busy"])
+    monkeypatch.setattr(rt, "_own_seconds", lambda: clock["own"])
+    gov = rt._Governor()
+    assert gov.decide(2, 2) == 2  # no interval yet: the ceiling
+    # 1 s: the machine spent 2 CPU seconds, we spent 1.2 -> others used 0.8 of a core
+    clock.update(wall=101.0, busy=1002.0, own=11.2)
+    assert gov.decide(2, 2) == 1
+    # within SAMPLE_SECONDS nothing is re-read, even if the load is gone
+    clock.update(wall=101.2, busy=1002.2, own=11.4)
+    assert gov.decide(2, 2) == 1
+    # the other process has ended: 1 s in which only we ran
+    clock.update(wall=102.2, busy=1003.2, own=12.4)
+    assert gov.decide(2, 2) == 2
+    # no /proc/stat: the ceiling
+    monkeypatch.setattr(rt, "_machine_busy_seconds", lambda: None)
+    clock.update(wall=103.0)
+    assert gov.decide(2, 2) == 2
+
+
+def test_frame_threads_can_be_turned_off(monkeypatch):
+    import numba
+
+    numba.set_num_threads(1)
+    monkeypatch.setenv("NEHAD_ADAPT_THREADS", "0")
+    assert rt.frame_threads() == 1 == numba.get_num_threads()
+    numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+
+
+@pytest.mark.skipif(rt.usable_cores() < 2 or not os.path.exists("/proc/stat"),
+                    reason="needs 2 cores and /proc/stat")
+def test_a_spinning_process_takes_a_thread_away():
+    """With a process spinning on a core and this one idle, the next frame gets at most the
+    usable cores minus one (real /proc/stat, real process)."""
+    import subprocess
+    import sys
+    import time
+
+    spinner = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        time.sleep(0.5)
+        gov = rt._Governor()
+        gov.decide(64, rt.usable_cores())
+        time.sleep(1.0)
+        assert gov.decide(64, rt.usable_cores()) <= max(1, rt.usable_cores() - 1)
+    finally:
+        spinner.kill()

@@ -20,8 +20,9 @@ from .binning import TileBins, bin_gaussians
 from .heap import keep_freed_memory
 from .kernels import TILES_PER_TASK, backward_kernel, forward_kernel, sum_entry_grads
 from .projection import Projected, project_gaussians
+from ..threads import frame_threads
 
-keep_freed_memory()  # opt-in (NEHAD_KEEP_HEAP=1): reuse frame buffers instead of new pages (heap.py)
+keep_freed_memory()  # reuse frame buffers instead of new pages (heap.py; NEHAD_KEEP_HEAP=0: off)
 
 __all__ = ["RasterOutput", "ScreenGradients", "TileBins", "Projected", "bin_gaussians",
            "project_gaussians", "rasterize", "rasterize_backward", "render"]
@@ -88,8 +89,13 @@ def rasterize_backward(out: RasterOutput, grad_rgb, grad_alpha=None) -> ScreenGr
     return ScreenGradients(g[:, 0:2], g[:, 2:5], g[:, 5:8], g[:, 8])
 
 
-def render(cloud, camera, background=(0.0, 0.0, 0.0), sh_degree=None) -> RasterOutput:
-    """Render a `GaussianCloud` through a `Camera` (projection, binning, rasterization)."""
+def render(cloud, camera, background=(0.0, 0.0, 0.0), sh_degree=None,
+           adapt_threads: bool = True) -> RasterOutput:
+    """Render a `GaussianCloud` through a `Camera` (projection, binning, rasterization).
+    `adapt_threads`: first set numba's thread count to the cores the machine's load leaves free
+    (runtime/threads.py); False keeps the count the caller set."""
+    if adapt_threads:
+        frame_threads()
     proj = project_gaussians(cloud.means, cloud.scales, cloud.quats, cloud.opacities, cloud.sh,
                              camera, sh_degree)
     return rasterize(proj.means2d, proj.conics, proj.colors, proj.opacities, proj.depths,

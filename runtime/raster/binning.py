@@ -3,8 +3,8 @@
 A Gaussian belongs to every tile its 3-sigma box overlaps (the 3DGS rule), intersected with the
 tiles where its alpha can reach 1/255 at all: the ellipse d^T conic d <= 2 ln(255 opacity). The
 intersection changes no pixel: outside that ellipse alpha < 1/255 and is skipped anyway.
-The same ellipse's bounding box gives each Gaussian the pixel rows and columns it can touch, which
-the kernels use to skip rows and 8-pixel half rows.
+The same ellipse's bounding box gives each Gaussian the pixel rows it can touch, which the
+kernels use to skip tile rows.
 """
 
 from __future__ import annotations
@@ -16,19 +16,20 @@ import numba
 import numpy as np
 
 from ..memory import check_tile_lists
-from .projection import TILE
+from .projection import GAUSSIANS_PER_TASK, TILE
 
 ALPHA_MIN = 1.0 / 255.0
 # Slack on the opacity-aware ellipse so that float32 rounding in the kernels never reaches past it.
 _EXTENT_SLACK_REL = 1e-3
 _EXTENT_SLACK_PX = 0.05
+_CHUNKS_PER_THREAD = 4
 
 
 # Columns of the packed per-Gaussian record: everything the kernels read about one Gaussian sits
 # in one 64-byte cache line (with seven separate arrays, cache misses dominated the frame time).
-# ROW0..ROW1 and COL0..COL1 are the image pixels whose centres lie in the bounding box of the
-# ellipse d^T conic d <= 2 ln(255 opacity) (with slack), outside which alpha < 1/255.
-P_MX, P_MY, P_CA, P_CB, P_CC, P_OP, P_R, P_G, P_B, P_Z, P_ROW0, P_ROW1, P_COL0, P_COL1 = range(14)
+# ROW0..ROW1 are the image rows whose pixel centres lie in the bounding box of the ellipse
+# d^T conic d <= 2 ln(255 opacity) (with slack), outside which alpha < 1/255.
+P_MX, P_MY, P_CA, P_CB, P_CC, P_OP, P_R, P_G, P_B, P_Z, P_ROW0, P_ROW1 = range(12)
 PACKED_WIDTH = 16
 
 
@@ -36,7 +37,7 @@ PACKED_WIDTH = 16
 class TileBins:
     """tile_offsets (n_tiles + 1,) int64; gauss_ids (M,) int32, each tile's run sorted by depth;
     packed (N, 16) float32 records: mean2d, conic, opacity, colour, depth, and the first and
-    last pixel row and column the Gaussian can touch: the bounding box of the ellipse
+    last pixel row the Gaussian can touch: the bounding box of the ellipse
     d^T conic d <= 2 ln(255 opacity) (with slack), outside which alpha < 1/255."""
 
     tile_offsets: np.ndarray
@@ -114,8 +115,6 @@ def _tile_rects(means2d, conics, colors, opacities, depths, radii, width, height
         rec[P_Z] = depths[i]
         rec[P_ROW0] = j0
         rec[P_ROW1] = j1
-        rec[P_COL0] = i0
-        rec[P_COL1] = i1
 
 
 @numba.njit(cache=True)
@@ -129,20 +128,23 @@ def _count_pairs(rects):
 
 
 @numba.njit(parallel=True, cache=True)
-def _fill_bins(order, rects, ntx, n_tiles, n_chunks):
-    """Scatter depth-ordered Gaussians into per-tile runs; chunk c of `order` is handled by one
-    thread, and chunk c's entries go after chunk c-1's in every tile, so runs stay depth-sorted."""
+def _count_chunks(order, rects, ntx, counts):
+    """counts[c, t]: entries of tile t from chunk c of `order` (one task per chunk)."""
     n = order.shape[0]
+    n_chunks = counts.shape[0]
     per = (n + n_chunks - 1) // n_chunks
-    counts = np.zeros((n_chunks, n_tiles), np.int64)
     for c in numba.prange(n_chunks):
         for o in range(c * per, min(n, (c + 1) * per)):
             g = order[o]
             for ty in range(rects[g, 2], rects[g, 3]):
                 for tx in range(rects[g, 0], rects[g, 1]):
                     counts[c, ty * ntx + tx] += 1
-    offsets = np.zeros(n_tiles + 1, np.int64)
-    cursor = np.zeros((n_chunks, n_tiles), np.int64)
+
+
+@numba.njit(cache=True)
+def _chunk_cursors(counts, offsets, cursor):
+    """Tile offsets, and where chunk c starts writing in each tile: after chunks 0..c-1."""
+    n_chunks, n_tiles = counts.shape
     total = 0
     for t in range(n_tiles):
         offsets[t] = total
@@ -150,7 +152,15 @@ def _fill_bins(order, rects, ntx, n_tiles, n_chunks):
             cursor[c, t] = total
             total += counts[c, t]
     offsets[n_tiles] = total
-    ids = np.empty(total, np.int32)
+
+
+@numba.njit(parallel=True, cache=True)
+def _scatter_chunks(order, rects, ntx, cursor, ids):
+    """Write depth-ordered Gaussians into their tiles' runs; chunk c's entries go after chunk
+    c-1's in every tile, so runs stay depth-sorted (one task per chunk)."""
+    n = order.shape[0]
+    n_chunks = cursor.shape[0]
+    per = (n + n_chunks - 1) // n_chunks
     for c in numba.prange(n_chunks):
         for o in range(c * per, min(n, (c + 1) * per)):
             g = order[o]
@@ -159,7 +169,6 @@ def _fill_bins(order, rects, ntx, n_tiles, n_chunks):
                     t = ty * ntx + tx
                     ids[cursor[c, t]] = g
                     cursor[c, t] += 1
-    return offsets, ids
 
 
 @numba.njit(cache=True)
@@ -191,14 +200,25 @@ def bin_gaussians(means2d, conics, colors, opacities, depths, radii, width, heig
     n = means2d.shape[0]
     rects = np.empty((n, 4), np.int32)
     packed = np.empty((n, PACKED_WIDTH), np.float32)
-    _tile_rects(means2d, conics, colors, opacities, depths, radii, int(width), int(height),
-                rects, packed)
+    with numba.parallel_chunksize(GAUSSIANS_PER_TASK):
+        _tile_rects(means2d, conics, colors, opacities, depths, radii, int(width), int(height),
+                    rects, packed)
     visible = np.flatnonzero((rects[:, 1] > rects[:, 0]) & (rects[:, 3] > rects[:, 2]))
     order = _radix_argsort_depth(visible.astype(np.int32), np.ascontiguousarray(depths, np.float32))
     ntx = (int(width) + TILE - 1) // TILE
-    nty = (int(height) + TILE - 1) // TILE
-    n_chunks = max(1, min(numba.get_num_threads(), order.shape[0] // 4096 + 1))
+    n_tiles = ntx * ((int(height) + TILE - 1) // TILE)
+    # a few chunks per thread, handed out one at a time, so that a thread slowed by another
+    # process takes fewer (the chunk count changes no list: chunks keep their order)
+    n_chunks = max(1, min(_CHUNKS_PER_THREAD * numba.get_num_threads(),
+                          order.shape[0] // 4096 + 1))
     # the tile lists' size is known now, before they are allocated: refuse what cannot fit
     check_tile_lists(_count_pairs(rects), width, height, n_chunks)
-    offsets, ids = _fill_bins(order, rects, ntx, ntx * nty, n_chunks)
+    counts = np.zeros((n_chunks, n_tiles), np.int64)
+    offsets = np.empty(n_tiles + 1, np.int64)
+    cursor = np.empty((n_chunks, n_tiles), np.int64)
+    with numba.parallel_chunksize(1):
+        _count_chunks(order, rects, ntx, counts)
+        _chunk_cursors(counts, offsets, cursor)
+        ids = np.empty(int(offsets[-1]), np.int32)
+        _scatter_chunks(order, rects, ntx, cursor, ids)
     return TileBins(offsets, ids, packed, int(width), int(height))

@@ -19,6 +19,10 @@ NEAR_PLANE = 0.2
 COV2D_DILATION = 0.3
 FRUSTUM_CLAMP = 1.3
 TILE = 16
+#: Gaussians per parallel task of the per-Gaussian stages (projection, tile rectangles): tasks
+#: are handed out as threads finish, so a thread slowed by another process on its core takes
+#: fewer of them instead of holding the others at the end (docs/performance.md#threads).
+GAUSSIANS_PER_TASK = 2048
 
 
 @dataclass
@@ -144,10 +148,13 @@ def project_gaussians(means, scales, quats, opacities, sh, camera, sh_degree=Non
     depths = np.zeros(n, np.float32)
     radii = np.zeros(n, np.int32)
     colors = np.zeros((n, 3), np.float32)
-    _project_kernel(np.ascontiguousarray(means, np.float32), np.ascontiguousarray(scales, np.float32),
-                    np.ascontiguousarray(quats, np.float32), np.ascontiguousarray(sh, np.float32),
-                    degree, np.ascontiguousarray(camera.world_to_camera, np.float64),
-                    float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy),
-                    int(camera.width), int(camera.height), means2d, conics, depths, radii, colors)
+    with numba.parallel_chunksize(GAUSSIANS_PER_TASK):
+        _project_kernel(np.ascontiguousarray(means, np.float32),
+                        np.ascontiguousarray(scales, np.float32),
+                        np.ascontiguousarray(quats, np.float32), np.ascontiguousarray(sh, np.float32),
+                        degree, np.ascontiguousarray(camera.world_to_camera, np.float64),
+                        float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy),
+                        int(camera.width), int(camera.height), means2d, conics, depths, radii,
+                        colors)
     return Projected(means2d, conics, depths, radii, colors,
                      np.ascontiguousarray(opacities, np.float32))

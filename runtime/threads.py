@@ -1,0 +1,100 @@
+"""Rasterizer threads that follow the machine's load while frames are drawn (docs/performance.md#threads).
+
+The rasterizer splits each frame's stages between its threads in equal shares (numba's OpenMP
+layer schedules parallel loops statically). When another process takes a core, the thread
+sharing that core runs at about half speed and the frame waits for its share: on this 2-core
+machine a 100k/800x800 frame took 125 ms with 2 threads beside a busy loop where one thread took
+88 ms. `nehad` chooses its thread count from the idle cores when it starts (cli/threads.py), but
+a video or a batch runs for minutes and the load changes under it.
+
+So before each frame the runtime asks `frame_threads()`: at most every `SAMPLE_SECONDS` it reads
+how much CPU the machine spent (/proc/stat) minus what this process spent (os.times) over the
+last interval: the cores other processes used. It draws with the usable cores minus those
+(rounded: a process using half a core or more counts as one), at least one, and at most the
+thread count the process started with. Where /proc/stat is missing the count stays as it is.
+NEHAD_ADAPT_THREADS=0 turns this off; a caller that sets the count itself (`--threads`) does not
+call it.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import threading
+import time
+
+SAMPLE_SECONDS = 0.5
+_CLOCK_TICKS = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+
+
+def _machine_busy_seconds() -> float | None:
+    """CPU seconds all cores spent outside idle/iowait since boot (steal included), or None."""
+    try:
+        with open("/proc/stat") as f:
+            fields = [float(v) for v in f.readline().split()[1:9]]
+    except (OSError, ValueError):
+        return None
+    if len(fields) < 8:
+        return None
+    user, nice, system, _idle, _iowait, irq, softirq, steal = fields
+    return (user + nice + system + irq + softirq + steal) / _CLOCK_TICKS
+
+
+def _own_seconds() -> float:
+    t = os.times()
+    return t.user + t.system
+
+
+def threads_for(others: float, usable: int, ceiling: int) -> int:
+    """Threads when other processes use `others` cores: the usable cores minus those (a
+    process using half a core or more counts as one), between 1 and `ceiling`."""
+    free = usable - math.floor(others + 0.5)
+    return max(1, min(ceiling, free))
+
+
+class _Governor:
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.sample = None  # (wall, machine busy, own) at the last decision
+        self.threads = None
+
+    def decide(self, ceiling: int, usable: int) -> int:
+        with self.lock:
+            now = time.monotonic()
+            if self.sample is not None and now - self.sample[0] < SAMPLE_SECONDS:
+                return min(self.threads, ceiling)
+            busy = _machine_busy_seconds()
+            own = _own_seconds()
+            if busy is None:
+                self.threads = ceiling
+            elif self.sample is None:
+                self.threads = ceiling if self.threads is None else self.threads
+            else:
+                wall = now - self.sample[0]
+                others = max(0.0, (busy - self.sample[1]) - (own - self.sample[2])) / wall
+                self.threads = threads_for(others, usable, ceiling)
+            self.sample = (now, busy if busy is not None else 0.0, own)
+            return min(self.threads, ceiling)
+
+
+_GOVERNOR = _Governor()
+
+
+def usable_cores() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def frame_threads() -> int:
+    """Set numba's thread count (for the calling thread) for the next frame from the machine's
+    current load, and return it (module doc). Returns numba's count unchanged when turned off."""
+    import numba
+
+    ceiling = int(numba.config.NUMBA_NUM_THREADS)
+    if os.environ.get("NEHAD_ADAPT_THREADS", "1") == "0" or ceiling <= 1:
+        return numba.get_num_threads()
+    threads = _GOVERNOR.decide(ceiling, usable_cores())
+    numba.set_num_threads(threads)
+    return threads
