@@ -42,8 +42,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from bench.scenes import orbit_camera, random_cloud  # noqa: E402
-from nehad.runtime.raster import (TileBins, project_gaussians, rasterize,  # noqa: E402
-                                  rasterize_backward, render)
+from nehad.runtime.raster import TileBins, rasterize, rasterize_backward, render  # noqa: E402
 from nehad.runtime.raster.binning import P_CA, P_CC, P_MX, P_MY, P_OP, P_ROW0, P_ROW1  # noqa: E402
 from nehad.runtime.raster.fastexp import fast_exp  # noqa: E402
 
@@ -134,10 +133,6 @@ def inner_loop_rates(repeats: int, size: int = 800, entries: int = 192) -> tuple
 
 
 def bench_speed(repeats: int, busy: int = 0) -> list[str]:
-    import torch
-
-    from nehad.splat.rasterize import render_torch
-
     rate_f, rate_b = inner_loop_rates(repeats)
     spinners = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(busy)]
     try:
