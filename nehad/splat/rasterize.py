@@ -1,8 +1,8 @@
 """Differentiable rasterization for training: a `torch.autograd.Function` around the shared Numba
 kernels of `nehad.runtime.raster` (docs/design.md section 6), so what trains is what renders.
 
-The backward pass gives gradients for the 2D means, conics, colours and opacities; torch autograd
-carries them through `project_gaussians_torch` to the 3D parameters. Densification reads the
+The backward pass gives gradients for the 2D means, conics, colours and opacities; the projection's
+own backward (`project_gaussians_numba`) carries them to the 3D parameters. Densification reads the
 view-space mean gradient from `means2d.grad` (see `viewspace_grad_norm`).
 """
 
@@ -16,7 +16,7 @@ import torch
 from nehad.runtime.raster import rasterize as _rasterize_np
 from nehad.runtime.raster import rasterize_backward as _rasterize_backward_np
 
-from .projection import ProjectedTorch, project_gaussians_torch
+from .projection import ProjectedTorch, project_gaussians_numba
 
 
 def _np32(t: torch.Tensor) -> np.ndarray:
@@ -73,7 +73,7 @@ class RenderResult:
 def render_torch(means, scales, quats, opacities, sh, camera, background=(0.0, 0.0, 0.0),
                  sh_degree: int | None = None) -> RenderResult:
     """Project and rasterize activated Gaussian tensors through a `Camera` (differentiable)."""
-    proj = project_gaussians_torch(means, scales, quats, opacities, sh, camera, sh_degree)
+    proj = project_gaussians_numba(means, scales, quats, opacities, sh, camera, sh_degree)
     if proj.means2d.requires_grad:
         proj.means2d.retain_grad()
     rgb, alpha, depth = rasterize_torch(proj, camera.width, camera.height, background)
