@@ -144,23 +144,32 @@ def bench_speed(repeats: int, busy: int = 0) -> list[str]:
 
 
 def _bench_sizes(repeats, rate_f, rate_b, busy) -> list[str]:
+    """Every forward figure first (the runtime's frames, before torch has a thread pool in this
+    process, as in `nehad render`), then every forward+backward."""
+    forward = {}
+    for n, size in SIZES:
+        cloud, cam = random_cloud(n), orbit_camera(size)
+        contrib = contributing_pairs(render(cloud, cam))
+        forward[n, size] = (contrib, median_ms(lambda: render(cloud, cam), repeats))
+    numba_threads = numba.get_num_threads()
+
     import torch
 
     from nehad.splat.rasterize import render_torch
 
-    lines = [f"threads: numba {numba.get_num_threads()}, torch {torch.get_num_threads()}; "
+    lines = [f"threads: numba {numba.config.NUMBA_NUM_THREADS} (forward frames ended with "
+             f"{numba_threads}, runtime/threads.py), torch {torch.get_num_threads()}; "
              f"busy processes {busy}; load average {load_average()} (1, 5, 15 min)",
              f"inner loop (every pair blended): forward {rate_f / 1e9:.2f} G pairs/s, "
              f"backward {rate_b / 1e9:.2f} G pairs/s"]
     lines.append(f"{'gaussians':>9} {'size':>7} {'fwd ms':>7} {'floor':>6} {'x floor':>7} "
                  f"{'fwd+bwd ms':>10} {'floor':>6} {'x floor':>7} {'contributing M':>14}")
+    numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)  # training does not adapt
     for n, size in SIZES:
-        cloud = random_cloud(n)
-        cam = orbit_camera(size)
-        contrib = contributing_pairs(render(cloud, cam))
+        cloud, cam = random_cloud(n), orbit_camera(size)
+        contrib, fwd = forward[n, size]
         floor_f = 1e3 * contrib / rate_f
         floor_fb = floor_f + 1e3 * contrib / rate_b
-        fwd = median_ms(lambda: render(cloud, cam), repeats)
         params = [torch.tensor(a, requires_grad=True) for a in
                   (cloud.means, cloud.scales, cloud.quats, cloud.opacities, cloud.sh)]
         target = torch.rand(size, size, 3)
@@ -172,8 +181,7 @@ def _bench_sizes(repeats, rate_f, rate_b, busy) -> list[str]:
         fb = median_ms(step, repeats)
         lines.append(f"{n:>9} {size:>3}x{size:<3} {fwd:>7.1f} {floor_f:>6.1f} {fwd / floor_f:>7.2f} "
                      f"{fb:>10.1f} {floor_fb:>6.1f} {fb / floor_fb:>7.2f} {contrib / 1e6:>14.1f}")
-    lines.append(f"load average at the end: {load_average()}; numba threads the forward frames "
-                 f"ended with: {numba.get_num_threads()} (runtime/threads.py)")
+    lines.append(f"load average at the end: {load_average()}")
     return lines
 
 

@@ -3,15 +3,16 @@
 The rasterizer splits each frame's stages between its threads in equal shares (numba's OpenMP
 layer schedules parallel loops statically). When another process takes a core, the thread
 sharing that core runs at about half speed and the frame waits for its share: on this 2-core
-machine a 100k/800x800 frame took 125 ms with 2 threads beside a busy loop where one thread took
-88 ms. `nehad` chooses its thread count from the idle cores when it starts (cli/threads.py), but
+machine a 100k/800x800 frame took 100.9 ms with 2 threads beside a busy loop where one thread
+took 84.6 ms (docs/performance.md#threads). `nehad` chooses its thread count from the idle cores when it starts (cli/threads.py), but
 a video or a batch runs for minutes and the load changes under it.
 
 So before each frame the runtime asks `frame_threads()`: at most every `SAMPLE_SECONDS` it reads
 how much CPU the machine spent (/proc/stat) minus what this process spent (os.times) over the
 last interval: the cores other processes used. It draws with the usable cores minus those
-(rounded: a process using half a core or more counts as one), at least one, and at most the
-thread count the process started with. Where /proc/stat is missing the count stays as it is.
+(rounded up from 0.3: a CPU-bound process that shares a core with this one's threads obtains
+only 1/3 to 1/2 of it, and counts as one), at least one, and at most the thread count the
+process started with. Where /proc/stat is missing the count stays as it is.
 NEHAD_ADAPT_THREADS=0 turns this off; a caller that sets the count itself (`--threads`) does not
 call it.
 """
@@ -23,7 +24,7 @@ import os
 import threading
 import time
 
-SAMPLE_SECONDS = 0.5
+SAMPLE_SECONDS = 0.2
 _CLOCK_TICKS = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 
 
@@ -46,9 +47,9 @@ def _own_seconds() -> float:
 
 
 def threads_for(others: float, usable: int, ceiling: int) -> int:
-    """Threads when other processes use `others` cores: the usable cores minus those (a
-    process using half a core or more counts as one), between 1 and `ceiling`."""
-    free = usable - math.floor(others + 0.5)
+    """Threads when other processes use `others` cores: the usable cores minus those (0.3 of
+    a core or more counts as one), between 1 and `ceiling`."""
+    free = usable - math.floor(others + 0.7)
     return max(1, min(ceiling, free))
 
 
