@@ -43,19 +43,35 @@ class Projected:
     opacities: np.ndarray
 
 
-@numba.njit(parallel=True, cache=True)
-def _project_kernel(means, scales, quats, sh, degree, w2c, fx, fy, cx, cy, width, height,
-                    means2d, conics, depths, radii, colors):
-    n = means.shape[0]
+@numba.njit(inline="always")
+def _view(w2c, fx, fy, width, height):
+    """The world-to-camera rotation (row by row) and translation, the camera centre -R^T t and
+    the frustum clamp's limits on x/z and y/z."""
     r00, r01, r02, t0 = w2c[0, 0], w2c[0, 1], w2c[0, 2], w2c[0, 3]
     r10, r11, r12, t1 = w2c[1, 0], w2c[1, 1], w2c[1, 2], w2c[1, 3]
     r20, r21, r22, t2 = w2c[2, 0], w2c[2, 1], w2c[2, 2], w2c[2, 3]
-    # camera centre = -R^T t
     ccx = -(r00 * t0 + r10 * t1 + r20 * t2)
     ccy = -(r01 * t0 + r11 * t1 + r21 * t2)
     ccz = -(r02 * t0 + r12 * t1 + r22 * t2)
     limx = FRUSTUM_CLAMP * width / (2.0 * fx)
     limy = FRUSTUM_CLAMP * height / (2.0 * fy)
+    return (r00, r01, r02, r10, r11, r12, r20, r21, r22, t0, t1, t2, ccx, ccy, ccz, limx, limy)
+
+
+@numba.njit(inline="always")
+def _rotation(qw, qx, qy, qz):
+    """Rotation matrix (row by row) of a unit quaternion (w, x, y, z)."""
+    return (1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy),
+            2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx),
+            2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy))
+
+
+@numba.njit(parallel=True, cache=True)
+def _project_kernel(means, scales, quats, sh, degree, w2c, fx, fy, cx, cy, width, height,
+                    means2d, conics, depths, radii, colors):
+    n = means.shape[0]
+    (r00, r01, r02, r10, r11, r12, r20, r21, r22, t0, t1, t2, ccx, ccy, ccz, limx,
+     limy) = _view(w2c, fx, fy, width, height)
     ntile_x = (width + TILE - 1) // TILE
     ntile_y = (height + TILE - 1) // TILE
     k = (degree + 1) * (degree + 1)
@@ -72,9 +88,7 @@ def _project_kernel(means, scales, quats, sh, degree, w2c, fx, fy, cx, cy, width
         qw, qx, qy, qz = np.float64(quats[i, 0]), np.float64(quats[i, 1]), np.float64(quats[i, 2]), np.float64(quats[i, 3])
         qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
         qw, qx, qy, qz = qw / qn, qx / qn, qy / qn, qz / qn
-        m00 = 1 - 2 * (qy * qy + qz * qz); m01 = 2 * (qx * qy - qw * qz); m02 = 2 * (qx * qz + qw * qy)
-        m10 = 2 * (qx * qy + qw * qz); m11 = 1 - 2 * (qx * qx + qz * qz); m12 = 2 * (qy * qz - qw * qx)
-        m20 = 2 * (qx * qz - qw * qy); m21 = 2 * (qy * qz + qw * qx); m22 = 1 - 2 * (qx * qx + qy * qy)
+        m00, m01, m02, m10, m11, m12, m20, m21, m22 = _rotation(qw, qx, qy, qz)
         sx, sy, sz = np.float64(scales[i, 0]), np.float64(scales[i, 1]), np.float64(scales[i, 2])
         # M = R S ; Sigma = M M^T
         a00, a01, a02 = m00 * sx, m01 * sy, m02 * sz
@@ -144,14 +158,8 @@ def _project_kernel(means, scales, quats, sh, degree, w2c, fx, fy, cx, cy, width
 def _project_backward_kernel(means, scales, quats, sh, degree, w2c, fx, fy, width, height, radii,
                              g_means2d, g_conics, g_colors, g_means, g_scales, g_quats, g_sh):
     n = means.shape[0]
-    r00, r01, r02, t0 = w2c[0, 0], w2c[0, 1], w2c[0, 2], w2c[0, 3]
-    r10, r11, r12, t1 = w2c[1, 0], w2c[1, 1], w2c[1, 2], w2c[1, 3]
-    r20, r21, r22, t2 = w2c[2, 0], w2c[2, 1], w2c[2, 2], w2c[2, 3]
-    ccx = -(r00 * t0 + r10 * t1 + r20 * t2)
-    ccy = -(r01 * t0 + r11 * t1 + r21 * t2)
-    ccz = -(r02 * t0 + r12 * t1 + r22 * t2)
-    limx = FRUSTUM_CLAMP * width / (2.0 * fx)
-    limy = FRUSTUM_CLAMP * height / (2.0 * fy)
+    (r00, r01, r02, r10, r11, r12, r20, r21, r22, t0, t1, t2, ccx, ccy, ccz, limx,
+     limy) = _view(w2c, fx, fy, width, height)
     k = (degree + 1) * (degree + 1)
     per = GAUSSIANS_PER_TASK
     for task in numba.prange((n + per - 1) // per):
@@ -177,11 +185,8 @@ def _project_backward_kernel(means, scales, quats, sh, degree, w2c, fx, fy, widt
                               np.float64(quats[i, 2]), np.float64(quats[i, 3]))
             qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
             qw, qx, qy, qz = qw / qn, qx / qn, qy / qn, qz / qn
-            rot[0, 0] = 1 - 2 * (qy * qy + qz * qz); rot[0, 1] = 2 * (qx * qy - qw * qz)
-            rot[0, 2] = 2 * (qx * qz + qw * qy); rot[1, 0] = 2 * (qx * qy + qw * qz)
-            rot[1, 1] = 1 - 2 * (qx * qx + qz * qz); rot[1, 2] = 2 * (qy * qz - qw * qx)
-            rot[2, 0] = 2 * (qx * qz - qw * qy); rot[2, 1] = 2 * (qy * qz + qw * qx)
-            rot[2, 2] = 1 - 2 * (qx * qx + qy * qy)
+            (rot[0, 0], rot[0, 1], rot[0, 2], rot[1, 0], rot[1, 1], rot[1, 2], rot[2, 0],
+             rot[2, 1], rot[2, 2]) = _rotation(qw, qx, qy, qz)
             s[0], s[1], s[2] = np.float64(scales[i, 0]), np.float64(scales[i, 1]), np.float64(scales[i, 2])
             rx, ry = x / z, y / z
             tx = min(max(rx, -limx), limx) * z
