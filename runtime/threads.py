@@ -79,6 +79,7 @@ class _Governor:
 
 
 _GOVERNOR = _Governor()
+_THREAD = threading.local()  # per calling thread: its ceiling and the count set for it last
 
 
 def usable_cores() -> int:
@@ -93,9 +94,15 @@ def frame_threads() -> int:
     current load, and return it (module doc). Returns numba's count unchanged when turned off."""
     import numba
 
-    ceiling = int(numba.config.NUMBA_NUM_THREADS)
-    if os.environ.get("NEHAD_ADAPT_THREADS", "1") == "0" or ceiling <= 1:
-        return numba.get_num_threads()
-    threads = _GOVERNOR.decide(ceiling, usable_cores())
+    current = numba.get_num_threads()
+    if os.environ.get("NEHAD_ADAPT_THREADS", "1") == "0":
+        return current
+    if getattr(_THREAD, "last_set", None) != current:  # first frame, or the caller set a count
+        _THREAD.ceiling = current
+    if _THREAD.ceiling <= 1:
+        _THREAD.last_set = current
+        return current
+    threads = _GOVERNOR.decide(_THREAD.ceiling, usable_cores())
     numba.set_num_threads(threads)
+    _THREAD.last_set = threads
     return threads

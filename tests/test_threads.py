@@ -93,6 +93,22 @@ def test_governor_samples_the_machine_minus_this_process(monkeypatch):
     assert gov.decide(2, 2) == 2
 
 
+def test_frame_threads_never_exceed_what_the_caller_set(monkeypatch):
+    """A count the caller set with numba.set_num_threads is the ceiling: an idle machine does
+    not raise it."""
+    import numba
+
+    monkeypatch.setattr(rt.time, "monotonic", lambda: 0.0)
+    monkeypatch.setattr(rt, "_GOVERNOR", rt._Governor())
+    try:
+        numba.set_num_threads(1)
+        assert rt.frame_threads() == 1 == numba.get_num_threads()
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)  # the caller raises it again
+        assert rt.frame_threads() == numba.config.NUMBA_NUM_THREADS
+    finally:
+        numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
+
+
 def test_frame_threads_can_be_turned_off(monkeypatch):
     import numba
 
