@@ -21,7 +21,7 @@ load, runtime/threads.py; compare with NUMBA_NUM_THREADS=1 OMP_NUM_THREADS=1 for
 
 Then trains a static 3DGS fit on a 128x128 synthetic scene held at one time: a coarse-only run
 of the trainer (`nehad train` with fine.iterations=0) of --fit-steps steps, and prints its speed
-and held-out PSNR (`nehad eval`'s).
+and held-out PSNR beside a blank image's (`nehad eval`'s).
 
     python bench/raster.py [--quick] [--repeats 15] [--fit-steps 3000] [--busy K]
 """
@@ -207,7 +207,8 @@ def bench_static_fit(steps: int) -> str:
     return (f"static fit 128x128 (coarse-only run, {summary['gaussians']} Gaussians, "
             f"{len(tr.train_views.images)} train views): {summary['steps']} iterations in "
             f"{seconds:.0f} s ({summary['steps'] / seconds:.1f} it/s), held-out PSNR "
-            f"{result['mean']['psnr']:.2f} dB on {result['frames']} views")
+            f"{result['mean']['psnr']:.2f} dB (a blank image: {result['blank']['psnr']:.2f} dB) "
+            f"on {result['frames']} views")
 
 
 def main() -> None:
