@@ -98,8 +98,11 @@ def test_frame_threads_never_exceed_what_the_caller_set(monkeypatch):
     not raise it."""
     import numba
 
+    import threading
+
     monkeypatch.setattr(rt.time, "monotonic", lambda: 0.0)
     monkeypatch.setattr(rt, "_GOVERNOR", rt._Governor())
+    monkeypatch.setattr(rt, "_THREAD", threading.local())  # no earlier frame in this thread
     try:
         numba.set_num_threads(1)
         assert rt.frame_threads() == 1 == numba.get_num_threads()
