@@ -4,8 +4,9 @@ The rasterizer splits each frame's stages between its threads in equal shares (n
 layer schedules parallel loops statically). When another process takes a core, the thread
 sharing that core runs at about half speed and the frame waits for its share: on this 2-core
 machine a 100k/800x800 frame took 100.9 ms with 2 threads beside a busy loop where one thread
-took 84.6 ms (docs/performance.md#threads). `nehad` chooses its thread count from the idle cores when it starts (cli/threads.py), but
-a video or a batch runs for minutes and the load changes under it.
+took 84.6 ms (docs/performance.md#threads). `nehad` chooses its thread count from the idle
+cores when it starts (cli/threads.py), but a video or a batch runs for minutes and the load
+changes under it.
 
 So before each frame the runtime asks `frame_threads()`: at most every `SAMPLE_SECONDS` it reads
 how much CPU the machine spent (/proc/stat) minus what this process spent (os.times) over the

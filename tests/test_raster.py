@@ -333,12 +333,11 @@ def test_fma32_rounds_once():
     assert separate == 0.0
 
 
-def test_frames_and_tile_lists_do_not_depend_on_the_thread_count(monkeypatch):
-    """The thread count (which runtime/threads.py changes with the load) and the number of
-    binning chunks change no byte of a frame or of its tile lists."""
+def test_frames_and_tile_lists_do_not_depend_on_the_thread_count():
+    """The thread count (which runtime/threads.py changes with the load; it is also the number
+    of binning chunks and the tile order's interleave) changes no byte of a frame or of its
+    tile lists."""
     import numba
-
-    from nehad.runtime.raster import binning
 
     rng = np.random.default_rng(5)
     n = 40_000  # enough for several binning chunks per thread
@@ -352,10 +351,8 @@ def test_frames_and_tile_lists_do_not_depend_on_the_thread_count(monkeypatch):
     cam = Camera.from_camera_to_world(c2w, 160, 120, 130.0, 130.0, convention="opencv")
     outs = []
     try:
-        for threads, chunks in ((1, 1), (numba.config.NUMBA_NUM_THREADS, 4),
-                                (numba.config.NUMBA_NUM_THREADS, 1)):
-            numba.set_num_threads(threads)
-            monkeypatch.setattr(binning, "_CHUNKS_PER_THREAD", chunks)
+        for threads in (1, numba.config.NUMBA_NUM_THREADS):
+            numba.set_num_threads(threads)  # also the binning's chunk count
             outs.append(render(cloud, cam, adapt_threads=False))
     finally:
         numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)

@@ -31,7 +31,7 @@ def _softplus(z: torch.Tensor) -> torch.Tensor:
     """softplus(z); in an exported graph written as relu(z) + log(1 + exp(-|z|)) (Relu, Abs, Neg,
     Exp, Add, Log): onnxruntime's Softplus kernel took 9.2 of the 16.4 ms of a 15k-Gaussian
     deformation on 2 threads, the decomposition runs on its vectorised Exp and Log
-    (docs/performance.md#deformation-onnxruntime-vs-torch)."""
+    (docs/performance.md#whole-frames-of-an-exported-model)."""
     if is_capturing():
         return torch.relu(z) + torch.log(1.0 + torch.exp(-torch.abs(z)))
     return F.softplus(z)

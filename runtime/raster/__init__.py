@@ -18,8 +18,7 @@ import numpy as np
 
 from .binning import TileBins, bin_gaussians
 from .heap import keep_freed_memory
-from .kernels import (TILES_PER_TASK, backward_kernel, forward_kernel, interleaved_tiles,
-                      sum_entry_grads)
+from .kernels import backward_kernel, forward_kernel, interleaved_tiles, sum_entry_grads
 from .projection import Projected, project_gaussians
 from ..threads import frame_threads
 
@@ -68,9 +67,8 @@ def rasterize(means2d, conics, colors, opacities, depths, radii, width, height,
     depth = np.empty((height, width), np.float32)
     stop = np.empty((height, width), np.int32)
     order = interleaved_tiles(bins.tiles_x, bins.tiles_y, numba.get_num_threads())
-    with numba.parallel_chunksize(TILES_PER_TASK):
-        forward_kernel(order, bins.tile_offsets, bins.gauss_ids, bins.packed, width, height,
-                       _f32(background), rgb, final_t, depth, stop)
+    forward_kernel(order, bins.tile_offsets, bins.gauss_ids, bins.packed, width, height,
+                   _f32(background), rgb, final_t, depth, stop)
     return RasterOutput(rgb, 1.0 - final_t, depth, final_t, stop, bins)
 
 
@@ -85,9 +83,8 @@ def rasterize_backward(out: RasterOutput, grad_rgb, grad_alpha=None) -> ScreenGr
     # zeros: the kernel skips the entries behind a tile's last stopping pixel (no gradient)
     entry = np.zeros((bins.gauss_ids.shape[0], 9), np.float32)
     order = interleaved_tiles(bins.tiles_x, bins.tiles_y, numba.get_num_threads())
-    with numba.parallel_chunksize(TILES_PER_TASK):
-        backward_kernel(order, bins.tile_offsets, bins.gauss_ids, bins.packed, w, h, out.rgb,
-                        out.final_t, out.stop, _f32(grad_rgb), _f32(grad_alpha), entry)
+    backward_kernel(order, bins.tile_offsets, bins.gauss_ids, bins.packed, w, h, out.rgb,
+                    out.final_t, out.stop, _f32(grad_rgb), _f32(grad_alpha), entry)
     g = sum_entry_grads(bins.gauss_ids, entry, n)
     return ScreenGradients(g[:, 0:2], g[:, 2:5], g[:, 5:8], g[:, 8])
 

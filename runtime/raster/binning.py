@@ -16,13 +16,12 @@ import numba
 import numpy as np
 
 from ..memory import check_tile_lists
-from .projection import GAUSSIANS_PER_TASK, TILE
+from .projection import TILE
 
 ALPHA_MIN = 1.0 / 255.0
 # Slack on the opacity-aware ellipse so that float32 rounding in the kernels never reaches past it.
 _EXTENT_SLACK_REL = 1e-3
 _EXTENT_SLACK_PX = 0.05
-_CHUNKS_PER_THREAD = 4
 
 
 # Columns of the packed per-Gaussian record: everything the kernels read about one Gaussian sits
@@ -129,7 +128,7 @@ def _count_pairs(rects):
 
 @numba.njit(parallel=True, cache=True)
 def _count_chunks(order, rects, ntx, counts):
-    """counts[c, t]: entries of tile t from chunk c of `order` (one task per chunk)."""
+    """counts[c, t]: entries of tile t from chunk c of `order` (one thread per chunk)."""
     n = order.shape[0]
     n_chunks = counts.shape[0]
     per = (n + n_chunks - 1) // n_chunks
@@ -157,7 +156,7 @@ def _chunk_cursors(counts, offsets, cursor):
 @numba.njit(parallel=True, cache=True)
 def _scatter_chunks(order, rects, ntx, cursor, ids):
     """Write depth-ordered Gaussians into their tiles' runs; chunk c's entries go after chunk
-    c-1's in every tile, so runs stay depth-sorted (one task per chunk)."""
+    c-1's in every tile, so runs stay depth-sorted (one thread per chunk)."""
     n = order.shape[0]
     n_chunks = cursor.shape[0]
     per = (n + n_chunks - 1) // n_chunks
@@ -200,25 +199,22 @@ def bin_gaussians(means2d, conics, colors, opacities, depths, radii, width, heig
     n = means2d.shape[0]
     rects = np.empty((n, 4), np.int32)
     packed = np.empty((n, PACKED_WIDTH), np.float32)
-    with numba.parallel_chunksize(GAUSSIANS_PER_TASK):
-        _tile_rects(means2d, conics, colors, opacities, depths, radii, int(width), int(height),
-                    rects, packed)
+    _tile_rects(means2d, conics, colors, opacities, depths, radii, int(width), int(height),
+                rects, packed)
     visible = np.flatnonzero((rects[:, 1] > rects[:, 0]) & (rects[:, 3] > rects[:, 2]))
     order = _radix_argsort_depth(visible.astype(np.int32), np.ascontiguousarray(depths, np.float32))
     ntx = (int(width) + TILE - 1) // TILE
     n_tiles = ntx * ((int(height) + TILE - 1) // TILE)
-    # a few chunks per thread, handed out one at a time, so that a thread slowed by another
-    # process takes fewer (the chunk count changes no list: chunks keep their order)
-    n_chunks = max(1, min(_CHUNKS_PER_THREAD * numba.get_num_threads(),
-                          order.shape[0] // 4096 + 1))
+    # one chunk of the depth order per thread (the chunk count changes no list: chunks keep
+    # their order in every tile)
+    n_chunks = max(1, min(numba.get_num_threads(), order.shape[0] // 4096 + 1))
     # the tile lists' size is known now, before they are allocated: refuse what cannot fit
     check_tile_lists(_count_pairs(rects), width, height, n_chunks)
     counts = np.zeros((n_chunks, n_tiles), np.int64)
     offsets = np.empty(n_tiles + 1, np.int64)
     cursor = np.empty((n_chunks, n_tiles), np.int64)
-    with numba.parallel_chunksize(1):
-        _count_chunks(order, rects, ntx, counts)
-        _chunk_cursors(counts, offsets, cursor)
-        ids = np.empty(int(offsets[-1]), np.int32)
-        _scatter_chunks(order, rects, ntx, cursor, ids)
+    _count_chunks(order, rects, ntx, counts)
+    _chunk_cursors(counts, offsets, cursor)
+    ids = np.empty(int(offsets[-1]), np.int32)
+    _scatter_chunks(order, rects, ntx, cursor, ids)
     return TileBins(offsets, ids, packed, int(width), int(height))

@@ -1,12 +1,14 @@
 """Numba tile rasterizer, forward and backward (docs/design.md section 6): the one implementation shared by
 training (through `nehad.splat.rasterize`) and the torch-free runtime.
 
-Each tile (16x16 pixels) is one parallel task (handed out a few tiles at a time, so that the
-threads share the heavy tiles). Inside a tile the loop runs over the tile's Gaussians front to
-back; for each, over the tile rows that the bounding box of its alpha >= 1/255 ellipse covers,
-and in each row over all 16 pixels at once: a fixed 16-lane loop that LLVM turns into one
-512-bit SIMD loop on this machine (docs/performance.md: 16-lane rows drew the 100k/800x800
-frame in 24 ms where 8-lane half rows, skipped by the ellipse's columns, took 37 ms).
+Each tile (16x16 pixels) is one iteration of the parallel loop; numba gives each thread one
+contiguous block of the loop, so the tiles come in the order of `interleaved_tiles` (every
+thread gets every T-th row of tiles). Inside a tile the loop runs over the tile's Gaussians
+front to back; for each, over the tile rows that the bounding box of its alpha >= 1/255 ellipse
+covers, and in each row over all 16 pixels at once: a fixed 16-lane loop that LLVM turns into
+one 512-bit SIMD loop on this machine (docs/performance.md: with 16-lane rows the kernel drew
+the 100k/800x800 frame in 24 ms where 8-lane half rows, skipped by the ellipse's columns, took
+37 ms).
 Pixels outside the ellipse have alpha < 1/255 and are skipped by the alpha test. Per pixel:
 
     alpha = min(0.99, opacity * exp(-d^T conic d / 2)); skipped when alpha < 1/255;
@@ -51,10 +53,6 @@ N_GRAD = 9  # d mean2d (2), d conic (3), d colour (3), d opacity (1)
 _D_MX, _D_MY, _D_CA, _D_CB, _D_CC, _D_R, _D_G, _D_B, _D_OP = range(N_GRAD)
 
 _SATURATION_CHECK = 16  # entries between checks for fully stopped rows
-#: Tiles per parallel task (numba.parallel_chunksize): threads take tasks as they finish, so a
-#: thread that drew the busy centre of the image does not leave the other idle (an even static
-#: split took 14.4 ms where 4 tiles per task took 9.8 ms, 20k Gaussians at 400x400, 2 threads).
-TILES_PER_TASK = 4
 #: Tile entries ahead whose Gaussian record is prefetched (records are read in depth order,
 #: scattered over the packed array; 2 ahead took 24.7 -> 23.8 ms at 100k/800x800).
 _PREFETCH_AHEAD = 2

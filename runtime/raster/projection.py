@@ -21,9 +21,8 @@ NEAR_PLANE = 0.2
 COV2D_DILATION = 0.3
 FRUSTUM_CLAMP = 1.3
 TILE = 16
-#: Gaussians per parallel task of the per-Gaussian stages (projection, tile rectangles): tasks
-#: are handed out as threads finish, so a thread slowed by another process on its core takes
-#: fewer of them instead of holding the others at the end (docs/performance.md#threads).
+#: Gaussians per task of the projection's backward kernel, which allocates its scratch arrays
+#: once per task instead of once per Gaussian.
 GAUSSIANS_PER_TASK = 2048
 
 
@@ -187,7 +186,8 @@ def _project_backward_kernel(means, scales, quats, sh, degree, w2c, fx, fy, widt
             qw, qx, qy, qz = qw / qn, qx / qn, qy / qn, qz / qn
             (rot[0, 0], rot[0, 1], rot[0, 2], rot[1, 0], rot[1, 1], rot[1, 2], rot[2, 0],
              rot[2, 1], rot[2, 2]) = _rotation(qw, qx, qy, qz)
-            s[0], s[1], s[2] = np.float64(scales[i, 0]), np.float64(scales[i, 1]), np.float64(scales[i, 2])
+            for kk in range(3):
+                s[kk] = np.float64(scales[i, kk])
             rx, ry = x / z, y / z
             tx = min(max(rx, -limx), limx) * z
             ty = min(max(ry, -limy), limy) * z
@@ -229,9 +229,9 @@ def _project_backward_kernel(means, scales, quats, sh, degree, w2c, fx, fy, widt
             # rotation of the normalised quaternion, then the normalisation
             gw = 2.0 * (-qz * g_rot[0, 1] + qy * g_rot[0, 2] + qz * g_rot[1, 0] - qx * g_rot[1, 2]
                         - qy * g_rot[2, 0] + qx * g_rot[2, 1])
-            gx = 2.0 * (qy * g_rot[0, 1] + qz * g_rot[0, 2] + qy * g_rot[1, 0] - 2.0 * qx * g_rot[1, 1]
-                        - qw * g_rot[1, 2] + qz * g_rot[2, 0] + qw * g_rot[2, 1]
-                        - 2.0 * qx * g_rot[2, 2])
+            gx = 2.0 * (qy * g_rot[0, 1] + qz * g_rot[0, 2] + qy * g_rot[1, 0]
+                        - 2.0 * qx * g_rot[1, 1] - qw * g_rot[1, 2] + qz * g_rot[2, 0]
+                        + qw * g_rot[2, 1] - 2.0 * qx * g_rot[2, 2])
             gy = 2.0 * (-2.0 * qy * g_rot[0, 0] + qx * g_rot[0, 1] + qw * g_rot[0, 2]
                         + qx * g_rot[1, 0] + qz * g_rot[1, 2] - qw * g_rot[2, 0] + qz * g_rot[2, 1]
                         - 2.0 * qy * g_rot[2, 2])
@@ -271,7 +271,7 @@ def _project_backward_kernel(means, scales, quats, sh, degree, w2c, fx, fy, widt
             gp[0] = r00 * gxc + r10 * gyc + r20 * gzc
             gp[1] = r01 * gxc + r11 * gyc + r21 * gzc
             gp[2] = r02 * gxc + r12 * gyc + r22 * gzc
-            # colour = max(sum_k basis_k(dir) sh_k + 0.5, 0), dir = (mean - centre) / |mean - centre|
+            # colour = max(sum_k basis_k(dir) sh_k + 0.5, 0), dir = (mean - centre) / |...|
             dx, dy, dz = px - ccx, py - ccy, pz - ccz
             dn = math.sqrt(dx * dx + dy * dy + dz * dz)
             dnc = max(dn, 1e-12)
@@ -316,13 +316,12 @@ def project_backward(means, scales, quats, sh, camera, radii, g_means2d, g_conic
     g_quats = np.zeros((n, 4), np.float32)
     g_sh = np.zeros(sh.shape, np.float32)
     f32 = lambda a: np.ascontiguousarray(a, np.float32)  # noqa: E731
-    with numba.parallel_chunksize(GAUSSIANS_PER_TASK):
-        _project_backward_kernel(f32(means), f32(scales), f32(quats), f32(sh), degree,
-                                 np.ascontiguousarray(camera.world_to_camera, np.float64),
-                                 float(camera.fx), float(camera.fy), int(camera.width),
-                                 int(camera.height), np.ascontiguousarray(radii, np.int32),
-                                 f32(g_means2d), f32(g_conics), f32(g_colors), g_means, g_scales,
-                                 g_quats, g_sh)
+    _project_backward_kernel(f32(means), f32(scales), f32(quats), f32(sh), degree,
+                             np.ascontiguousarray(camera.world_to_camera, np.float64),
+                             float(camera.fx), float(camera.fy), int(camera.width),
+                             int(camera.height), np.ascontiguousarray(radii, np.int32),
+                             f32(g_means2d), f32(g_conics), f32(g_colors), g_means, g_scales,
+                             g_quats, g_sh)
     return ProjectionGradients(g_means, g_scales, g_quats, g_sh)
 
 
@@ -336,13 +335,10 @@ def project_gaussians(means, scales, quats, opacities, sh, camera, sh_degree=Non
     depths = np.zeros(n, np.float32)
     radii = np.zeros(n, np.int32)
     colors = np.zeros((n, 3), np.float32)
-    with numba.parallel_chunksize(GAUSSIANS_PER_TASK):
-        _project_kernel(np.ascontiguousarray(means, np.float32),
-                        np.ascontiguousarray(scales, np.float32),
-                        np.ascontiguousarray(quats, np.float32), np.ascontiguousarray(sh, np.float32),
-                        degree, np.ascontiguousarray(camera.world_to_camera, np.float64),
-                        float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy),
-                        int(camera.width), int(camera.height), means2d, conics, depths, radii,
-                        colors)
+    f32 = lambda a: np.ascontiguousarray(a, np.float32)  # noqa: E731
+    _project_kernel(f32(means), f32(scales), f32(quats), f32(sh),
+                    degree, np.ascontiguousarray(camera.world_to_camera, np.float64),
+                    float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy),
+                    int(camera.width), int(camera.height), means2d, conics, depths, radii, colors)
     return Projected(means2d, conics, depths, radii, colors,
                      np.ascontiguousarray(opacities, np.float32))
