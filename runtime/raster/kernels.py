@@ -123,20 +123,27 @@ def forward_kernel(tile_order, tile_offsets, gauss_ids, packed, width, height, b
                     st[r, _STOP, jj] = _NEVER
         start = tile_offsets[tile]
         end = tile_offsets[tile + 1]
+        row_lo = 0
+        row_hi = TILE - 1
         for k in range(start, end):
             local = np.float32(k - start)
             # the tile is done once all its pixels have stopped (pixels outside the image stop at
-            # once); checked every _SATURATION_CHECK entries rather than inside the SIMD loop.
-            # Rows that are done are still drawn (masked by their stop index): a per-row skip
-            # cost more in branches than it saved (19.6 vs 20.9 ms at 100k/800x800)
+            # once), and only rows row_lo..row_hi still have running pixels; both are checked
+            # every _SATURATION_CHECK entries rather than inside the SIMD loop. Done rows
+            # between them are still drawn (masked by their stop index): a per-row skip cost
+            # more in branches than it saved (19.6 vs 20.9 ms at 100k/800x800), the range
+            # bound costs nothing (19.2 -> 18.0 ms)
             if (k - start) % _SATURATION_CHECK == 0:
-                n_open = 0
+                row_lo = TILE
+                row_hi = -1
                 for r in range(TILE):
                     latest = _F0  # a pixel still running has stop == _NEVER, the maximum
                     for jj in range(TILE):
                         latest = max(latest, st[r, _STOP, jj])
-                    n_open += latest == _NEVER
-                if n_open == 0:
+                    if latest == _NEVER:
+                        row_lo = min(row_lo, r)
+                        row_hi = max(row_hi, r)
+                if row_hi < 0:
                     break
             if k + _PREFETCH_AHEAD < end:
                 prefetch_row(packed, gauss_ids[k + _PREFETCH_AHEAD])
@@ -146,7 +153,7 @@ def forward_kernel(tile_order, tile_offsets, gauss_ids, packed, width, height, b
             r0, r1 = _rows_in_tile(rec, y0)
             dx0 = np.float32(x0) + _HALF - mx
             half_ca = _HALF * ca
-            for r in range(r0, r1 + 1):
+            for r in range(max(r0, row_lo), min(r1, row_hi) + 1):
                 dy = np.float32(y0 + r) + _HALF - my
                 minus_qyy = -(_HALF * cc * dy * dy)
                 cbdy = cb * dy
