@@ -12,10 +12,11 @@ So before each frame the runtime asks `frame_threads()`: at most every `SAMPLE_S
 how much CPU the machine spent (/proc/stat) minus what this process spent (os.times) over the
 last interval: the cores other processes used. It draws with the usable cores minus those
 (rounded up from 0.3: a CPU-bound process that shares a core with this one's threads obtains
-only 1/3 to 1/2 of it, and counts as one), at least one, and at most the thread count the
-process started with. Where /proc/stat is missing the count stays as it is.
-NEHAD_ADAPT_THREADS=0 turns this off; a caller that sets the count itself (`--threads`) does not
-call it.
+only 1/3 to 1/2 of it, and counts as one), at least one, and at most the count the calling
+thread had at its first frame or last set itself with numba.set_num_threads (it cannot tell
+when the caller sets exactly the count this module chose last). Where /proc/stat is missing
+that count stays. NEHAD_ADAPT_THREADS=0 turns this off; a caller that fixes the count
+(`--threads`) passes adapt_threads=False.
 """
 
 from __future__ import annotations
@@ -84,6 +85,7 @@ _THREAD = threading.local()  # per calling thread: its ceiling and the count set
 
 
 def usable_cores() -> int:
+    """Cores this process may run on (its affinity mask, else the machine's count)."""
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):
