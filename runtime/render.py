@@ -61,8 +61,9 @@ def render_view(scene, camera, time: float | None, background=None, sh_degree: i
                     adapt_threads=adapt_threads)
     seconds = _time.perf_counter() - start
     image = np.concatenate([out.rgb, out.alpha[:, :, None]], axis=2) if alpha else out.rgb
-    depth = np.where(out.alpha > 0, out.depth, 0.0).astype(np.float32)
-    return RenderedView(image, depth, bool((out.alpha > 0).any()), seconds)
+    drawn = out.alpha > 0
+    depth = np.where(drawn, out.depth, 0.0).astype(np.float32)
+    return RenderedView(image, depth, bool(drawn.any()), seconds)
 
 
 def check_output(path: Path, suffixes, what: str, input: str = "output") -> None:

@@ -16,9 +16,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import torch
-
 import numpy as np
+import torch
 
 from nehad.runtime.raster.projection import (COV2D_DILATION, FRUSTUM_CLAMP, NEAR_PLANE, TILE,
                                              project_backward, project_gaussians)
@@ -111,6 +110,7 @@ def project_gaussians_torch(means, scales, quats, opacities, sh, camera,
 
 
 def _np32(t: torch.Tensor) -> np.ndarray:
+    """A tensor's values as a contiguous float32 NumPy array on the CPU (for the Numba side)."""
     return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
 
 

@@ -16,11 +16,7 @@ import torch
 from nehad.runtime.raster import rasterize as _rasterize_np
 from nehad.runtime.raster import rasterize_backward as _rasterize_backward_np
 
-from .projection import ProjectedTorch, project_gaussians_numba
-
-
-def _np32(t: torch.Tensor) -> np.ndarray:
-    return np.ascontiguousarray(t.detach().to("cpu", torch.float32).numpy())
+from .projection import ProjectedTorch, _np32, project_gaussians_numba
 
 
 class RasterizeGaussians(torch.autograd.Function):

@@ -19,7 +19,7 @@ import numpy as np
 from .binning import TileBins, bin_gaussians
 from .heap import keep_freed_memory
 from .kernels import backward_kernel, forward_kernel, interleaved_tiles, sum_entry_grads
-from .projection import Projected, project_gaussians
+from .projection import Projected, _f32, project_gaussians
 from ..threads import frame_threads
 
 keep_freed_memory()  # reuse frame buffers instead of new pages (heap.py; NEHAD_KEEP_HEAP=0: off)
@@ -47,10 +47,6 @@ class ScreenGradients:
     conics: np.ndarray  # (N, 3)
     colors: np.ndarray  # (N, 3)
     opacities: np.ndarray  # (N,)
-
-
-def _f32(a):
-    return np.ascontiguousarray(a, dtype=np.float32)
 
 
 def rasterize(means2d, conics, colors, opacities, depths, radii, width, height,

@@ -127,23 +127,20 @@ def _count_pairs(rects):
 
 
 @numba.njit(parallel=True, cache=True)
-def _count_chunks(order, rects, ntx, counts):
-    """counts[c, t]: entries of tile t from chunk c of `order` (one thread per chunk)."""
+def _fill_bins(order, rects, ntx, n_tiles, n_chunks):
+    """Scatter depth-ordered Gaussians into per-tile runs; chunk c of `order` is handled by one
+    thread, and chunk c's entries go after chunk c-1's in every tile, so runs stay depth-sorted."""
     n = order.shape[0]
-    n_chunks = counts.shape[0]
     per = (n + n_chunks - 1) // n_chunks
+    counts = np.zeros((n_chunks, n_tiles), np.int64)
     for c in numba.prange(n_chunks):
         for o in range(c * per, min(n, (c + 1) * per)):
             g = order[o]
             for ty in range(rects[g, 2], rects[g, 3]):
                 for tx in range(rects[g, 0], rects[g, 1]):
                     counts[c, ty * ntx + tx] += 1
-
-
-@numba.njit(cache=True)
-def _chunk_cursors(counts, offsets, cursor):
-    """Tile offsets, and where chunk c starts writing in each tile: after chunks 0..c-1."""
-    n_chunks, n_tiles = counts.shape
+    offsets = np.zeros(n_tiles + 1, np.int64)
+    cursor = np.zeros((n_chunks, n_tiles), np.int64)
     total = 0
     for t in range(n_tiles):
         offsets[t] = total
@@ -151,15 +148,7 @@ def _chunk_cursors(counts, offsets, cursor):
             cursor[c, t] = total
             total += counts[c, t]
     offsets[n_tiles] = total
-
-
-@numba.njit(parallel=True, cache=True)
-def _scatter_chunks(order, rects, ntx, cursor, ids):
-    """Write depth-ordered Gaussians into their tiles' runs; chunk c's entries go after chunk
-    c-1's in every tile, so runs stay depth-sorted (one thread per chunk)."""
-    n = order.shape[0]
-    n_chunks = cursor.shape[0]
-    per = (n + n_chunks - 1) // n_chunks
+    ids = np.empty(total, np.int32)
     for c in numba.prange(n_chunks):
         for o in range(c * per, min(n, (c + 1) * per)):
             g = order[o]
@@ -168,6 +157,7 @@ def _scatter_chunks(order, rects, ntx, cursor, ids):
                     t = ty * ntx + tx
                     ids[cursor[c, t]] = g
                     cursor[c, t] += 1
+    return offsets, ids
 
 
 @numba.njit(cache=True)
@@ -204,17 +194,9 @@ def bin_gaussians(means2d, conics, colors, opacities, depths, radii, width, heig
     visible = np.flatnonzero((rects[:, 1] > rects[:, 0]) & (rects[:, 3] > rects[:, 2]))
     order = _radix_argsort_depth(visible.astype(np.int32), np.ascontiguousarray(depths, np.float32))
     ntx = (int(width) + TILE - 1) // TILE
-    n_tiles = ntx * ((int(height) + TILE - 1) // TILE)
-    # one chunk of the depth order per thread (the chunk count changes no list: chunks keep
-    # their order in every tile)
+    nty = (int(height) + TILE - 1) // TILE
     n_chunks = max(1, min(numba.get_num_threads(), order.shape[0] // 4096 + 1))
     # the tile lists' size is known now, before they are allocated: refuse what cannot fit
     check_tile_lists(_count_pairs(rects), width, height, n_chunks)
-    counts = np.zeros((n_chunks, n_tiles), np.int64)
-    offsets = np.empty(n_tiles + 1, np.int64)
-    cursor = np.empty((n_chunks, n_tiles), np.int64)
-    _count_chunks(order, rects, ntx, counts)
-    _chunk_cursors(counts, offsets, cursor)
-    ids = np.empty(int(offsets[-1]), np.int32)
-    _scatter_chunks(order, rects, ntx, cursor, ids)
+    offsets, ids = _fill_bins(order, rects, ntx, ntx * nty, n_chunks)
     return TileBins(offsets, ids, packed, int(width), int(height))

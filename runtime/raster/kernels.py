@@ -65,7 +65,6 @@ _PREFETCH_AHEAD = 2
 _FORWARD_FASTMATH = {"nnan", "ninf", "nsz", "arcp", "afn", "reassoc"}
 
 
-
 def interleaved_tiles(tiles_x: int, tiles_y: int, threads: int) -> np.ndarray:
     """The order the kernels visit tiles in: numba hands each of the `threads` threads one
     contiguous block of the loop (static scheduling), so the tiles are listed by tile row modulo

@@ -65,6 +65,52 @@ def _rotation(qw, qx, qy, qz):
             2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy))
 
 
+@numba.njit(inline="always")
+def _unit_quaternion(quats, i):
+    """Gaussian i's quaternion (w, x, y, z) normalised, and its norm."""
+    qw, qx, qy, qz = (np.float64(quats[i, 0]), np.float64(quats[i, 1]), np.float64(quats[i, 2]),
+                      np.float64(quats[i, 3]))
+    qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    return qw / qn, qx / qn, qy / qn, qz / qn, qn
+
+
+@numba.njit(inline="always")
+def _ewa_rows(x, y, z, fx, fy, limx, limy, w2c):
+    """The clamped screen position (tx, ty) (x/z and y/z limited to the frustum clamp, times z)
+    and the two rows u, v of T = J W, J the EWA Jacobian at it."""
+    tx = min(max(x / z, -limx), limx) * z
+    ty = min(max(y / z, -limy), limy) * z
+    j00 = fx / z
+    j02 = -fx * tx / (z * z)
+    j11 = fy / z
+    j12 = -fy * ty / (z * z)
+    return (tx, ty,
+            j00 * w2c[0, 0] + j02 * w2c[2, 0], j00 * w2c[0, 1] + j02 * w2c[2, 1],
+            j00 * w2c[0, 2] + j02 * w2c[2, 2],
+            j11 * w2c[1, 0] + j12 * w2c[2, 0], j11 * w2c[1, 1] + j12 * w2c[2, 1],
+            j11 * w2c[1, 2] + j12 * w2c[2, 2])
+
+
+@numba.njit(inline="always")
+def _sh_sum(basis, sh, i, ch, k):
+    """0.5 + sum_j basis_j sh[i, j, ch] over the first k coefficients: channel ch's colour
+    before the clamp at 0."""
+    acc = 0.5
+    for j in range(k):
+        acc += basis[j] * sh[i, j, ch]
+    return acc
+
+
+def _f32(a) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.float32)
+
+
+def _degree(sh, sh_degree) -> int:
+    """The SH degree drawn: the requested one, at most the stored one."""
+    stored = int(round(math.sqrt(sh.shape[1]))) - 1
+    return stored if sh_degree is None else min(int(sh_degree), stored)
+
+
 @numba.njit(parallel=True, cache=True)
 def _project_kernel(means, scales, quats, sh, degree, w2c, fx, fy, cx, cy, width, height,
                     means2d, conics, depths, radii, colors):
@@ -84,9 +130,7 @@ def _project_kernel(means, scales, quats, sh, degree, w2c, fx, fy, cx, cy, width
         if not (z > NEAR_PLANE):
             continue
         # rotation of the Gaussian from its unit quaternion (w, x, y, z)
-        qw, qx, qy, qz = np.float64(quats[i, 0]), np.float64(quats[i, 1]), np.float64(quats[i, 2]), np.float64(quats[i, 3])
-        qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-        qw, qx, qy, qz = qw / qn, qx / qn, qy / qn, qz / qn
+        qw, qx, qy, qz, _ = _unit_quaternion(quats, i)
         m00, m01, m02, m10, m11, m12, m20, m21, m22 = _rotation(qw, qx, qy, qz)
         sx, sy, sz = np.float64(scales[i, 0]), np.float64(scales[i, 1]), np.float64(scales[i, 2])
         # M = R S ; Sigma = M M^T
@@ -99,16 +143,8 @@ def _project_kernel(means, scales, quats, sh, degree, w2c, fx, fy, cx, cy, width
         s11 = a10 * a10 + a11 * a11 + a12 * a12
         s12 = a10 * a20 + a11 * a21 + a12 * a22
         s22 = a20 * a20 + a21 * a21 + a22 * a22
-        # EWA Jacobian with the clamped screen position
-        tx = min(max(x / z, -limx), limx) * z
-        ty = min(max(y / z, -limy), limy) * z
-        j00 = fx / z
-        j02 = -fx * tx / (z * z)
-        j11 = fy / z
-        j12 = -fy * ty / (z * z)
-        # T = J W (2x3)
-        u0 = j00 * r00 + j02 * r20; u1 = j00 * r01 + j02 * r21; u2 = j00 * r02 + j02 * r22
-        v0 = j11 * r10 + j12 * r20; v1 = j11 * r11 + j12 * r21; v2 = j11 * r12 + j12 * r22
+        # T = J W (2x3), J the EWA Jacobian at the clamped screen position
+        _, _, u0, u1, u2, v0, v1, v2 = _ewa_rows(x, y, z, fx, fy, limx, limy, w2c)
         # Sigma2D = T Sigma T^T
         su0 = s00 * u0 + s01 * u1 + s02 * u2
         su1 = s01 * u0 + s11 * u1 + s12 * u2
@@ -147,10 +183,7 @@ def _project_kernel(means, scales, quats, sh, degree, w2c, fx, fy, cx, cy, width
         basis = np.empty(16, dtype=np.float64)
         sh_basis(degree, dx / dn, dy / dn, dz / dn, basis)
         for ch in range(3):
-            acc = 0.5
-            for j in range(k):
-                acc += basis[j] * sh[i, j, ch]
-            colors[i, ch] = max(acc, 0.0)
+            colors[i, ch] = max(_sh_sum(basis, sh, i, ch, k), 0.0)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -180,23 +213,14 @@ def _project_backward_kernel(means, scales, quats, sh, degree, w2c, fx, fy, widt
             y = r10 * px + r11 * py + r12 * pz + t1
             z = r20 * px + r21 * py + r22 * pz + t2
             # --- the forward again (as _project_kernel) ---
-            qw, qx, qy, qz = (np.float64(quats[i, 0]), np.float64(quats[i, 1]),
-                              np.float64(quats[i, 2]), np.float64(quats[i, 3]))
-            qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-            qw, qx, qy, qz = qw / qn, qx / qn, qy / qn, qz / qn
+            qw, qx, qy, qz, qn = _unit_quaternion(quats, i)
             (rot[0, 0], rot[0, 1], rot[0, 2], rot[1, 0], rot[1, 1], rot[1, 2], rot[2, 0],
              rot[2, 1], rot[2, 2]) = _rotation(qw, qx, qy, qz)
             for kk in range(3):
                 s[kk] = np.float64(scales[i, kk])
             rx, ry = x / z, y / z
-            tx = min(max(rx, -limx), limx) * z
-            ty = min(max(ry, -limy), limy) * z
-            j00 = fx / z
-            j02 = -fx * tx / (z * z)
-            j11 = fy / z
-            j12 = -fy * ty / (z * z)
-            u[0] = j00 * r00 + j02 * r20; u[1] = j00 * r01 + j02 * r21; u[2] = j00 * r02 + j02 * r22
-            v[0] = j11 * r10 + j12 * r20; v[1] = j11 * r11 + j12 * r21; v[2] = j11 * r12 + j12 * r22
+            tx, ty, u[0], u[1], u[2], v[0], v[1], v[2] = _ewa_rows(x, y, z, fx, fy, limx, limy,
+                                                                   w2c)
             # U = M^T u, V = M^T v with M = R S: Sigma2D = [[U.U, U.V], [U.V, V.V]] + 0.3 I
             for kk in range(3):
                 for ii in range(3):
@@ -278,9 +302,7 @@ def _project_backward_kernel(means, scales, quats, sh, degree, w2c, fx, fy, widt
             ux, uy, uz = dx / dnc, dy / dnc, dz / dnc
             sh_basis(degree, ux, uy, uz, basis)
             for ch in range(3):
-                acc = 0.5
-                for j in range(k):
-                    acc += basis[j] * sh[i, j, ch]
+                acc = _sh_sum(basis, sh, i, ch, k)
                 gcol = np.float64(g_colors[i, ch]) if acc >= 0.0 else 0.0
                 for j in range(k):
                     g_sh[i, j, ch] = basis[j] * gcol
@@ -309,18 +331,16 @@ def project_backward(means, scales, quats, sh, camera, radii, g_means2d, g_conic
     """Gradients of a loss w.r.t. the activated 3D parameters, given its gradients w.r.t. the
     outputs of `project_gaussians` (same inputs and camera; culled Gaussians get zero)."""
     n = means.shape[0]
-    stored = int(round(math.sqrt(sh.shape[1]))) - 1
-    degree = stored if sh_degree is None else min(int(sh_degree), stored)
+    degree = _degree(sh, sh_degree)
     g_means = np.zeros((n, 3), np.float32)
     g_scales = np.zeros((n, 3), np.float32)
     g_quats = np.zeros((n, 4), np.float32)
     g_sh = np.zeros(sh.shape, np.float32)
-    f32 = lambda a: np.ascontiguousarray(a, np.float32)  # noqa: E731
-    _project_backward_kernel(f32(means), f32(scales), f32(quats), f32(sh), degree,
+    _project_backward_kernel(_f32(means), _f32(scales), _f32(quats), _f32(sh), degree,
                              np.ascontiguousarray(camera.world_to_camera, np.float64),
                              float(camera.fx), float(camera.fy), int(camera.width),
                              int(camera.height), np.ascontiguousarray(radii, np.int32),
-                             f32(g_means2d), f32(g_conics), f32(g_colors), g_means, g_scales,
+                             _f32(g_means2d), _f32(g_conics), _f32(g_colors), g_means, g_scales,
                              g_quats, g_sh)
     return ProjectionGradients(g_means, g_scales, g_quats, g_sh)
 
@@ -328,15 +348,13 @@ def project_backward(means, scales, quats, sh, camera, radii, g_means2d, g_conic
 def project_gaussians(means, scales, quats, opacities, sh, camera, sh_degree=None) -> Projected:
     """Project activated Gaussians (see `GaussianCloud`) through a `Camera`."""
     n = means.shape[0]
-    stored = int(round(math.sqrt(sh.shape[1]))) - 1
-    degree = stored if sh_degree is None else min(int(sh_degree), stored)
+    degree = _degree(sh, sh_degree)
     means2d = np.zeros((n, 2), np.float32)
     conics = np.zeros((n, 3), np.float32)
     depths = np.zeros(n, np.float32)
     radii = np.zeros(n, np.int32)
     colors = np.zeros((n, 3), np.float32)
-    f32 = lambda a: np.ascontiguousarray(a, np.float32)  # noqa: E731
-    _project_kernel(f32(means), f32(scales), f32(quats), f32(sh),
+    _project_kernel(_f32(means), _f32(scales), _f32(quats), _f32(sh),
                     degree, np.ascontiguousarray(camera.world_to_camera, np.float64),
                     float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy),
                     int(camera.width), int(camera.height), means2d, conics, depths, radii, colors)
