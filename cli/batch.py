@@ -64,7 +64,9 @@ def batch(jobs_file, workers, scheduler, threads, resume, check, quiet):
     except KeyboardInterrupt:
         click.echo("interrupted: run the same command with --resume to render only what is "
                    "missing", err=True)
-        sys.exit(130)
+        from nehad.runtime.interrupts import exit_interrupted
+
+        exit_interrupted(130)
     click.echo(format_summary(results))
     if any(not r.ok for r in results):
         sys.exit(1)

@@ -18,6 +18,7 @@ exception arrives.
 from __future__ import annotations
 
 import contextlib
+import errno
 import sys
 
 import click
@@ -51,6 +52,11 @@ OPTION_NAMES = {
 #: Top-level packages of the `train` extra (pyproject.toml) and how to install them.
 TRAIN_EXTRA = ("torch", "onnx", "onnxscript")
 TRAIN_INSTALL = "pip install -e '.[train]' torch==2.13.0"
+
+
+#: errno values of a disk that refuses writes: full, over quota, file too large, read-only, I/O
+_DISK_ERRNOS = frozenset(getattr(errno, n) for n in ("ENOSPC", "EDQUOT", "EFBIG", "EROFS", "EIO")
+                         if hasattr(errno, n))
 
 
 class InputError(ValueError):
@@ -97,6 +103,18 @@ def _command() -> str:
     return "nehad " + " ".join(ctx.command_path.split()[1:]) if " " in ctx.command_path else "nehad"
 
 
+def interrupted(exc: BaseException) -> bool:
+    """Whether `exc` is, or was caused by, a KeyboardInterrupt (its __cause__ / __context__
+    chain)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
 @contextlib.contextmanager
 def user_errors():
     """Map the project's bad-input exceptions raised inside the block to ClickException."""
@@ -105,6 +123,11 @@ def user_errors():
     except click.ClickException:
         raise
     except Exception as e:
+        if interrupted(e):
+            # Ctrl-C inside a Python callback of compiled code (numba's _numba_unpickle, a torch
+            # hook) comes back wrapped, as a SystemError "returned a result with an exception
+            # set": it is still the user's Ctrl-C, which the command answers (issue 26)
+            raise KeyboardInterrupt from None
         if isinstance(e, _user_error_types()):
             text = e.message(OPTION_NAMES) if hasattr(e, "message") and callable(e.message) \
                 else str(e)
@@ -116,4 +139,8 @@ def user_errors():
         if isinstance(e, OSError) and e.filename is not None:
             # the system refused a named file (permission denied, disk full, ...): not a bug
             raise click.ClickException(_one_line(f"{e.filename}: {e.strerror or e}")) from None
+        if isinstance(e, OSError) and e.errno in _DISK_ERRNOS:
+            # a writer that does not name its file (every writer of the project does: this
+            # is the net under a library's own): still the disk, not a bug
+            raise click.ClickException(_one_line(f"cannot write ({e.strerror or e})")) from None
         raise

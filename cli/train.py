@@ -3,12 +3,11 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import click
 
-from .errors import InputError, user_errors
+from .errors import InputError, interrupted, user_errors
 
 
 @click.command()
@@ -64,8 +63,15 @@ def train(data, run, preset, config_file, overrides, resume, lod_levels, quiet):
                     remove_stale_run_temps(run)  # what a killed run's last write left
                 if resume and trainer.step:
                     click.echo(f"resuming {run} at step {trainer.step} of {trainer.total_steps}")
-                summary = trainer.train()
+                from nehad.runtime.interrupts import deferred
+
+                with deferred():  # Ctrl-C is taken between steps (runtime/interrupts.py)
+                    summary = trainer.train()
     except KeyboardInterrupt:
+        _train_interrupted(run, trainer)
+    except Exception as e:
+        if not interrupted(e):  # Ctrl-C that a library wrapped (SystemError from numba)
+            raise
         _train_interrupted(run, trainer)
     last = summary["last"]
     click.echo(f"{run}/model.pt: {summary['steps']} steps, {summary['gaussians']} Gaussians, "
@@ -77,13 +83,14 @@ def train(data, run, preset, config_file, overrides, resume, lod_levels, quiet):
 
 def _train_interrupted(run: Path, trainer) -> None:
     """Ctrl-C during `nehad train`: say what is kept and how to continue; exit status 130."""
+    from nehad.runtime.interrupts import exit_interrupted
     if not (run / "config.yaml").is_file():
         click.echo(f"interrupted before training started; nothing was written to {run}", err=True)
-        sys.exit(130)
+        exit_interrupted(130)
     if trainer is None:
         click.echo(f"interrupted before training resumed; {run} is unchanged; run the same "
                    f"command with --resume to continue it", err=True)
-        sys.exit(130)
+        exit_interrupted(130)
     from nehad.checkpoint import list_checkpoints
 
     ckpts = list_checkpoints(run)
@@ -95,7 +102,7 @@ def _train_interrupted(run: Path, trainer) -> None:
     else:
         kept = f"{run} has no checkpoint yet (it restarts from step 0)"
     click.echo(f"interrupted: {kept}; run the same command with --resume to continue", err=True)
-    sys.exit(130)
+    exit_interrupted(130)
 
 
 @click.command("eval")

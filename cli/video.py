@@ -14,7 +14,7 @@ from pathlib import Path
 import click
 
 from .errors import user_errors
-from .params import BACKGROUND, SIZE
+from .params import BACKGROUND, FiniteFloat, SIZE
 
 #: Most pool workers chosen by default (more can be asked for with --workers).
 DEFAULT_WORKERS_CAP = 8
@@ -54,7 +54,9 @@ def report_interrupted(frames_dir, total: int | None) -> None:
     of = f" of {total}" if total else ""
     click.echo(f"interrupted: {n}{of} frames are kept in {frames_dir}; run the same command with "
                f"--resume to render only the missing ones", err=True)
-    sys.exit(130)
+    from nehad.runtime.interrupts import exit_interrupted
+
+    exit_interrupted(130)
 
 
 @click.command()
@@ -69,7 +71,7 @@ def report_interrupted(frames_dir, total: int | None) -> None:
 @click.option("--frames", type=click.IntRange(min=1), default=None,
               help="Frames of an orbit, spiral or frozen camera (default 120); a camera list or "
                    "dataset split has its own count.")
-@click.option("--fps", type=click.FloatRange(0, 1000, min_open=True), default=None,
+@click.option("--fps", type=FiniteFloat(0, 1000, min_open=True), default=None,
               help="Frames per second of the video [default: 30].")
 @click.option("--time", "time_spec", default=None, metavar="A:B|T|own",
               help="Time schedule: A:B sweeps t over the frames, T freezes it (bullet time), own "
@@ -134,6 +136,10 @@ def video(model, output, path_spec, frames, fps, time_spec, size, background, fr
     plan = None
     try:
         with user_errors():
+            from nehad.runtime.outputs import check_outputs
+
+            check_outputs([("-o", output), ("--frames-dir", frames_dir, "frame_*")],
+                          [("MODEL", model), ("--path", path_spec)])
             plan = plan_video(job)
             with make_cli_backend(workers, scheduler, threads, len(plan.tasks)) as backend:
                 rep = run_video(job, backend, resume=resume, progress=not quiet, plan=plan)

@@ -62,8 +62,11 @@ def view(scene, host, port, mode, cameras_file, lod, background, threads):
         while True:
             time.sleep(3600)
     except KeyboardInterrupt:
+        from nehad.runtime.interrupts import exit_interrupted
+
         viewer.stop()
         click.echo("stopped", err=True)
+        exit_interrupted(0)  # the server's threads are stopped; no teardown wait
 
 
 def _cameras(scene, cameras_file):

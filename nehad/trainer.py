@@ -31,6 +31,7 @@ from nehad.densify import DensifySchedule, DensifyStrategy
 from nehad.field.deformation import DeformationField
 from nehad.gaussians import GaussianParameters
 from nehad.losses import photometric_loss, psnr
+from nehad.runtime.interrupts import check as interrupt_point
 from nehad.schedule import Phase, Schedule, schedule_for
 from nehad.splat.rasterize import render_torch
 
@@ -163,8 +164,8 @@ class Trainer:
     def _check_run_dir(self, resume: bool) -> None:
         cfg_path = self.run / "config.yaml"
         if cfg_path.exists():
-            import yaml
-            saved = yaml.safe_load(cfg_path.read_text())
+            from nehad.configtools import load_yaml
+            saved = load_yaml(cfg_path)  # a damaged config.yaml: one error naming it (issue 26)
             if not resume:
                 raise RunError(f"{self.run}: already holds a run; pass --resume to continue it "
                                f"or choose another output folder")
@@ -402,6 +403,7 @@ class Trainer:
                    dynamic_ncols=True, desc="train")
         record = {}
         while self.step < self.total_steps:
+            interrupt_point()  # a waiting Ctrl-C is raised here, between steps (issue 26)
             record = self.train_step(self.step)
             self.step += 1
             bar.update(1)
