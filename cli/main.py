@@ -12,6 +12,7 @@ traceback, and leave no output file behind (see :mod:`nehad.cli.errors`).
 
 from __future__ import annotations
 
+import os
 import sys
 
 import click
@@ -29,7 +30,55 @@ from .view import view
 from .viz import report, viz
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
+class _Commands(click.Group):
+    """The command group; it refuses an argument that is not valid UTF-8 before any command
+    runs (issue 26)."""
+
+    def parse_args(self, ctx, args):
+        for arg in args:
+            if isinstance(arg, str) and _not_utf8(arg):
+                # Python keeps such bytes as lone surrogates (PEP 383); OpenImageIO, PyAV and
+                # onnxruntime take UTF-8 strings only, and would fail deep inside a write
+                raise click.ClickException(
+                    f"{os.fsencode(arg)!r}: not valid UTF-8 (a file name in another encoding?); "
+                    f"nehad takes UTF-8 arguments only: rename the file or folder")
+        return super().parse_args(ctx, args)
+
+    def invoke(self, ctx):
+        """Ctrl-C in a command without its own message (train, video, batch and view have
+        theirs): one line, exit status 130, no traceback and no "Aborted!"."""
+        from .errors import interrupted
+
+        try:
+            return super().invoke(ctx)
+        except Exception as e:
+            if not interrupted(e):  # e.g. SystemError wrapping a KeyboardInterrupt
+                raise
+            _interrupted(ctx)
+        except KeyboardInterrupt:
+            _interrupted(ctx)
+
+
+def _interrupted(ctx) -> None:
+    from nehad.runtime.interrupts import exit_interrupted
+
+    name = ctx.invoked_subcommand or ""
+    sub = ctx.protected_args[1:] if name == "viz" and len(ctx.protected_args) > 1 else []
+    command = " ".join(["nehad", name, *sub[:1]]).strip()
+    click.echo(f"interrupted: {command} stopped before it finished; every file is written whole "
+               f"or not at all, so nothing partial is left", err=True)
+    exit_interrupted(130)
+
+
+def _not_utf8(text: str) -> bool:
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return True
+    return False
+
+
+@click.group(cls=_Commands, context_settings={"help_option_names": ["-h", "--help"]})
 @click.version_option(__version__, "-V", "--version", prog_name="nehad")
 def main():
     """NeHaD: dynamic 3D Gaussian splatting, trained and rendered on the CPU.
@@ -47,10 +96,25 @@ for _command in (synth, train, eval_, demo, export_, info, render, ply, video, b
     main.add_command(_command)
 
 
+def _stack_dumps_on_sigusr1() -> None:
+    """``kill -USR1 PID`` prints every thread's Python stack to stderr (faulthandler) and the
+    process goes on: a command that seems hung says where it is (the tests send it before they
+    kill a process that did not end)."""
+    import faulthandler
+    import signal
+
+    if hasattr(signal, "SIGUSR1"):
+        faulthandler.register(signal.SIGUSR1, all_threads=True, chain=False)
+
+
 def entry(prog_name: str | None = None) -> None:
     """The `nehad` executable: thread counts for the load the machine has now (they must be in
     the environment before torch or numba load; see nehad/cli/threads.py), then the commands.
     Tests call :func:`main` directly and keep their own environment."""
+    from nehad.runtime import interrupts
+
+    _stack_dumps_on_sigusr1()
+    interrupts.install()  # Ctrl-C: safe points, a second one ends at once, a bounded exit
     args = sys.argv[1:]
     if args and not set(args) & {"-h", "--help", "-V", "--version"}:
         # silent: a bad input must still end in exactly one `Error:` line

@@ -46,6 +46,9 @@ def export_(run, output, opset, fp16_weights, split_dir):
             raise InputError(f"-o {output}: output folder {output.parent} does not exist")
         if output.is_dir():
             raise InputError(f"-o {output}: is a folder")
+        from nehad.runtime.outputs import check_outputs
+
+        check_outputs([("-o", output)], [("RUN", run)])
         if not (run / "model.pt").is_file():
             raise InputError(f"{run}: not a finished training run (no model.pt)")
         from nehad.export.onnx_export import MAX_OPSET, export_run

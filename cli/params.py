@@ -60,3 +60,27 @@ class _Parsed(click.ParamType):
 
 BACKGROUND = _Parsed("R,G,B", parse_background)
 SIZE = _Parsed("WxH", parse_size)
+
+
+class FiniteFloat(click.FloatRange):
+    """A number option: finite (``nan``, ``inf`` refused), within [min, max] when given.
+
+    click's ``float`` and ``FloatRange`` accept ``nan`` (every comparison with it is false),
+    which then reaches the library as a value no check expected (issue 26)."""
+
+    name = "number"
+
+    def convert(self, value, param, ctx):
+        v = click.FLOAT.convert(value, param, ctx)
+        if not math.isfinite(v):
+            self.fail(f"{value!r} is not a finite number.", param, ctx)
+        if self.min is None and self.max is None:
+            return v
+        return super().convert(v, param, ctx)
+
+    def __repr__(self) -> str:
+        return f"FiniteFloat({self._describe_range()})"
+
+
+#: any finite number (e.g. --time, range-checked by the library against the model's range)
+FINITE = FiniteFloat()

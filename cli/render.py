@@ -9,7 +9,7 @@ from pathlib import Path
 import click
 
 from .errors import InputError, user_errors
-from .params import BACKGROUND, SIZE
+from .params import BACKGROUND, FINITE, SIZE
 from .scenes import open_cli_scene
 
 
@@ -30,7 +30,7 @@ from .scenes import open_cli_scene
               help="Render at this size instead of the camera's, same field of view.")
 @click.option("--sh-degree", type=click.IntRange(0, 3), default=None,
               help="Use SH up to this degree (default: all the scene has).")
-@click.option("--time", "time_", type=float, default=None,
+@click.option("--time", "time_", type=FINITE, default=None,
               help="Time t in [0, 1] for a dynamic scene (a run directory or .onnx); default: the view's "
                    "own time when it has one (a D-NeRF frame).")
 @click.option("--extrapolate", is_flag=True,
@@ -62,6 +62,9 @@ def render(scene, view, output, depth, alpha, background, size, sh_degree, time_
             check_output(depth, (".exr",), "the depth map", input="depth")
             if depth.resolve() == output.resolve():
                 raise InputError(f"--depth {depth}: same file as -o")
+        from nehad.runtime.outputs import check_outputs
+
+        check_outputs([("-o", output), ("--depth", depth)], [("SCENE", scene), ("--view", view)])
         source = open_cli_scene(scene, lod=lod)
         camera = choose_camera(source, view, size)
         t = scene_time(source, camera, time_, extrapolate)
@@ -90,7 +93,7 @@ def render(scene, view, output, depth, alpha, background, size, sh_degree, time_
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path),
               help="The .ply (or .splat) to write; with --frames, a folder (created) for "
                    "frame_NNNN.ply.")
-@click.option("--time", "time_", type=float, default=None,
+@click.option("--time", "time_", type=FINITE, default=None,
               help="Time t of the Gaussians (one frame).")
 @click.option("--frames", type=click.IntRange(min=1), default=None,
               help="Write N frames at evenly spaced times over the time range instead.")
@@ -125,6 +128,10 @@ def ply(scene, output, time_, frames, extrapolate, fmt, lod):
                 raise InputError(f"-o {output}: parent folder {output.parent} does not exist")
         if time_ is not None and not math.isfinite(time_):
             raise InputError(f"--time {time_}: not a finite number")
+        from nehad.runtime.outputs import check_outputs
+
+        check_outputs([("-o", output) if frames is None else ("-o", output, f"frame_*.{fmt}")],
+                      [("SCENE", scene)])
         source = open_cli_scene(scene, lod=lod)
         from nehad.runtime.memory import check_cloud_memory
         from nehad.runtime.ply import write_gaussian_ply

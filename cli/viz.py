@@ -13,7 +13,7 @@ from pathlib import Path
 import click
 
 from .errors import InputError, user_errors
-from .params import BACKGROUND, SIZE
+from .params import BACKGROUND, FINITE, FiniteFloat, SIZE
 
 STILL_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -94,16 +94,16 @@ def viz():
               show_default=True, help="moving: favour Gaussians that travel far; random: uniform.")
 @click.option("--color", "color_by", type=click.Choice(["time", "track"]), default="time",
               show_default=True, help="Colour the paths by time (blue -> red) or per track.")
-@click.option("--time", "base_time", type=float, default=None,
+@click.option("--time", "base_time", type=FINITE, default=None,
               help="Time of the render under the paths [default: the first time].")
 @click.option("--size", type=SIZE, default=None, metavar="WxH",
               help="Render at this size instead of the camera's, same field of view.")
 @click.option("--background", type=BACKGROUND, default=None, metavar="R,G,B",
               help="Background colour [default: the model's].")
-@click.option("--min-opacity", type=click.FloatRange(0.0, 1.0), default=0.1, show_default=True,
+@click.option("--min-opacity", type=FiniteFloat(0.0, 1.0), default=0.1, show_default=True,
               help="Track only Gaussians at least this opaque.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the sample.")
-@click.option("--fps", type=click.FloatRange(min=1.0, max=240.0), default=24.0,
+@click.option("--fps", type=FiniteFloat(min=1.0, max=240.0), default=24.0,
               show_default=True, help="Frame rate of the video.")
 @click.option("--trail", type=click.IntRange(min=1), default=None,
               help="With --video: draw only the last N segments of each path.")
@@ -117,6 +117,9 @@ def trajectories(scene, view, output, video, count, n_times, select, color_by, b
             _check_out(output, "-o", (".mp4",), "with --video the output")
         else:
             _check_out(output, "-o", STILL_SUFFIXES, "the image")
+        from nehad.runtime.outputs import check_outputs
+
+        check_outputs([("-o", output)], [("SCENE", scene), ("--view", view)])
         source = _dynamic_source(scene)
         camera = _view(view, source, size)
         if base_time is not None:
@@ -175,7 +178,7 @@ def _parse_ids(text: str | None):
 @click.argument("run", type=click.Path(path_type=Path))
 @click.option("--view", default=None, metavar="CAMERA",
               help="Camera of the weight render; default: the run's first test camera.")
-@click.option("--time", "time_", type=float, default=None,
+@click.option("--time", "time_", type=FINITE, default=None,
               help="Time of the weight render [default: the view's time, else mid-range].")
 @click.option("-o", "--output", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Write the weight render (.png/.jpg): each Gaussian coloured by its BED weight "
@@ -184,7 +187,7 @@ def _parse_ids(text: str | None):
               help="Write a plot (.png) of the fraction of dynamic Gaussians over time.")
 @click.option("--times", "n_times", type=click.IntRange(min=2), default=41, show_default=True,
               help="Times sampled for --plot.")
-@click.option("--threshold", type=click.FloatRange(0.0, 1.0), default=0.5, show_default=True,
+@click.option("--threshold", type=FiniteFloat(0.0, 1.0), default=0.5, show_default=True,
               help="A Gaussian (or pixel) is dynamic when its weight exceeds this.")
 @click.option("--score", is_flag=True,
               help="Score the split against the moving objects on every frame of --split: IoU, "
@@ -227,6 +230,10 @@ def masks(run, view, time_, output, plot, n_times, threshold, score, split, data
             _check_out(plot, "--plot", (".png",), "the plot")
         if json_out is not None:
             _check_out(json_out, "--json", (".json",), "the scores file")
+        from nehad.runtime.outputs import check_outputs
+
+        check_outputs([("-o", output), ("--plot", plot), ("--json", json_out)],
+                      [("RUN", run), ("--view", view)])
         ids = _parse_ids(moving_ids)
         _need_torch(run, "the BED split")
         from .scenes import open_cli_scene
@@ -322,6 +329,9 @@ def report(run, output, data_dir, frames, no_score, max_side):
     trajectories and the BED static/dynamic split with its score."""
     with user_errors():
         _check_out(output, "-o", (".html", ".htm"), "the report")
+        from nehad.runtime.outputs import check_outputs
+
+        check_outputs([("-o", output)], [("RUN", run)])
         if run.suffix.lower() == ".onnx" and not run.is_dir():
             raise InputError(f"{run}: a report needs the training run folder (config, logs, "
                              f"model.pt), not an exported .onnx model")

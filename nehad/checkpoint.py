@@ -25,6 +25,7 @@ from pathlib import Path
 
 import torch
 
+from nehad.runtime.errors import write_failure
 from nehad.runtime.tempfiles import STALE_SECONDS, make_temp, remove_stale_temps
 
 #: Keys every file of a run (checkpoint or model.pt) holds.
@@ -39,15 +40,25 @@ class CheckpointError(ValueError):
 
 def atomic_torch_save(obj, path) -> Path:
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise write_failure(path.parent, e, "cannot create the folder") from None
     remove_stale_temps(path.parent)  # a killed save's leftovers, for any step (issue 15)
-    tmp = make_temp(path)
+    try:
+        tmp = make_temp(path)
+    except OSError as e:
+        raise write_failure(path, e, f"cannot create a file in {path.parent}") from None
     try:
         torch.save(obj, tmp)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        # a full disk: OSError from the rename, torch's RuntimeError ("PytorchStreamWriter
+        # failed writing file ...") from the archive writer
+        if isinstance(e, OSError) or (isinstance(e, RuntimeError) and "writ" in str(e)):
+            raise write_failure(path, e) from None
         raise
     return path
 
@@ -203,7 +214,10 @@ def append_metrics(run: Path, record: dict) -> None:
     last = _LAST_LOGGED.get(key)
     if last is None or not isinstance(step, int) or step <= last:
         _drop_records_from(path, step if isinstance(step, int) else None)
-    with open(path, "a") as f:
-        f.write(json.dumps(record) + "\n")
+    try:
+        with open(path, "a") as f:
+            f.write(json.dumps(record) + "\n")
+    except OSError as e:
+        raise write_failure(path, e, "cannot append to it") from None
     if isinstance(step, int):
         _LAST_LOGGED[key] = step

@@ -250,7 +250,44 @@ class Config:
             raise ConfigError("lod.base_max_gaussians: must be >= 0 (0 = densify.max_gaussians)")
         if not 0.0 < self.lod.spawn_opacity < 1.0:
             raise ConfigError("lod.spawn_opacity: must lie in (0, 1)")
+        self._check_ranges()
         return self
+
+    #: (key, low, high): every other number a user sets, with the range it must lie in (None:
+    #: unbounded on that side). Floats are finite already (configtools refuses nan and inf).
+    RANGES = (
+        ("optim.position_lr_init", 0.0, None), ("optim.position_lr_final", 0.0, None),
+        ("optim.sh_dc_lr", 0.0, None), ("optim.opacity_lr", 0.0, None),
+        ("optim.scaling_lr", 0.0, None), ("optim.rotation_lr", 0.0, None),
+        ("optim.grid_lr_init", 0.0, None), ("optim.grid_lr_final", 0.0, None),
+        ("optim.decoder_lr", 0.0, None), ("optim.decoder_lr_final", 0.0, None),
+        ("optim.t_eq_lr", 0.0, None), ("optim.sh_rest_lr_divisor", 1e-12, None),
+        ("densify.grad_threshold", 0.0, None), ("densify.min_opacity", 0.0, 1.0),
+        ("densify.percent_dense", 0.0, None), ("densify.max_screen_size", 0, None),
+        ("densify.max_gaussians", 0, None), ("loss.ssim_weight", 0.0, 1.0),
+        ("train.sh_degree_interval", 0, None), ("train.init_random_points", 1, None),
+        ("train.init_max_points", 0, None), ("train.fit_box_padding", 0.0, None),
+        ("train.checkpoint_interval", 1, None), ("train.log_interval", 1, None),
+        ("train.keep_checkpoints", 1, None), ("coarse.min_window_frames", 0, None),
+        ("lod.base_max_gaussians", 0, None),
+    )
+
+    def _check_ranges(self) -> None:
+        for key, low, high in self.RANGES:
+            section, name = key.split(".")
+            value = getattr(getattr(self, section), name)
+            if value is None:
+                continue
+            if (low is not None and value < low) or (high is not None and value > high):
+                if high is None:
+                    want = "> 0" if 0 < low < 1e-6 else f">= {low}"
+                else:
+                    want = f"in [{low}, {high}]"
+                raise ConfigError(f"{key}: must be {want}, got {value}")
+        background = self.data.background
+        if background is not None and not all(0.0 <= v <= 1.0 for v in background):
+            raise ConfigError(f"data.background: each value must lie in [0, 1], got "
+                              f"{list(background)}")
 
 
 def _paper() -> Config:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import typing
 from pathlib import Path
 from typing import Any
@@ -75,18 +76,26 @@ def _coerce(value: Any, tp, where: str):
     if tp is int:
         if isinstance(value, bool):
             raise ConfigError(f"{where}: expected an integer, got {value!r}")
+        if isinstance(value, int):
+            return value
         try:
             f = float(value)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise ConfigError(f"{where}: expected an integer, got {value!r}") from None
-        if not f.is_integer():
+        if not math.isfinite(f) or not f.is_integer():
             raise ConfigError(f"{where}: expected an integer, got {value!r}")
         return int(f)
     if tp is float:
+        if isinstance(value, bool):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
         try:
-            return float(value)
-        except (TypeError, ValueError):
+            f = float(value)
+        except (TypeError, ValueError, OverflowError):
             raise ConfigError(f"{where}: expected a number, got {value!r}") from None
+        if not math.isfinite(f):
+            # nan/inf pass every range check (comparisons with nan are false) and train to NaN
+            raise ConfigError(f"{where}: expected a finite number, got {value!r}")
+        return f
     if tp is str:
         if not isinstance(value, str):
             raise ConfigError(f"{where}: expected a string, got {value!r}")
@@ -148,25 +157,36 @@ def parse_override(text: str) -> dict:
     return out
 
 
-def load_yaml(path) -> dict:
-    """The mapping in a YAML config file; a missing, binary, non-UTF-8 or malformed file raises
-    ConfigError naming it (issue 15: no traceback for any file a user can pass)."""
+def read_text(path, kind: str = "config file", expected: str = "a YAML config",
+              error=None) -> str:
+    """The text of a file a user or a run folder gives (a config, a run's metrics.jsonl); a
+    missing, unreadable, binary or non-UTF-8 file raises `error` (ConfigError) naming it: the
+    same words for every such file (issues 15, 26)."""
+    error = error or ConfigError
     path = Path(path)
     try:
         raw = path.read_bytes()
     except FileNotFoundError:
-        raise ConfigError(f"{path}: no such config file") from None
+        raise error(f"{path}: no such {kind}") from None
     except IsADirectoryError:
-        raise ConfigError(f"{path}: is a folder, not a config file") from None
+        raise error(f"{path}: is a folder, not a {kind}") from None
     except OSError as e:
-        raise ConfigError(f"{path}: cannot read ({e.strerror or e})") from None
+        raise error(f"{path}: cannot read ({e.strerror or e})") from None
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as e:
-        raise ConfigError(f"{path}: not a UTF-8 text file (byte {e.start}: {raw[e.start]:#04x}); "
-                          f"expected a YAML config") from None
+        raise error(f"{path}: not a UTF-8 text file (byte {e.start}: {raw[e.start]:#04x}); "
+                    f"expected {expected}") from None
     if "\x00" in text:
-        raise ConfigError(f"{path}: a binary file (holds NUL bytes); expected a YAML config")
+        raise error(f"{path}: a binary file (holds NUL bytes); expected {expected}")
+    return text
+
+
+def load_yaml(path) -> dict:
+    """The mapping in a YAML config file; a missing, binary, non-UTF-8 or malformed file raises
+    ConfigError naming it (issue 15: no traceback for any file a user can pass)."""
+    path = Path(path)
+    text = read_text(path)
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as e:

@@ -360,7 +360,31 @@ def load_batch(path) -> BatchSpec:
                     raise w.err(key, f"{merged[key]} is also written by job {outputs[target]!r}")
                 outputs[target] = name
         jobs.append(BatchJob(i, name, kind, merged))
+    _check_outputs_are_not_inputs(path, source, jobs)
     return BatchSpec(path, jobs, workers, scheduler, threads)
+
+
+def _check_outputs_are_not_inputs(path: Path, source: str, jobs: list) -> None:
+    """No job writes the jobs file or a file any job reads (a model, a camera file), checked
+    before any job runs (issue 26)."""
+    from .outputs import check_outputs
+
+    inputs = [("the jobs file", path)]
+    for job in jobs:
+        for key in ("model", "view", "path"):
+            if key in job.settings:
+                inputs.append((f"{_label(job)}.{key}", job.settings[key]))
+    for job in jobs:
+        outputs = []
+        if "output" in job.settings:
+            outputs.append((f"{_label(job)}.output", job.settings["output"]))
+        if "frames_dir" in job.settings:
+            outputs.append((f"{_label(job)}.frames_dir", job.settings["frames_dir"], "frame_*"))
+        check_outputs(outputs, inputs, lambda msg: BatchError(f"{source}: {msg}"))
+
+
+def _label(job) -> str:
+    return f"jobs[{job.index}] ({job.name})"
 
 
 # ---------------------------------------------------------------------------------------------

@@ -42,10 +42,30 @@ class InputProblem(ValueError):
         return self.message()
 
 
+class WriteError(InputProblem, OSError):
+    """A file could not be written: the disk is full, the folder refuses writes, a file size
+    limit, ... (issue 26). The message names the file the user asked for (never only the
+    temporary file it was written through) and what the system said."""
+
+
+def write_failure(path, exc: BaseException, verb: str = "cannot write it") -> WriteError:
+    """The WriteError for `exc`, an OSError (or a library's error for one) met while writing
+    `path`: ``PATH: cannot write it (No space left on device); nothing was written there``."""
+    import errno as _errno
+    import os as _os
+
+    code = getattr(exc, "errno", None)
+    reason = _os.strerror(code) if isinstance(code, int) and code > 0 else \
+        (getattr(exc, "strerror", None) or " ".join(str(exc).split()) or type(exc).__name__)
+    if code in (_errno.ENOSPC, getattr(_errno, "EDQUOT", -1)) and "space" not in reason.lower():
+        reason += ": the disk is full"
+    return WriteError(f"{path}: {verb} ({reason}); nothing was written there")
+
+
 def name_inputs(message: str, names: Mapping[str, str]) -> str:
     """`message` with its {input} placeholders replaced by `names` (for text that is not an
     exception, e.g. a warning)."""
     return _PLACEHOLDER.sub(lambda m: names.get(m.group(1), m.group(1)), message)
 
 
-__all__ = ["InputProblem", "INPUTS", "name_inputs"]
+__all__ = ["InputProblem", "INPUTS", "WriteError", "name_inputs", "write_failure"]

@@ -41,6 +41,7 @@ def atomic_path(path, error=OSError, sweep: bool = True):
     temporary files of the same target that a killed writer left are removed first (issue 15);
     writers of many files into one folder (video frames) pass False and sweep the folder once.
     """
+    from .errors import write_failure
     from .tempfiles import make_temp, remove_stale_temps
 
     path = Path(path)
@@ -48,14 +49,21 @@ def atomic_path(path, error=OSError, sweep: bool = True):
         raise error(f"{path}: folder {path.parent} does not exist")
     if sweep:
         remove_stale_temps(path.parent, path.name)
-    tmp = make_temp(path)
+    try:
+        tmp = make_temp(path)
+    except OSError as e:  # a folder that refuses new files, a full inode table
+        raise write_failure(path, e, f"cannot create a file in {path.parent}") from None
     try:
         yield tmp
         os.chmod(tmp, 0o666 & ~_UMASK)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as e:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if isinstance(e, OSError) and not isinstance(e, InputProblem):
+            # the system refused the write (disk full, quota, file size limit, I/O error):
+            # one message naming the target, not the temporary file (issue 26)
+            raise write_failure(path, e) from None
         raise
 
 

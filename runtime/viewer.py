@@ -17,6 +17,7 @@ of each browser tab waits, so a fast drag never builds a queue.
 
 from __future__ import annotations
 
+import errno
 import math
 import socket
 import threading
@@ -113,16 +114,61 @@ class TimeCache:
 def check_port(host: str, port: int) -> None:
     """ViewerError when `port` cannot be bound on `host` (viser would silently take the next
     one, and the printed address would not be the one asked for)."""
-    if port == 0:
-        return
-    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET,
-                       socket.SOCK_STREAM) as s:
+    family, address = resolve_host(host)
+    with socket.socket(family, socket.SOCK_STREAM) as s:
         s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
-            s.bind((host, port))
+            s.bind((address, port))  # port 0 too: the host must be one of this machine's
         except OSError as e:
+            if port == 0 or e.errno == errno.EADDRNOTAVAIL:
+                raise ViewerError(f"{{host}} {host}: cannot listen on it ({e.strerror or e}); "
+                                  f"give an address of this machine (127.0.0.1, 0.0.0.0)",
+                                  "host") from None
             raise ViewerError(f"{{port}} {port}: cannot listen on {host}:{port} "
                               f"({e.strerror or e}); is another server using it?", "port") from None
+
+
+#: seconds a host name may take to resolve before `nehad view` gives up on it
+RESOLVE_SECONDS = 5.0
+
+
+def resolve_host(host: str, timeout: float = RESOLVE_SECONDS) -> tuple[int, str]:
+    """(address family, numeric address) of `host`; ViewerError when it is not an address and
+    does not resolve within `timeout` seconds (issue 26: ``--host 999.999.999.999`` was handed
+    to the resolver and then to the server thread, which failed without a word)."""
+    import ipaddress
+    import threading
+
+    text = str(host).strip()
+    try:
+        ip = ipaddress.ip_address(text.strip("[]"))
+    except ValueError:
+        ip = None
+    if ip is not None:
+        return (socket.AF_INET6 if ip.version == 6 else socket.AF_INET), str(ip)
+    if not text or all(c.isdigit() or c == "." for c in text):
+        # dotted digits that are not an IPv4 address (999.999.999.999, 1.2.3): a typo, not a name
+        raise ViewerError(f"{{host}} {host!r}: not a valid IP address", "host")
+    found: list = []
+
+    def lookup():
+        try:
+            found.append(socket.getaddrinfo(text, None, type=socket.SOCK_STREAM))
+        except OSError as e:
+            found.append(e)
+
+    worker = threading.Thread(target=lookup, name="nehad-resolve", daemon=True)
+    worker.start()
+    worker.join(timeout)
+    if not found:
+        raise ViewerError(f"{{host}} {host}: the name did not resolve within {timeout:g} s; "
+                          f"give an IP address", "host")
+    if isinstance(found[0], OSError) or not found[0]:
+        why = found[0] if isinstance(found[0], OSError) else "no address"
+        raise ViewerError(f"{{host}} {host}: unknown host ({getattr(why, 'strerror', None) or why})",
+                          "host")
+    family, _, _, _, sockaddr = found[0][0]
+    return family, sockaddr[0]
 
 
 @dataclass

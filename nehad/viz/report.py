@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from nehad.configtools import read_text
+
 from . import VizError
 from .plots import PALETTE, colormap, ema, encode_png, line_plot, to_uint8
 
@@ -119,7 +121,8 @@ def read_log(run: Path) -> list[dict]:
     if not path.is_file():
         return []
     out = []
-    for line in path.read_text().splitlines():
+    text = read_text(path, "metrics log", "JSON lines (one record per line)", VizError)
+    for line in text.splitlines():
         try:
             rec = json.loads(line)
         except ValueError:
@@ -159,10 +162,14 @@ def training_plots(records: list[dict], fine_start: int | None) -> list[tuple[st
 def _eval_results(run: Path) -> list[dict]:
     out = []
     for p in sorted(Path(run).glob("eval_*/metrics.json")):
+        text = read_text(p, "metrics file", "the JSON written by nehad eval", VizError)
         try:
-            out.append(json.loads(p.read_text()))
-        except (OSError, ValueError):
-            continue
+            doc = json.loads(text)
+        except ValueError as e:
+            raise VizError(f"{p}: malformed JSON ({e}); run nehad eval again") from None
+        if not isinstance(doc, dict):
+            raise VizError(f"{p}: expected the JSON object written by nehad eval")
+        out.append(doc)
     return out
 
 
@@ -403,7 +410,8 @@ def build_report(run_dir, output, data_dir=None, frames: int = 4, score: bool = 
 
     # -- config
     cfg_path = run / "config.yaml"
-    cfg_text = cfg_path.read_text() if cfg_path.is_file() else json.dumps(meta["config"], indent=1)
+    cfg_text = read_text(cfg_path, "config file", "the run's YAML config", VizError) \
+        if cfg_path.is_file() else json.dumps(meta["config"], indent=1)
     sections.append(("config", "Config", f"<details open><summary>{_e(cfg_path.name)}</summary>"
                                          f"<pre>{_e(cfg_text)}</pre></details>"))
 
