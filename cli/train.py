@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import shutil
 from pathlib import Path
 
 import click
@@ -38,8 +40,9 @@ def train(data, run, preset, config_file, overrides, resume, lod_levels, quiet):
     run stopped in any way continues with --resume.
     """
     trainer = None
+    fresh = not run.exists()
     try:
-        with user_errors():
+        with user_errors(), _removed_if_unstarted(run, fresh):
             if not data.is_dir():
                 raise InputError(f"{data}: no such dataset folder")
             from nehad.config import build_config
@@ -79,6 +82,21 @@ def train(data, run, preset, config_file, overrides, resume, lod_levels, quiet):
                f"{summary['seconds'] / 60:.1f} min")
     if trainer.layer_sizes:
         click.echo(f"  layers (Gaussians): {', '.join(str(n) for n in trainer.layer_sizes)}")
+
+
+@contextlib.contextmanager
+def _removed_if_unstarted(run: Path, fresh: bool):
+    """A run folder this command created is removed again when the command fails before the
+    first checkpoint (a full disk at config.yaml, a bad point cloud): it holds nothing to resume,
+    and the same command must work once the cause is fixed. Ctrl-C keeps its own rule."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        raise
+    except BaseException:
+        if fresh and run.is_dir() and not list(run.glob("checkpoints/step_*.pt")):
+            shutil.rmtree(run, ignore_errors=True)
+        raise
 
 
 def _train_interrupted(run: Path, trainer) -> None:
@@ -149,6 +167,9 @@ def demo(out, resolution, overrides, quiet):
         from nehad.config import build_config
 
         build_config("quick", None, overrides)  # a bad --set fails before anything is written
+        from .synth import check_synth_memory
+
+        check_synth_memory(resolution)
         from nehad.demo import run_demo
         from nehad.evaluate import format_table
 

@@ -8,6 +8,7 @@ the runtime (PLY, cam.json) share.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 from pathlib import Path
 
@@ -64,7 +65,43 @@ def atomic_path(path, error=OSError, sweep: bool = True):
             # the system refused the write (disk full, quota, file size limit, I/O error):
             # one message naming the target, not the temporary file (issue 26)
             raise write_failure(path, e) from None
+        if isinstance(e, Exception) and _disk_full(path.parent):
+            # a library that reports the write failure in its own words (OpenEXR, PyAV)
+            raise write_failure(path, OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))) from None
         raise
+
+
+def _disk_full(folder) -> bool:
+    """Whether the file system of `folder` has no block left for this user."""
+    try:
+        st = os.statvfs(folder)
+    except OSError:
+        return False
+    return st.f_bavail == 0
+
+
+#: the last bytes of a complete file, by format: OpenImageIO's PNG and JPEG writers do not
+#: report a failed write (a full disk gave an empty x.png and exit status 0; issue 26)
+_TRAILERS = {".png": b"IEND\xaeB`\x82", ".jpg": b"\xff\xd9", ".jpeg": b"\xff\xd9"}
+
+
+def check_complete(tmp, path) -> None:
+    """Raise WriteError unless the file `tmp`, written for `path`, is complete: not empty, and
+    ending as its format must (PNG's IEND chunk, JPEG's end marker)."""
+    from .errors import write_failure
+
+    trailer = _TRAILERS.get(Path(path).suffix.lower(), b"")
+    try:
+        size = os.path.getsize(tmp)
+        with open(tmp, "rb") as f:
+            f.seek(max(0, size - len(trailer)))
+            tail = f.read()
+    except OSError as e:
+        raise write_failure(path, e) from None
+    if size == 0 or (trailer and tail != trailer):
+        if _disk_full(Path(path).parent):
+            raise write_failure(path, OSError(errno.ENOSPC, os.strerror(errno.ENOSPC)))
+        raise write_failure(path, OSError(errno.EIO, "the file was written incompletely"))
 
 
 def atomic_write_bytes(path, data: bytes, error=OSError, sweep: bool = True) -> None:
@@ -174,5 +211,7 @@ def write_image(path, image: np.ndarray, bit_depth: int = 8,
         msg = "" if ok else out.geterror()
         closed = out.close()
         if not ok or not closed:
-            raise ImageError(f"{path}: write failed ({msg or out.geterror()})")
+            msg = (msg or out.geterror()).replace(str(tmp), str(path))
+            raise ImageError(f"{path}: write failed ({msg})")
+        check_complete(tmp, path)
     return path

@@ -86,8 +86,11 @@ def output_lock(path, command: str, error=LockError):
     try:
         info = {"command": command, "pid": os.getpid(), "host": socket.gethostname(),
                 "started": time.time()}
-        os.ftruncate(fd, 0)
-        os.write(fd, json.dumps(info).encode("utf-8"))
+        try:
+            os.ftruncate(fd, 0)
+            os.write(fd, json.dumps(info).encode("utf-8"))
+        except OSError:
+            pass  # a full disk: the lock holds without its note of who holds it (issue 26)
         yield lock
     finally:
         with contextlib.suppress(OSError):

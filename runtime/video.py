@@ -335,7 +335,14 @@ def run_video(job: VideoJob, backend, resume: bool = False, progress: bool = Tru
         for target in ([Path(job.output)] if job.output is not None else []) + [plan.frames_dir]:
             locks.enter_context(output_lock(target, f"nehad batch (job {job.name!r})"
                                             if job.name else "nehad video"))
-        return _run_locked(job, plan, backend, resume, progress, on_result)
+        try:
+            return _run_locked(job, plan, backend, resume, progress, on_result)
+        except Exception:
+            # a failure before the first frame (a full disk): no frame folder is left behind;
+            # whole frames stay for --resume (issue 26)
+            if plan.frames_dir.is_dir() and count_frames(plan.frames_dir) == 0:
+                _remove_frames(plan)
+            raise
 
 
 def _run_locked(job: VideoJob, plan: VideoPlan, backend, resume: bool, progress: bool,

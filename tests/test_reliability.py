@@ -13,6 +13,7 @@ one-line message and that nothing is left in the output location.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -743,3 +744,296 @@ def test_write_sequence_and_write_all_leave_nothing_on_a_failure(tmp_path):
         write_all([(tmp_path / "a.png", np.zeros((4, 4, 3), np.float32)),
                    (tmp_path / "b.txt", writer(2))])
     assert not (tmp_path / "a.png").exists()
+
+
+# ---------------------------------------------------------------------------------------------
+# 8. issue 26: each class of bad input, across the commands that read it. Every case: a
+# non-zero exit, exactly one `Error:` line holding the fragment, no traceback, nothing written.
+
+
+def _clean_error(res, *needles) -> str:
+    """Like _one_error, for click's own option errors too (exit 2, a `Usage:` line before the
+    one `Error:` line)."""
+    assert res.exit_code in (1, 2), (res.exit_code, res.output, res.exception)
+    assert res.exception is None or isinstance(res.exception, SystemExit), repr(res.exception)
+    errors = [ln for ln in res.stderr.splitlines() if ln.startswith("Error")]
+    assert len(errors) == 1, res.stderr
+    for n in needles:
+        assert n in errors[0], (n, errors[0])
+    assert "Traceback" not in res.output
+    return errors[0]
+
+
+def _jobs(folder: Path, body: str) -> Path:
+    path = folder / "jobs.yaml"
+    path.write_text(textwrap.dedent(body))
+    return path
+
+
+# (case, args(model, out, inputs) -> argv, expected fragment); `out` must stay empty
+NUMBERS = [
+    ("synth --fixed-time nan", lambda m, out, inp: ["synth", out / "s", "--fixed-time", "nan"],
+     "not a finite number"),
+    ("synth --fixed-time inf", lambda m, out, inp: ["synth", out / "s", "--fixed-time", "inf"],
+     "not a finite number"),
+    ("train --set nan", lambda m, out, inp: ["train", m[1], "-o", out / "run", "--preset", "test",
+                                              "--set", "optim.opacity_lr=nan"],
+     "optim.opacity_lr: expected a finite number"),
+    ("train --set .inf", lambda m, out, inp: ["train", m[1], "-o", out / "run", "--preset",
+                                               "test", "--set", "fine.iterations=.inf"],
+     "fine.iterations: expected an integer"),
+    ("train --set negative lr", lambda m, out, inp: ["train", m[1], "-o", out / "run", "--preset",
+                                                      "test", "--set", "optim.scaling_lr=-1"],
+     "optim.scaling_lr: must be >= 0"),
+    ("train --set ssim weight 2", lambda m, out, inp: ["train", m[1], "-o", out / "run",
+                                                        "--preset", "test", "--set",
+                                                        "loss.ssim_weight=2"],
+     "loss.ssim_weight: must be in [0.0, 1.0]"),
+    ("train --set checkpoint_interval 0", lambda m, out, inp: [
+        "train", m[1], "-o", out / "run", "--preset", "test", "--set",
+        "train.checkpoint_interval=0"], "train.checkpoint_interval: must be >= 1"),
+    ("train --config .nan", lambda m, out, inp: ["train", m[1], "-o", out / "run", "--preset",
+                                                  "test", "--config", inp["nan.yaml"]],
+     "optim.rotation_lr: expected a finite number"),
+    ("demo --set background nan", lambda m, out, inp: ["demo", "-o", out / "demo", "--set",
+                                                        "data.background=[1,.nan,1]"],
+     "data.background[1]: expected a finite number"),
+    ("render --time nan", lambda m, out, inp: ["render", m[0], "--view",
+                                               f"{m[1]}/transforms_test.json:0", "--time", "nan",
+                                               "-o", out / "x.png"], "not a finite number"),
+    ("ply --time inf", lambda m, out, inp: ["ply", m[0], "--time", "inf", "-o", out / "x.ply"],
+     "not a finite number"),
+    ("video --fps nan", lambda m, out, inp: ["video", m[0], "-o", out / "v.mp4", "--fps", "nan"],
+     "not a finite number"),
+    ("viz masks --threshold nan", lambda m, out, inp: ["viz", "masks", m[2], "--threshold",
+                                                       "nan", "--plot", out / "p.png"],
+     "not a finite number"),
+    ("batch time .nan", lambda m, out, inp: ["batch", inp["time.yaml"]], "time: expected"),
+    ("batch fps .inf", lambda m, out, inp: ["batch", inp["fps.yaml"]], "fps: expected a number"),
+]
+
+
+@pytest.fixture
+def number_inputs(model, tmp_path):
+    onnx_path, _, _ = model
+    inp = tmp_path / "inputs"
+    inp.mkdir()
+    (inp / "nan.yaml").write_text("optim:\n  rotation_lr: .nan\n")
+    (inp / "time.yaml").write_text(f"jobs:\n  - {{model: {onnx_path}, output: {tmp_path}/out/a.png,"
+                                   f" time: .nan}}\n")
+    (inp / "fps.yaml").write_text(f"jobs:\n  - {{model: {onnx_path}, output: {tmp_path}/out/a.mp4,"
+                                  f" fps: .inf, frames: 2}}\n")
+    return {p.name: p for p in inp.iterdir()}
+
+
+@pytest.mark.parametrize("case,args,needle", NUMBERS, ids=[c[0] for c in NUMBERS])
+def test_numbers_are_finite_and_in_range(model, tmp_path, number_inputs, case, args, needle):
+    out = tmp_path / "out"
+    out.mkdir()
+    _clean_error(_invoke(args(model, out, number_inputs)), needle)
+    assert _listing(out) == []
+
+
+@pytest.mark.parametrize("args", [["synth", "{out}/s", "--resolution", "100000"],
+                                  ["synth", "{out}/s", "--resolution", "100000", "--format",
+                                   "hypernerf"],
+                                  ["demo", "-o", "{out}/demo", "--resolution", "100000"]],
+                         ids=["synth", "synth hypernerf", "demo"])
+def test_synth_sizes_are_checked_against_memory(tmp_path, cap_16g, args):
+    start = time.perf_counter()
+    out = tmp_path / "out"
+    out.mkdir()
+    _one_error(_invoke([a.format(out=out) for a in args]), "--resolution 100000",
+               "GB of memory", "NEHAD_MAX_FRAME_MEMORY=16G")
+    assert time.perf_counter() - start < 20
+    assert _listing(out) == []
+
+
+# -- a full disk: a tmpfs filled to its last byte (as root); else a file size limit of 0 bytes
+# (RLIMIT_FSIZE, writes fail with EFBIG), which is what a user without mount rights can test
+
+
+@pytest.fixture(scope="module")
+def full_disk(tmp_path_factory):
+    """(folder, preexec_fn, reason): a folder on a file system that refuses every write."""
+    folder = tmp_path_factory.mktemp("full")
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=256k", "tmpfs", str(folder)],
+                             capture_output=True).returncode == 0
+    if mounted:
+        try:
+            with open(folder / "filler", "wb", buffering=0) as f:
+                for size in (4096, 1):  # to the last byte
+                    with contextlib.suppress(OSError):
+                        while f.write(b"\0" * size) == size:
+                            pass
+            yield folder, None, "No space left on device"
+        finally:
+            subprocess.run(["umount", "-l", str(folder)], capture_output=True)
+        return
+
+    def limit():
+        import resource
+
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (0, 0))
+
+    (folder / "filler").write_bytes(b"")
+    yield folder, limit, "File too large"
+
+
+FULL_DISK = {
+    "export": lambda m, out: ["export", m[2], "-o", out / "model.onnx"],
+    "ply --frames": lambda m, out: ["ply", m[0], "--frames", "2", "-o", out / "frames"],
+    "ply --time": lambda m, out: ["ply", m[0], "--time", "0.5", "-o", out / "x.ply"],
+    "render": lambda m, out: ["render", m[0], "--view", f"{m[1]}/transforms_test.json:0",
+                              "--time", "0.5", "-o", out / "x.png"],
+    "render .exr": lambda m, out: ["render", m[0], "--view", f"{m[1]}/transforms_test.json:0",
+                                   "--time", "0.5", "-o", out / "x.exr"],
+    "video": lambda m, out: ["video", m[0], "-o", out / "v.mp4", "--frames", "2", "--workers",
+                             "1", "--quiet"],
+    "train": lambda m, out: ["train", m[1], "-o", out / "run", "--preset", "test", "--quiet"],
+    "synth": lambda m, out: ["synth", out / "scene", "--resolution", "8", "--frames", "2"],
+}
+
+
+@pytest.mark.parametrize("command", sorted(FULL_DISK))
+def test_a_full_disk_is_one_error_naming_the_file(model, full_disk, command):
+    folder, preexec, reason = full_disk
+    before = _listing(folder)
+    proc = _run_cli(FULL_DISK[command](model, folder), preexec_fn=preexec)
+    line = _proc_error(proc, str(folder), reason)
+    assert ".tmp" not in line  # the file the user asked for, not the temporary one
+    assert _listing(folder) == before  # temporary files removed, no folder left behind
+
+
+BAD_UTF8 = os.fsdecode(b"bad-\xff\xfe")
+NON_UTF8 = {
+    "render -o": lambda m, d: ["render", m[0], "--view", f"{m[1]}/transforms_test.json:0",
+                               "--time", "0.5", "-o", d / f"{BAD_UTF8}.png"],
+    "ply -o": lambda m, d: ["ply", m[0], "--time", "0.5", "-o", d / f"{BAD_UTF8}.ply"],
+    "video -o": lambda m, d: ["video", m[0], "-o", d / f"{BAD_UTF8}.mp4", "--frames", "2"],
+    "export -o": lambda m, d: ["export", m[2], "-o", d / f"{BAD_UTF8}.onnx"],
+    "synth OUT": lambda m, d: ["synth", d / BAD_UTF8],
+    "train DATA": lambda m, d: ["train", d / BAD_UTF8, "-o", d / "run"],
+    "batch JOBS": lambda m, d: ["batch", d / f"{BAD_UTF8}.yaml"],
+    "render --view": lambda m, d: ["render", m[0], "--view", d / f"{BAD_UTF8}.json", "-o",
+                                   d / "x.png"],
+}
+
+
+@pytest.mark.parametrize("case", sorted(NON_UTF8))
+def test_paths_that_are_not_utf8_are_refused(model, tmp_path, case):
+    _one_error(_invoke(NON_UTF8[case](model, tmp_path)), "b'", "not valid UTF-8")
+    assert _listing(tmp_path) == []
+
+
+def _output_is_input_cases(model, d: Path) -> dict:
+    onnx_path, scene, _ = model
+    ply = d / "g.ply"
+    shutil.copy(onnx_path.parent / "run" / "config.yaml", d / "config.yaml")
+    view = d / "cam.json"
+    shutil.copy(scene / "transforms_test.json", view)
+    frames = d / "frames"
+    frames.mkdir()
+    from nehad.data.synth_gaussians import scene_gaussians
+    from nehad.runtime.ply import write_gaussian_ply
+
+    write_gaussian_ply(ply, scene_gaussians("spheres", 0.5, 50))
+    shutil.copy(ply, frames / "frame_0000.ply")
+    (d / "link.png").symlink_to(ply)
+    (d / "cam.png").symlink_to(view)
+    jobs_png = _jobs(d, f"""\
+        jobs:
+          - {{model: {onnx_path}, output: j.png, time: 0.5}}
+        """).rename(d / "j.png")
+    view_job = d / "view_job.yaml"
+    view_job.write_text(f"jobs:\n  - {{model: {onnx_path}, output: cam.png, view: 'cam.json:0', "
+                        f"time: 0.5}}\n")
+    model_job = d / "model_job.yaml"
+    model_job.write_text(f"jobs:\n  - {{model: {onnx_path}, output: x.png, time: 0.5}}\n"
+                         f"  - {{model: g.ply, output: link.png, view: 'cam.json:0'}}\n")
+    return {
+        "ply -o SCENE": (["ply", ply, "--time", "0", "-o", ply], ply),
+        "ply --frames into SCENE's folder": (["ply", frames / "frame_0000.ply", "--frames", "2",
+                                              "-o", frames], frames / "frame_0000.ply"),
+        "render -o (a link to) SCENE": (["render", ply, "--view", f"{view}:0", "-o",
+                                         d / "link.png"], ply),
+        "render -o (a link to) --view": (["render", ply, "--view", f"{view}:0", "-o",
+                                          d / "cam.png"], view),
+        "batch: the jobs file is an output": (["batch", jobs_png, "--quiet"], jobs_png),
+        "batch: a job's view is an output": (["batch", view_job, "--quiet"], view),
+        "batch: a job's model is an output": (["batch", model_job, "--quiet"], ply),
+        "batch --check": (["batch", jobs_png, "--check"], jobs_png),
+    }
+
+
+OUTPUT_IS_INPUT = ["ply -o SCENE", "ply --frames into SCENE's folder",
+                   "render -o (a link to) SCENE", "render -o (a link to) --view",
+                   "batch: the jobs file is an output", "batch: a job's view is an output",
+                   "batch: a job's model is an output", "batch --check"]
+
+
+@pytest.mark.parametrize("case", OUTPUT_IS_INPUT)
+def test_an_output_that_is_an_input_is_refused(model, tmp_path, case):
+    args, victim = _output_is_input_cases(model, tmp_path)[case]
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    _one_error(_invoke(args), "is also an input")
+    after = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    assert after == before and victim in after
+
+
+# -- files a command reads from a run folder
+
+
+def _damage(run: Path, what: str) -> None:
+    if what == "config.yaml":
+        (run / "config.yaml").write_bytes(b"preset: test\n\xff\xfe\x00binary")
+    elif what == "metrics.jsonl":
+        (run / "metrics.jsonl").write_bytes(b'{"step": 1}\n\x89PNG\r\n\x1a\n\xff\x00')
+    elif what == "eval metrics.json":
+        (run / "eval_test").mkdir(exist_ok=True)
+        (run / "eval_test" / "metrics.json").write_bytes(b"\xff\xd8\xff\xe0 jpeg")
+    elif what == "last checkpoint":
+        last = sorted((run / "checkpoints").glob("step_*.pt"))[-1]
+        last.write_bytes(last.read_bytes()[:100])
+
+
+RUN_FILES = [
+    ("train --resume", "config.yaml", "config.yaml: not a UTF-8 text file"),
+    ("train --resume", "last checkpoint", "truncated or corrupt"),
+    ("report", "config.yaml", "config.yaml: not a UTF-8 text file"),
+    ("report", "metrics.jsonl", "metrics.jsonl: not a UTF-8 text file"),
+    ("report", "eval metrics.json", "metrics.json: not a UTF-8 text file"),
+]
+
+
+@pytest.mark.parametrize("command,what,needle", RUN_FILES,
+                         ids=[f"{c} {w}" for c, w, _ in RUN_FILES])
+def test_run_folder_files_are_read_with_clean_errors(model, tmp_path, command, what, needle):
+    _, scene, run = model
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    _damage(copy, what)
+    before = {p: p.read_bytes() for p in copy.rglob("*") if p.is_file()}
+    out = tmp_path / "out"
+    out.mkdir()
+    args = {"train --resume": ["train", scene, "-o", copy, "--preset", "test", "--resume",
+                               "--quiet"],
+            "report": ["report", copy, "-o", out / "r.html", "--frames", "1", "--no-score",
+                       "--max-side", "32"]}[command]
+    _one_error(_invoke(args), str(copy), needle)
+    assert {p: p.read_bytes() for p in copy.rglob("*") if p.is_file()} == before
+    assert _listing(out) == []
+
+
+@pytest.mark.parametrize("host,needle", [("999.999.999.999", "not a valid IP address"),
+                                         ("1.2.3", "not a valid IP address"),
+                                         ("no-such-host.invalid", "unknown host")])
+def test_view_refuses_a_bad_host_promptly(model, host, needle):
+    pytest.importorskip("viser")
+    onnx_path, _, _ = model
+    start = time.perf_counter()
+    proc = _run_cli(["view", onnx_path, "--host", host, "--port", "0"], timeout=60)
+    _proc_error(proc, f"--host {host!r}" if needle.startswith("not") else f"--host {host}",
+                needle)
+    assert time.perf_counter() - start < 30

@@ -239,13 +239,18 @@ def build_report(run_dir, output, data_dir=None, frames: int = 4, score: bool = 
 
     say = log or (lambda m: None)
     run = Path(run_dir)
+    # every file the page reads from the run folder, read (and refused) before the slow work
+    records = read_log(run)
+    _eval_results(run)
+    cfg_path = run / "config.yaml"
+    cfg_file_text = read_text(cfg_path, "config file", "the run's YAML config", VizError) \
+        if cfg_path.is_file() else None
     model, meta = load_run(run)
     cfg = config_from_dict(meta["config"])
     degree = int(meta["sh_degree"])
     bg = tuple(float(v) for v in meta["background"])
     lo, hi = (float(v) for v in meta["time_range"])
     n_gauss = len(model.gaussians)
-    records = read_log(run)
     sections: list[tuple[str, str, str]] = []  # (id, title, html)
     skipped: dict[str, str] = {}
     expected = (VizError, DatasetError, RunError, OSError)
@@ -409,9 +414,8 @@ def build_report(run_dir, output, data_dir=None, frames: int = 4, score: bool = 
     sections.append(("masks", "BED static/dynamic split", body))
 
     # -- config
-    cfg_path = run / "config.yaml"
-    cfg_text = read_text(cfg_path, "config file", "the run's YAML config", VizError) \
-        if cfg_path.is_file() else json.dumps(meta["config"], indent=1)
+    cfg_text = cfg_file_text if cfg_file_text is not None else \
+        json.dumps(meta["config"], indent=1)
     sections.append(("config", "Config", f"<details open><summary>{_e(cfg_path.name)}</summary>"
                                          f"<pre>{_e(cfg_text)}</pre></details>"))
 
