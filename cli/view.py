@@ -56,9 +56,9 @@ def view(scene, host, port, mode, cameras_file, lod, background, threads):
         cameras = _cameras(first, cameras_file)
         viewer = Viewer(scenes, cameras, mode, background, host, port)
         address = viewer.start()
-    click.echo(f"nehad view: {first.describe()}; {len(cameras)} camera(s) to jump to")
-    click.echo(f"open {address} in a browser (Ctrl-C stops the server)")
-    try:
+    try:  # from here on Ctrl-C stops the server, also while the address is printed
+        click.echo(f"nehad view: {first.describe()}; {len(cameras)} camera(s) to jump to")
+        click.echo(f"open {address} in a browser (Ctrl-C stops the server)")
         while True:
             time.sleep(3600)
     except KeyboardInterrupt:

@@ -519,6 +519,10 @@ def plan_frames(path: PathSpec | str, time: TimeSpec | str | None = None,
     tspec = time if isinstance(time, TimeSpec) or time is None else parse_time_spec(time)
     if frames is not None and int(frames) < 1:
         raise PathError(f"frames {frames}: must be at least 1")
+    if frames is not None:
+        from .memory import check_plan_memory
+
+        check_plan_memory(int(frames), f"{lab['frames']} {frames}")
     try:
         cams, gts, kind = _path_cameras(spec, frames, ref)
     except PathError as e:

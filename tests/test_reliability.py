@@ -697,7 +697,7 @@ def test_ctrl_c_on_train_says_how_to_continue(model, tmp_path):
             time.sleep(0.2)
         time.sleep(0.5)
         proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=120)
+        _, err = _communicate_or_dump(proc, 60)
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -707,6 +707,160 @@ def test_ctrl_c_on_train_says_how_to_continue(model, tmp_path):
     assert "keeps its checkpoint at step" in err and "--resume to continue" in err
     assert not (run / "model.pt").exists() and not _temps(run / "checkpoints")
     assert not (tmp_path / ".run.nehad-lock").exists()
+
+
+def _communicate_or_dump(proc, timeout: float) -> tuple[str, str]:
+    """proc.communicate(timeout); a process still running then is sent SIGUSR1 first (the CLI
+    prints every thread's stack, cli/main.py) and killed, and the test fails showing where it
+    hung."""
+    try:
+        return proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGUSR1)
+        time.sleep(2)
+        proc.kill()
+        out, err = proc.communicate()
+        pytest.fail(f"still running {timeout:g} s after SIGINT; its stacks:\n{err[-6000:]}")
+
+
+# Runs the `nehad` executable (cli/main.py entry: its SIGINT handling) with one function
+# replaced: from its `after`-th call on, it creates FLAG and never returns (a C call that hangs
+# is what a Ctrl-C must still end; time.sleep keeps the main thread in C most of the time).
+HANG_IN = """
+import importlib, sys, time
+target, after, flag = sys.argv[1], int(sys.argv[2]), sys.argv[3]
+module, _, name = target.partition(":")
+owner = importlib.import_module(module)
+*path, attr = name.split(".")
+for p in path:
+    owner = getattr(owner, p)
+real = getattr(owner, attr)
+calls = [0]
+def hang(*a, **k):
+    calls[0] += 1
+    if calls[0] <= after:
+        return real(*a, **k)
+    open(flag, "w").close()
+    while True:
+        time.sleep(0.05)
+setattr(owner, attr, hang)
+sys.argv = ["nehad", *sys.argv[4:]]
+from nehad.cli.main import entry
+entry(prog_name="nehad")
+"""
+
+
+def _start_hanging(tmp_path, target: str, after: int, args):
+    flag = tmp_path / "hung.flag"
+    proc = subprocess.Popen([sys.executable, "-c", HANG_IN, target, str(after), str(flag),
+                             *map(str, args)], env=ENV, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    _wait_for_flag(proc, flag)
+    flag.unlink()
+    return proc
+
+
+# command -> (function that hangs, calls before it hangs, args(model, out), exit status, message)
+CTRL_C = {
+    "train": ("nehad.trainer:Trainer.train_step", 25,
+              lambda m, out: ["train", m[1], "-o", out / "run", "--preset", "test", "--quiet"],
+              130, "keeps its checkpoint at step 20"),
+    "render": ("nehad.runtime.render:write_all", 0,
+               lambda m, out: ["render", m[0], "--view", f"{m[1]}/transforms_test.json:0",
+                               "--time", "0.5", "-o", out / "x.png"],
+               130, "interrupted: nehad render stopped"),
+    "export": ("nehad.export.onnx_export:atomic_write_bytes", 0,
+               lambda m, out: ["export", m[2], "-o", out / "m.onnx"],
+               130, "interrupted: nehad export stopped"),
+    "ply": ("nehad.runtime.ply:write_gaussian_ply", 1,
+            lambda m, out: ["ply", m[0], "--frames", "3", "-o", out / "frames"],
+            130, "interrupted: nehad ply stopped"),
+    "video": ("nehad.runtime.distribute:render_frame_task", 1,
+              lambda m, out: ["video", m[0], "-o", out / "v.mp4", "--frames", "4", "--workers",
+                              "1", "--quiet"], 130, "1 of 4 frames are kept"),
+    "batch": ("nehad.runtime.distribute:render_frame_task", 1,
+              lambda m, out: ["batch", out.parent / "jobs.yaml", "--quiet", "--workers", "1"],
+              130, "--resume to render only what is missing"),
+}
+
+
+@pytest.mark.parametrize("command", sorted(CTRL_C))
+def test_ctrl_c_ends_every_command_with_its_message(model, tmp_path, command):
+    target, after, args, status, message = CTRL_C[command]
+    out = tmp_path / "out"
+    out.mkdir()
+    (tmp_path / "jobs.yaml").write_text(f"jobs:\n  - {{model: {model[0]}, output: out/b.mp4, "
+                                        f"frames: 4}}\n")
+    proc = _start_hanging(tmp_path, target, after, args(model, out))
+    start = time.perf_counter()
+    proc.send_signal(signal.SIGINT)
+    _, err = _communicate_or_dump(proc, 30)
+    seconds = time.perf_counter() - start
+    assert proc.returncode == status, err
+    assert message in err and "Traceback" not in err and "Aborted" not in err, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("interrupted"), err
+    # train waits for the next step, then raises it anyway after DEFERRED_SECONDS (5 s)
+    assert seconds < (12 if command == "train" else 6), seconds
+    assert not [p for p in out.rglob("*") if ".tmp" in p.name or p.suffix in (".png", ".onnx")
+                and p.parent == out]
+    assert not list(tmp_path.rglob(".*.nehad-lock"))
+
+
+def test_a_second_ctrl_c_ends_at_once(model, tmp_path):
+    """The first Ctrl-C waits for the step (which here never returns); the second ends the
+    process at once, by the kernel's default action."""
+    _, scene, _ = model
+    proc = _start_hanging(tmp_path, "nehad.trainer:Trainer.train_step", 25,
+                          ["train", scene, "-o", tmp_path / "run", "--preset", "test",
+                           "--quiet"])
+    proc.send_signal(signal.SIGINT)
+    time.sleep(0.5)
+    assert proc.poll() is None  # still waiting for a safe point
+    start = time.perf_counter()
+    proc.send_signal(signal.SIGINT)
+    _communicate_or_dump(proc, 10)
+    assert proc.returncode == -signal.SIGINT
+    assert time.perf_counter() - start < 2
+
+
+def test_ctrl_c_stops_the_viewer(model):
+    pytest.importorskip("viser")
+    onnx_path, _, _ = model
+    proc = subprocess.Popen([sys.executable, "-m", "nehad.cli.main", "view", str(onnx_path),
+                             "--port", "0"], env=ENV, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.time() + 120
+        for line in proc.stdout:  # the page's address is printed once the server is up
+            if line.startswith("open http"):
+                break
+            assert time.time() < deadline
+        assert proc.poll() is None, proc.stderr.read()
+        start = time.perf_counter()
+        proc.send_signal(signal.SIGINT)
+        _, err = _communicate_or_dump(proc, 30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0 and "stopped" in err and "Traceback" not in err, err
+    assert time.perf_counter() - start < 10
+
+
+def test_interrupt_wrapped_by_a_library_is_still_ctrl_c():
+    """numba returns a KeyboardInterrupt raised in its Python callback (_numba_unpickle) as a
+    SystemError; the CLI still treats it as Ctrl-C."""
+    from nehad.cli.errors import interrupted
+
+    try:
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as k:
+            raise SystemError("returned a result with an exception set") from k
+    except SystemError as e:
+        assert interrupted(e)
+    assert not interrupted(ValueError("x"))
 
 
 def test_module_stays_torch_free():
@@ -846,6 +1000,20 @@ def test_synth_sizes_are_checked_against_memory(tmp_path, cap_16g, args):
     _one_error(_invoke([a.format(out=out) for a in args]), "--resolution 100000",
                "GB of memory", "NEHAD_MAX_FRAME_MEMORY=16G")
     assert time.perf_counter() - start < 20
+    assert _listing(out) == []
+
+
+@pytest.mark.parametrize("args", [["video", "{model}", "-o", "{out}/v.mp4", "--frames",
+                                   "30000000"],
+                                  ["video", "{model}", "--frames-dir", "{out}/f", "--frames",
+                                   "30000000", "--path", "spiral"]], ids=["orbit", "spiral"])
+def test_frame_counts_are_checked_against_memory(model, tmp_path, cap_16g, args):
+    start = time.perf_counter()
+    out = tmp_path / "out"
+    out.mkdir()
+    _one_error(_invoke([a.format(out=out, model=model[0]) for a in args]),
+               "--frames 30000000", "GB of memory")
+    assert time.perf_counter() - start < 20  # refused before planning them
     assert _listing(out) == []
 
 
