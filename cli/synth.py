@@ -23,7 +23,8 @@ from .errors import InputError, user_errors
               help="Image width and height in pixels.")
 @click.option("--frames", type=click.IntRange(min=1), default=50, show_default=True,
               help="Number of train frames (val and test get about 10% as many each).")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the cameras and times.")
+@click.option("--seed", type=click.IntRange(0, 2**32 - 1), default=0, show_default=True,
+              help="Seed of the cameras and times.")
 @click.option("--fixed-time", type=FiniteFloat(0.0, 1.0), default=None,
               help="Give every frame this time in [0, 1]: a static scene.")
 @click.option("--gaussians", "num_gaussians", type=click.IntRange(min=0), default=5000,
@@ -47,7 +48,8 @@ def synth(out, scene, resolution, frames, seed, fixed_time, num_gaussians, fmt, 
     from nehad.data.synth import SCENES, synthesize_scene
 
     with user_errors():
-        check_synth_memory(resolution)
+        check_synth_memory(resolution, frames, cameras if fmt == "dynerf" else 1,
+                           num_gaussians if fmt == "dnerf" else 0)
     if fmt != "dnerf":
         return _synth_other_format(out, fmt, scene, resolution, frames, seed, fixed_time, cameras)
     if scene not in SCENES:
@@ -88,17 +90,26 @@ def synth(out, scene, resolution, frames, seed, fixed_time, num_gaussians, fmt, 
 SYNTH_BYTES_PER_PIXEL = 800
 
 
-def check_synth_memory(resolution: int) -> None:
-    """Refuse a --resolution whose images cannot be drawn in the memory available, before
-    anything is written (issue 26: --resolution 100000 asked numpy for 671 GiB)."""
-    from nehad.runtime.memory import format_bytes, memory_limit
+def check_synth_memory(resolution: int, frames: int = 1, cameras: int = 1,
+                       gaussians: int = 0) -> None:
+    """Refuse sizes whose images, frame list or Gaussians cannot be held in the memory
+    available, before anything is written (issue 26: --resolution 100000 asked numpy for
+    671 GiB)."""
+    from nehad.runtime.memory import (BYTES_PER_PLANNED_FRAME, check_cloud_memory,
+                                      format_bytes, memory_limit)
 
-    need = SYNTH_BYTES_PER_PIXEL * int(resolution) ** 2
     limit, where = memory_limit()
-    if limit is not None and need > limit:
-        raise InputError(f"--resolution {resolution}: drawing a {resolution}x{resolution} image "
-                         f"needs about {format_bytes(need)} of memory, more than {where} "
-                         f"({format_bytes(limit)}); choose a smaller --resolution")
+    for option, need, what in (
+            (f"--resolution {resolution}", SYNTH_BYTES_PER_PIXEL * int(resolution) ** 2,
+             f"drawing a {resolution}x{resolution} image"),
+            (f"--frames {frames}" + (f" with --cameras {cameras}" if cameras > 1 else ""),
+             BYTES_PER_PLANNED_FRAME * int(frames) * max(1, int(cameras)),
+             f"the list of {int(frames) * max(1, int(cameras))} frames")):
+        if limit is not None and need > limit:
+            raise InputError(f"{option}: {what} needs about {format_bytes(need)} of memory, more "
+                             f"than {where} ({format_bytes(limit)}); choose a smaller value")
+    if gaussians:
+        check_cloud_memory(gaussians, 0, f"--gaussians {gaussians}")
 
 
 @contextlib.contextmanager

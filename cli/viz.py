@@ -102,7 +102,8 @@ def viz():
               help="Background colour [default: the model's].")
 @click.option("--min-opacity", type=FiniteFloat(0.0, 1.0), default=0.1, show_default=True,
               help="Track only Gaussians at least this opaque.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the sample.")
+@click.option("--seed", type=click.IntRange(0, 2**32 - 1), default=0, show_default=True,
+              help="Seed of the sample.")
 @click.option("--fps", type=FiniteFloat(min=1.0, max=240.0), default=24.0,
               show_default=True, help="Frame rate of the video.")
 @click.option("--trail", type=click.IntRange(min=1), default=None,

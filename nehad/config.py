@@ -270,6 +270,7 @@ class Config:
         ("train.checkpoint_interval", 1, None), ("train.log_interval", 1, None),
         ("train.keep_checkpoints", 1, None), ("coarse.min_window_frames", 0, None),
         ("lod.base_max_gaussians", 0, None),
+        ("train.seed", 0, 2**32 - 1),  # numpy's generators take no negative seed
     )
 
     def _check_ranges(self) -> None:

@@ -30,7 +30,7 @@ from pathlib import Path
 
 from .errors import InputProblem
 
-__all__ = ["BYTES_PER_GAUSSIAN", "BYTES_PER_PIXEL", "CAP_ENV", "FrameMemoryError", "FrameMemory",
+__all__ = ["BYTES_PER_GAUSSIAN", "BYTES_PER_PIXEL", "BYTES_PER_WORKER", "CAP_ENV", "FrameMemoryError", "FrameMemory",
            "available_memory", "check_cloud_memory", "check_frame_memory", "check_plan_memory",
            "check_tile_lists", "estimate_frame", "format_bytes", "memory_limit"]
 
@@ -171,21 +171,29 @@ def _refuse(what: str, need: int, detail: str, advice: str, verb: str = "needs")
                            f"than {where} ({format_bytes(limit)}); {advice}")
 
 
+#: What a pool worker process takes before its first frame (Python, numpy, numba, onnxruntime
+#: and the model; measured about 200 MB): `--workers 1000` must not start 1000 of them
+BYTES_PER_WORKER = 200 << 20
+
+
 def check_frame_memory(width: int, height: int, gaussians: int, what: str,
                        parallel: int = 1, out_width: int | None = None,
                        advice: str | None = None) -> FrameMemory:
-    """Refuse (FrameMemoryError) a frame, or `parallel` frames drawn at once, that would not fit
-    (module doc). `what` names the input in the message (e.g. ``--size 32768x32768``)."""
+    """Refuse (FrameMemoryError) a frame, or `parallel` frames drawn at once by as many worker
+    processes, that would not fit (module doc). `what` names the input in the message (e.g.
+    ``--size 32768x32768``)."""
     est = estimate_frame(width, height, gaussians, out_width)
     parallel = max(1, int(parallel))
-    detail = est.describe() + (f"; {parallel} frames drawn at once" if parallel > 1 else "")
+    detail = est.describe() + (f"; {parallel} frames drawn at once by as many processes of about "
+                               f"{format_bytes(BYTES_PER_WORKER)} each" if parallel > 1 else "")
     if advice is None:
         advice = "render a smaller size" + (" or use fewer workers" if parallel > 1 else "") + \
                  f" (or set {CAP_ENV})"
     frames = f"{parallel} {est.width}x{est.height} frames" if parallel > 1 else \
         f"a {est.width}x{est.height} frame"
-    _refuse(f"{what}: {frames} of {est.gaussians} Gaussians", est.total * parallel, detail, advice,
-            "need" if parallel > 1 else "needs")
+    workers = BYTES_PER_WORKER * parallel if parallel > 1 else 0
+    _refuse(f"{what}: {frames} of {est.gaussians} Gaussians", est.total * parallel + workers,
+            detail, advice, "need" if parallel > 1 else "needs")
     return est
 
 
