@@ -7,6 +7,7 @@ import dataclasses
 import hashlib
 import json
 import math
+import stat
 import typing
 from pathlib import Path
 from typing import Any
@@ -157,6 +158,10 @@ def parse_override(text: str) -> dict:
     return out
 
 
+#: Largest text file (a config, a run's metrics log) read whole
+MAX_TEXT_BYTES = 256 << 20
+
+
 def read_text(path, kind: str = "config file", expected: str = "a YAML config",
               error=None) -> str:
     """The text of a file a user or a run folder gives (a config, a run's metrics.jsonl); a
@@ -164,6 +169,20 @@ def read_text(path, kind: str = "config file", expected: str = "a YAML config",
     same words for every such file (issues 15, 26)."""
     error = error or ConfigError
     path = Path(path)
+    try:
+        st = path.stat()
+    except FileNotFoundError:
+        raise error(f"{path}: no such {kind}") from None
+    except OSError as e:
+        raise error(f"{path}: cannot read ({e.strerror or e})") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise error(f"{path}: is a folder, not a {kind}")
+    if not stat.S_ISREG(st.st_mode):
+        # a FIFO blocks until someone writes to it, /dev/zero never ends (issue 26)
+        raise error(f"{path}: not a regular file (a device, FIFO or socket); expected {expected}")
+    if st.st_size > MAX_TEXT_BYTES:
+        raise error(f"{path}: {st.st_size} bytes, too large for {expected} (at most "
+                    f"{MAX_TEXT_BYTES >> 20} MB)")
     try:
         raw = path.read_bytes()
     except FileNotFoundError:

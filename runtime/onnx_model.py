@@ -81,12 +81,17 @@ def read_model_info(path) -> ModelInfo:
     """Read and validate the file's summary and metadata (no onnxruntime session)."""
     path = Path(path)
     source = str(path)
+    if path.exists() and not path.is_dir() and not path.is_file():
+        # /dev/zero would be read forever, a FIFO waits for a writer (issue 26)
+        raise OnnxModelError(f"{source}: not a regular file (a device, FIFO or socket)")
     try:
         data = path.read_bytes()
     except FileNotFoundError:
         raise OnnxModelError(f"{source}: no such file") from None
     except IsADirectoryError:
         raise OnnxModelError(f"{source}: is a folder, not an .onnx file") from None
+    except OSError as e:
+        raise OnnxModelError(f"{source}: cannot read ({e.strerror or e})") from None
     try:
         s = summarize(data)
     except ProtoError as e:

@@ -224,6 +224,9 @@ def open_scene(path, lod: int | None = None, threads: int | None = None,
         raise SceneError(f"{p}: not a finished training run (no model.pt) and not a split "
                          f"layers folder (no manifest.json)", "scene")
     suffix = p.suffix.lower()
+    if p.exists() and not p.is_file():
+        # a FIFO would block the open until someone writes to it, /dev/zero never ends
+        raise SceneError(f"{p}: not a regular file (a device, FIFO or socket)", "scene")
     if suffix == ".ply":
         return PlyScene(p, lod=lod)
     if suffix == ".onnx":

@@ -1095,6 +1095,34 @@ def test_paths_that_are_not_utf8_are_refused(model, tmp_path, case):
     assert _listing(tmp_path) == []
 
 
+NOT_REGULAR = {
+    "train --config FIFO": lambda m, f, out: ["train", m[1], "-o", out / "run", "--preset",
+                                              "test", "--config", f["fifo.yaml"]],
+    "train --config /dev/zero": lambda m, f, out: ["train", m[1], "-o", out / "run", "--preset",
+                                                   "test", "--config", "/dev/zero"],
+    "render FIFO.ply": lambda m, f, out: ["render", f["fifo.ply"], "--view",
+                                          f"{m[1]}/transforms_test.json:0", "-o", out / "x.png"],
+    "ply FIFO.onnx": lambda m, f, out: ["ply", f["fifo.onnx"], "--time", "0.5", "-o",
+                                        out / "x.ply"],
+    "video FIFO.onnx": lambda m, f, out: ["video", f["fifo.onnx"], "-o", out / "v.mp4"],
+    "info /dev/zero": lambda m, f, out: ["info", "/dev/zero"],
+}
+
+
+@pytest.mark.parametrize("case", sorted(NOT_REGULAR))
+def test_devices_and_fifos_are_refused_not_read_forever(model, tmp_path, case):
+    """A FIFO blocks its reader until someone writes; /dev/zero never ends."""
+    fifos = {}
+    for name in ("fifo.yaml", "fifo.ply", "fifo.onnx"):
+        os.mkfifo(tmp_path / name)
+        fifos[name] = tmp_path / name
+    out = tmp_path / "out"
+    out.mkdir()
+    proc = _run_cli(NOT_REGULAR[case](model, fifos, out), timeout=60)
+    _proc_error(proc, "not a regular file")
+    assert _listing(out) == []
+
+
 def _output_is_input_cases(model, d: Path) -> dict:
     onnx_path, scene, _ = model
     ply = d / "g.ply"
