@@ -71,12 +71,17 @@ class FiniteFloat(click.FloatRange):
     name = "number"
 
     def convert(self, value, param, ctx):
-        v = click.FLOAT.convert(value, param, ctx)
-        if not math.isfinite(v):
-            self.fail(f"{value!r} is not a finite number.", param, ctx)
-        if self.min is None and self.max is None:
-            return v
-        return super().convert(v, param, ctx)
+        try:
+            v = click.FLOAT.convert(value, param, ctx)
+            if not math.isfinite(v):
+                self.fail(f"{value!r} is not a finite number.", param, ctx)
+            if self.min is None and self.max is None:
+                return v
+            return super().convert(v, param, ctx)
+        except click.BadParameter as e:
+            # one line, as every bad input of nehad (not click's usage block)
+            hint = e.param.get_error_hint(ctx) if e.param is not None else "the value"
+            raise click.ClickException(f"Invalid value for {hint}: {e.message}") from None
 
     def __repr__(self) -> str:
         return f"FiniteFloat({self._describe_range()})"

@@ -21,6 +21,7 @@ from nehad.runtime.gaussians import GaussianCloud
 from nehad.runtime.images import read_image
 from nehad.runtime.ply import read_gaussian_ply, write_gaussian_ply
 
+import stacks
 from raster_reference import reference_forward, reference_project
 from torch_blocker import blocked_torch_env  # noqa: E402
 
@@ -155,9 +156,8 @@ def test_render_matches_reference_without_torch(scene, tmp_path):
     blocked = subprocess.run([sys.executable, "-c", "import torch"], env=env, capture_output=True)
     assert blocked.returncode != 0  # the blocker works
     bg = ",".join(str(v) for v in BACKGROUND)
-    proc = subprocess.run([sys.executable, "-m", "nehad.cli.main", "render", str(ply), "--view",
-                           str(cam), "-o", str(out), "--background", bg],
-                          env=env, capture_output=True, text=True, timeout=300)
+    proc = stacks.run([sys.executable, "-m", "nehad.cli.main", "render", str(ply), "--view",
+                       str(cam), "-o", str(out), "--background", bg], timeout=300, env=env)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "Traceback" not in proc.stderr
     image = read_image(out)
@@ -294,9 +294,9 @@ def test_bad_inputs_fail_cleanly(scene, tmp_path):
 def test_bad_input_in_a_real_process(scene, tmp_path):
     """The installed entry point's stderr: one line, no traceback (no CliRunner in between)."""
     _, cam = scene
-    proc = subprocess.run([sys.executable, "-m", "nehad.cli.main", "render",
-                           str(tmp_path / "missing.ply"), "--view", str(cam), "-o",
-                           str(tmp_path / "x.png")], capture_output=True, text=True, timeout=120)
+    proc = stacks.run([sys.executable, "-m", "nehad.cli.main", "render",
+                       str(tmp_path / "missing.ply"), "--view", str(cam), "-o",
+                       str(tmp_path / "x.png")], timeout=120)
     assert proc.returncode != 0
     assert "Traceback" not in proc.stderr
     assert proc.stderr.strip().splitlines() == [f"Error: {tmp_path / 'missing.ply'}: no such PLY file"]

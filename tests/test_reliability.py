@@ -33,6 +33,7 @@ from nehad.cli.main import main
 from nehad.runtime import tempfiles
 from nehad.runtime.images import atomic_path
 
+import stacks
 from torch_blocker import blocked_torch_env
 from video_model import tiny_model
 
@@ -75,8 +76,8 @@ def _one_error(res, *needles) -> str:
 
 
 def _run_cli(args, env=None, timeout=300, **kw):
-    return subprocess.run([sys.executable, "-m", "nehad.cli.main", *map(str, args)],
-                          env=env or ENV, capture_output=True, text=True, timeout=timeout, **kw)
+    return stacks.run([sys.executable, "-m", "nehad.cli.main", *map(str, args)],
+                      timeout=timeout, env=env or ENV, **kw)
 
 
 def _proc_error(proc, *needles) -> str:
@@ -409,7 +410,7 @@ def test_temp_names_say_who_wrote_them_and_stale_ones_go(tmp_path):
     assert target.read_bytes() == b"y"
 
 
-HANG_ON_REPLACE = """
+HANG_ON_REPLACE = stacks.DUMP_ON_USR1 + """
 import os, sys, time
 real = os.replace
 def hang(src, dst, *a, **k):
@@ -428,7 +429,8 @@ def _wait_for_flag(proc, flag, timeout: float = 300.0) -> None:
     deadline = time.time() + timeout
     while not flag.exists():
         assert proc.poll() is None, proc.stderr.read()
-        assert time.time() < deadline
+        if time.time() > deadline:
+            stacks.kill_with_stacks(proc, f"no {flag.name} after {timeout:g} s")
         time.sleep(0.1)
 
 
@@ -506,7 +508,7 @@ def test_resume_removes_a_killed_checkpoint_write(model, tmp_path):
 # 5. one writer per output
 
 
-HANG_AFTER_FIRST_FRAME = """
+HANG_AFTER_FIRST_FRAME = stacks.DUMP_ON_USR1 + """
 import sys, time
 import nehad.runtime.distribute as d
 real = d.render_frame_task
@@ -716,11 +718,7 @@ def _communicate_or_dump(proc, timeout: float) -> tuple[str, str]:
     try:
         return proc.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
-        proc.send_signal(signal.SIGUSR1)
-        time.sleep(2)
-        proc.kill()
-        out, err = proc.communicate()
-        pytest.fail(f"still running {timeout:g} s after SIGINT; its stacks:\n{err[-6000:]}")
+        stacks.kill_with_stacks(proc, f"still running {timeout:g} s after SIGINT")
 
 
 # Runs the `nehad` executable (cli/main.py entry: its SIGINT handling) with one function

@@ -12,6 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+import stacks
+
 ort = pytest.importorskip("onnxruntime")
 
 from click.testing import CliRunner  # noqa: E402
@@ -100,8 +102,8 @@ def test_render_info_ply_without_torch(exported, tmp_path):
                           capture_output=True).returncode != 0
     cli = [sys.executable, "-m", "nehad.cli.main"]
     out = tmp_path / "r.png"
-    proc = subprocess.run(cli + ["render", str(path), "--time", "0.4", "--view", cam, "-o",
-                                 str(out)], env=env, capture_output=True, text=True, timeout=300)
+    proc = stacks.run(cli + ["render", str(path), "--time", "0.4", "--view", cam, "-o",
+                             str(out)], timeout=300, env=env)
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert out.exists()
     proc = subprocess.run(cli + ["info", str(path)], env=env, capture_output=True, text=True,
