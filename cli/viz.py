@@ -118,9 +118,13 @@ def trajectories(scene, view, output, video, count, n_times, select, color_by, b
             _check_out(output, "-o", (".mp4",), "with --video the output")
         else:
             _check_out(output, "-o", STILL_SUFFIXES, "the image")
+        from nehad.runtime.memory import check_plan_memory
         from nehad.runtime.outputs import check_outputs
 
         check_outputs([("-o", output)], [("SCENE", scene), ("--view", view)])
+        if n_times is not None:  # every time holds its positions of the tracked Gaussians
+            check_plan_memory(n_times * max(1, count // 100), f"--times {n_times}",
+                              f"tracking {count} Gaussians over {n_times} times")
         source = _dynamic_source(scene)
         camera = _view(view, source, size)
         if base_time is not None:
@@ -333,6 +337,9 @@ def report(run, output, data_dir, frames, no_score, max_side):
         from nehad.runtime.outputs import check_outputs
 
         check_outputs([("-o", output)], [("RUN", run)])
+        from nehad.runtime.memory import check_frame_memory
+
+        check_frame_memory(max_side, max_side, 0, f"--max-side {max_side}")
         if run.suffix.lower() == ".onnx" and not run.is_dir():
             raise InputError(f"{run}: a report needs the training run folder (config, logs, "
                              f"model.pt), not an exported .onnx model")

@@ -211,11 +211,13 @@ def check_tile_lists(pairs: int, width: int, height: int, n_chunks: int) -> None
 BYTES_PER_PLANNED_FRAME = 2048
 
 
-def check_plan_memory(frames: int, what: str) -> None:
+def check_plan_memory(frames: int, what: str, plan: str | None = None) -> None:
     """Refuse a frame count whose plan alone would not fit (issue 26: ``--frames 30000000``
-    planned silently for hours before it would have run out of memory)."""
-    _refuse(f"{what}: the plan of {frames} frames", BYTES_PER_PLANNED_FRAME * max(0, int(frames)),
-            "cameras, times and tasks", f"render fewer frames (or set {CAP_ENV})", verb="needs")
+    planned silently for hours before it would have run out of memory). `plan` says what is
+    planned (default: ``the plan of N frames``)."""
+    _refuse(f"{what}: {plan or f'the plan of {frames} frames'}",
+            BYTES_PER_PLANNED_FRAME * max(0, int(frames)), "cameras, times and tasks",
+            f"ask for fewer (or set {CAP_ENV})", verb="needs")
 
 
 def check_cloud_memory(gaussians: int, sh_degree: int, what: str) -> None:

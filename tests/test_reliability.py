@@ -1001,16 +1001,28 @@ def test_synth_sizes_are_checked_against_memory(tmp_path, cap_16g, args):
     assert _listing(out) == []
 
 
-@pytest.mark.parametrize("args", [["video", "{model}", "-o", "{out}/v.mp4", "--frames",
-                                   "30000000"],
-                                  ["video", "{model}", "--frames-dir", "{out}/f", "--frames",
-                                   "30000000", "--path", "spiral"]], ids=["orbit", "spiral"])
-def test_frame_counts_are_checked_against_memory(model, tmp_path, cap_16g, args):
+SIZES = {
+    "video --frames": ["video", "{model}", "-o", "{out}/v.mp4", "--frames", "30000000"],
+    "video --frames spiral": ["video", "{model}", "--frames-dir", "{out}/f", "--frames",
+                              "30000000", "--path", "spiral"],
+    "video --workers": ["video", "{model}", "-o", "{out}/v.mp4", "--frames", "1000",
+                        "--workers", "1000"],
+    "viz trajectories --times": ["viz", "trajectories", "{model}", "--times", "100000000", "-o",
+                                 "{out}/t.png"],
+    "report --max-side": ["report", "{run}", "-o", "{out}/r.html", "--max-side", "100000000"],
+}
+
+
+@pytest.mark.parametrize("case", sorted(SIZES))
+def test_frame_counts_are_checked_against_memory(model, tmp_path, cap_16g, case):
     start = time.perf_counter()
     out = tmp_path / "out"
     out.mkdir()
-    _one_error(_invoke([a.format(out=out, model=model[0]) for a in args]),
-               "--frames 30000000", "GB of memory")
+    args = SIZES[case]
+    given = {"video --frames spiral": "30000000", "viz trajectories --times": "100000000"}.get(
+        case, args[-1])
+    _one_error(_invoke([a.format(out=out, model=model[0], run=model[2]) for a in args]),
+               given, "GB of memory")
     assert time.perf_counter() - start < 20  # refused before planning them
     assert _listing(out) == []
 
