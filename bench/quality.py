@@ -7,7 +7,9 @@
 Scenes are looked up in ../shared/data/mujoco (400x400 with the cpu preset's downscale 2) and
 ../shared/data/dnerf_lego_100 (100x100, black background, downscale 1). Prints one row per
 (scene, decoder): test PSNR beside the PSNR of a blank image (the background colour everywhere)
-on the same views, the gain, the worst quarter of the time range (its gain over blank), SSIM,
+on the same views, the gain, the worst quarter of the time range (its gain over blank), the
+worst object-quarter (on scenes with label masks: the object, the quarter's start and the gain
+over blank on the object's own pixels), SSIM,
 LPIPS-vgg, training minutes, Gaussians and render FPS; then the means and the issue's targets.
 Writes the rows to OUT/results_*.json (one file per invocation, so several invocations, e.g. one
 per core with OMP_NUM_THREADS=1, can share OUT). Runs already finished are reused, and their
@@ -71,19 +73,26 @@ def train_and_eval(data: Path, run: Path, preset: str, sets: list[str]) -> dict:
            "ssim": m["ssim"], "lpips_vgg": m["lpips_vgg"],
            "minutes": minutes, "gaussians": result["gaussians"], "fps": result["fps"],
            "resolution": result["resolution"]}
+    wo = result.get("worst_object_bin")  # datasets with label masks (nehad/evaluate.py)
+    row.update(worst_object=wo["name"] if wo else None,
+               worst_object_bin=wo["range"] if wo else None,
+               worst_object_gain=wo["gain"] if wo else None)
     row_file.write_text(json.dumps(row, indent=1))
     return row
 
 
 def print_rows(rows: list[dict]) -> None:
     print(f"{'scene':<24} {'variant':<22} {'PSNR':>6} {'blank':>6} {'gain':>6} {'worst t':>9} "
+          f"{'worst object, t':>22} "
           f"{'SSIM':>6} {'LPIPSvgg':>8} {'min':>5} {'Gaussians':>9} {'FPS':>6}")
     for r in rows:
         f = lambda v, d: "n/a" if v is None else f"{v:.{d}f}"
         worst = (f"{r['worst_bin'][0]:.2f}:{r['worst_bin_gain']:+.1f}"
                  if r.get("worst_bin") else "n/a")
+        wobj = (f"{r['worst_object'][:11]} {r['worst_object_bin'][0]:.2f}:"
+                f"{r['worst_object_gain']:+.1f}" if r.get("worst_object") else "n/a")
         print(f"{r['scene']:<24} {r['variant']:<22} {f(r['psnr'], 2):>6} "
-              f"{f(r.get('blank_psnr'), 2):>6} {f(r.get('gain'), 2):>6} {worst:>9} "
+              f"{f(r.get('blank_psnr'), 2):>6} {f(r.get('gain'), 2):>6} {worst:>9} {wobj:>22} "
               f"{f(r['ssim'], 4):>6} {f(r['lpips_vgg'], 4):>8} {f(r['minutes'], 1):>5} "
               f"{r['gaussians']:>9} {f(r['fps'], 1):>6}")
 
