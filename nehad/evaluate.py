@@ -341,8 +341,7 @@ def format_objects(result: dict) -> list[str]:
     ranges = [tb["range"] for tb in max(objects, key=lambda o: len(o["time_bins"]))["time_bins"]]
     width = max(14, *(len(o["name"]) + 2 for o in objects))
     fmt = lambda v, d: "n/a" if v is None else f"{v:.{d}f}"
-    lines = ["  Objects: PSNR on each object's ground-truth pixels, model / blank; gain over "
-             "blank per time quarter:",
+    lines = ["  Objects: PSNR on each one's own pixels, model / blank; gain per time quarter:",
              f"    {'object':<{width}}{'model':>7}{'blank':>7}{'gain':>8}"
              + "".join(f"{f'{a:.2f}-{b:.2f}':>11}" for a, b in ranges)]
     for o in objects:
@@ -357,7 +356,7 @@ def format_objects(result: dict) -> list[str]:
         gain = "n/a" if o.get("gain") is None else f"{o['gain']:+.2f}"
         lines.append(f"    {o['name']:<{width}}{fmt(o.get('psnr'), 2):>7}"
                      f"{fmt(o.get('blank_psnr'), 2):>7}{gain:>8}"
-                     + "".join(f"{c:>11}" for c in cells))
+                     + "".join(f"{c:>11}" for c in cells).rstrip())
     lines.append(f"    (! gain under +{warn:g} dB; - fewer than "
                  f"{rules.get('min_pixels', OBJECT_MIN_PIXELS)} object pixels in the quarter)")
     return lines
