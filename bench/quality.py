@@ -3,6 +3,7 @@
     python bench/quality.py [--scenes scene1_close_proximity,...] [--decoders hnn,mlp]
                             [--preset cpu] [--set k=v ...] [--out runs/quality]
     python bench/quality.py --ablation scene1_close_proximity,scene3_collision --seeds 0,1
+    python bench/quality.py --suite stress [--decoders hnn]
 
 Scenes are looked up in ../shared/data/mujoco (400x400 with the cpu preset's downscale 2) and
 ../shared/data/dnerf_lego_100 (100x100, black background, downscale 1). Prints one row per
@@ -38,11 +39,25 @@ ABLATIONS = {
     "no Verlet": ["field.verlet=false"],
     "no rigidity": ["field.rigidity=false"],
     "MLP decoder (4DGS)": ["field.decoder=mlp"],
+    # readings of the paper where it is vague (docs/design.md section 4.7)
+    "BED deformed distance": ["field.bed_distance=deformed"],
+    "sigma_t 0.05": ["field.sigma_t=0.05"],
+    "t_eq lr x10": ["optim.t_eq_lr=1e-2"],
 }
 
 
-def scene_path(name: str) -> tuple[Path, list[str]]:
-    """Dataset folder and the settings it needs."""
+def scene_path(name: str, stress_root: Path | None = None) -> tuple[Path, list[str]]:
+    """Dataset folder and the settings it needs (a stress scene: written at 400x400 into
+    `stress_root` by `nehad synth --suite stress` if absent, trained at that size)."""
+    from nehad.data.synth_stress import STRESS_SCENES
+
+    if name in STRESS_SCENES:
+        root = (stress_root or ROOT / "runs" / "stress_data") / name
+        if not (root / "transforms_test.json").exists():
+            from nehad.data.synth_stress import synthesize_stress_scene
+
+            synthesize_stress_scene(root, name)
+        return root, ["data.downscale=1"]
     if name == "dnerf_lego_100":
         return DATA / name, ["data.downscale=1", "data.background=[0,0,0]"]
     return DATA / "mujoco" / name, []
@@ -123,6 +138,9 @@ def print_summary(rows: list[dict]) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scenes", default=",".join(DEFAULT_SCENES))
+    ap.add_argument("--suite", choices=["stress"], default=None,
+                    help="train and score the stress suite (nehad synth --suite stress) instead of "
+                         "--scenes: per scene the gain and the worst object-quarter gain")
     ap.add_argument("--decoders", default="hnn,mlp")
     ap.add_argument("--ablation", default=None, metavar="SCENES",
                     help="run the component ablation on these scenes (comma-separated) instead")
@@ -135,6 +153,12 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "quality")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.suite == "stress":
+        from nehad.data.synth_stress import STRESS_SCENES
+
+        args.scenes = ",".join(STRESS_SCENES)
+        if args.decoders == "hnn,mlp":
+            args.decoders = "hnn"
     rows = []
     if args.ablation:
         wanted = args.variants.split(",") if args.variants else list(ABLATIONS)
@@ -143,7 +167,7 @@ def main() -> None:
                 sys.exit(f"--variants: unknown variant {variant!r} (choose from "
                          f"{', '.join(ABLATIONS)})")
         for scene in args.ablation.split(","):
-            data, scene_sets = scene_path(scene)
+            data, scene_sets = scene_path(scene, args.out / "stress_data")
             for seed in (int(v) for v in args.seeds.split(",")):
                 for variant in wanted:
                     extra = ABLATIONS[variant]
@@ -162,7 +186,7 @@ def main() -> None:
                     print_rows(rows[-1:])
     else:
         for scene in args.scenes.split(","):
-            data, scene_sets = scene_path(scene)
+            data, scene_sets = scene_path(scene, args.out / "stress_data")
             for dec in args.decoders.split(","):
                 run = args.out / f"{scene}_{dec}"
                 rows.append({"scene": scene, "variant": f"decoder {dec}",

@@ -73,9 +73,14 @@ def bed_weights(model, t: float) -> np.ndarray:
         raise VizError(f"this run has no BED position mask: {why}")
     g, field = model.gaussians, model.field
     with torch.no_grad():
-        t_col = time_column(float(t), g.means.shape[0], g.means)
-        m_pos, _ = bed_masks(g.means, g.mu_eq, t_col, g.t_eq.reshape(-1, 1), field.cfg,
-                             float(field.extent))
+        if field.cfg.bed_distance == "deformed":  # the mask depends on the field's displacement
+            sh = torch.cat([g.sh_dc, g.sh_rest], 1)
+            m_pos = field(g.means, g.log_scales, g.quats, float(t), g.mu_eq, g.t_eq,
+                          opacity_logits=g.opacity_logits, sh=sh).aux["m_pos"]
+        else:
+            t_col = time_column(float(t), g.means.shape[0], g.means)
+            m_pos, _ = bed_masks(g.means, g.mu_eq, t_col, g.t_eq.reshape(-1, 1), field.cfg,
+                                 float(field.extent))
     return (1.0 - m_pos.reshape(-1)).cpu().numpy().astype(np.float32)
 
 
