@@ -3,11 +3,14 @@
     python bench/quality.py [--scenes scene1_close_proximity,...] [--decoders hnn,mlp]
                             [--preset cpu] [--set k=v ...] [--out runs/quality]
     python bench/quality.py --ablation scene1_close_proximity,scene3_collision --seeds 0,1
+    python bench/quality.py --suite stress [--decoders hnn]
 
 Scenes are looked up in ../shared/data/mujoco (400x400 with the cpu preset's downscale 2) and
 ../shared/data/dnerf_lego_100 (100x100, black background, downscale 1). Prints one row per
 (scene, decoder): test PSNR beside the PSNR of a blank image (the background colour everywhere)
-on the same views, the gain, the worst quarter of the time range (its gain over blank), SSIM,
+on the same views, the gain, the worst quarter of the time range (its gain over blank), the
+worst object-quarter (on scenes with label masks: the object, the quarter's start and the gain
+over blank on the object's own pixels), SSIM,
 LPIPS-vgg, training minutes, Gaussians and render FPS; then the means and the issue's targets.
 Writes the rows to OUT/results_*.json (one file per invocation, so several invocations, e.g. one
 per core with OMP_NUM_THREADS=1, can share OUT). Runs already finished are reused, and their
@@ -36,11 +39,25 @@ ABLATIONS = {
     "no Verlet": ["field.verlet=false"],
     "no rigidity": ["field.rigidity=false"],
     "MLP decoder (4DGS)": ["field.decoder=mlp"],
+    # readings of the paper where it is vague (docs/design.md section 4.7)
+    "BED deformed distance": ["field.bed_distance=deformed"],
+    "sigma_t 0.05": ["field.sigma_t=0.05"],
+    "t_eq lr x10": ["optim.t_eq_lr=1e-2"],
 }
 
 
-def scene_path(name: str) -> tuple[Path, list[str]]:
-    """Dataset folder and the settings it needs."""
+def scene_path(name: str, stress_root: Path | None = None) -> tuple[Path, list[str]]:
+    """Dataset folder and the settings it needs (a stress scene: written at 400x400 into
+    `stress_root` by `nehad synth --suite stress` if absent, trained at that size)."""
+    from nehad.data.synth_stress import STRESS_SCENES
+
+    if name in STRESS_SCENES:
+        root = (stress_root or ROOT / "runs" / "stress_data") / name
+        if not (root / "transforms_test.json").exists():
+            from nehad.data.synth_stress import synthesize_stress_scene
+
+            synthesize_stress_scene(root, name)
+        return root, ["data.downscale=1"]
     if name == "dnerf_lego_100":
         return DATA / name, ["data.downscale=1", "data.background=[0,0,0]"]
     return DATA / "mujoco" / name, []
@@ -71,19 +88,26 @@ def train_and_eval(data: Path, run: Path, preset: str, sets: list[str]) -> dict:
            "ssim": m["ssim"], "lpips_vgg": m["lpips_vgg"],
            "minutes": minutes, "gaussians": result["gaussians"], "fps": result["fps"],
            "resolution": result["resolution"]}
+    wo = result.get("worst_object_bin")  # datasets with label masks (nehad/evaluate.py)
+    row.update(worst_object=wo["name"] if wo else None,
+               worst_object_bin=wo["range"] if wo else None,
+               worst_object_gain=wo["gain"] if wo else None)
     row_file.write_text(json.dumps(row, indent=1))
     return row
 
 
 def print_rows(rows: list[dict]) -> None:
     print(f"{'scene':<24} {'variant':<22} {'PSNR':>6} {'blank':>6} {'gain':>6} {'worst t':>9} "
+          f"{'worst object, t':>22} "
           f"{'SSIM':>6} {'LPIPSvgg':>8} {'min':>5} {'Gaussians':>9} {'FPS':>6}")
     for r in rows:
         f = lambda v, d: "n/a" if v is None else f"{v:.{d}f}"
         worst = (f"{r['worst_bin'][0]:.2f}:{r['worst_bin_gain']:+.1f}"
                  if r.get("worst_bin") else "n/a")
+        wobj = (f"{r['worst_object'][:11]} {r['worst_object_bin'][0]:.2f}:"
+                f"{r['worst_object_gain']:+.1f}" if r.get("worst_object") else "n/a")
         print(f"{r['scene']:<24} {r['variant']:<22} {f(r['psnr'], 2):>6} "
-              f"{f(r.get('blank_psnr'), 2):>6} {f(r.get('gain'), 2):>6} {worst:>9} "
+              f"{f(r.get('blank_psnr'), 2):>6} {f(r.get('gain'), 2):>6} {worst:>9} {wobj:>22} "
               f"{f(r['ssim'], 4):>6} {f(r['lpips_vgg'], 4):>8} {f(r['minutes'], 1):>5} "
               f"{r['gaussians']:>9} {f(r['fps'], 1):>6}")
 
@@ -114,6 +138,9 @@ def print_summary(rows: list[dict]) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scenes", default=",".join(DEFAULT_SCENES))
+    ap.add_argument("--suite", choices=["stress"], default=None,
+                    help="train and score the stress suite (nehad synth --suite stress) instead of "
+                         "--scenes: per scene the gain and the worst object-quarter gain")
     ap.add_argument("--decoders", default="hnn,mlp")
     ap.add_argument("--ablation", default=None, metavar="SCENES",
                     help="run the component ablation on these scenes (comma-separated) instead")
@@ -126,6 +153,12 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "runs" / "quality")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
+    if args.suite == "stress":
+        from nehad.data.synth_stress import STRESS_SCENES
+
+        args.scenes = ",".join(STRESS_SCENES)
+        if args.decoders == "hnn,mlp":
+            args.decoders = "hnn"
     rows = []
     if args.ablation:
         wanted = args.variants.split(",") if args.variants else list(ABLATIONS)
@@ -134,7 +167,7 @@ def main() -> None:
                 sys.exit(f"--variants: unknown variant {variant!r} (choose from "
                          f"{', '.join(ABLATIONS)})")
         for scene in args.ablation.split(","):
-            data, scene_sets = scene_path(scene)
+            data, scene_sets = scene_path(scene, args.out / "stress_data")
             for seed in (int(v) for v in args.seeds.split(",")):
                 for variant in wanted:
                     extra = ABLATIONS[variant]
@@ -153,7 +186,7 @@ def main() -> None:
                     print_rows(rows[-1:])
     else:
         for scene in args.scenes.split(","):
-            data, scene_sets = scene_path(scene)
+            data, scene_sets = scene_path(scene, args.out / "stress_data")
             for dec in args.decoders.split(","):
                 run = args.out / f"{scene}_{dec}"
                 rows.append({"scene": scene, "variant": f"decoder {dec}",

@@ -18,11 +18,20 @@ from .errors import InputError, user_errors
 @click.command()
 @click.argument("out", type=click.Path(file_okay=False, path_type=Path))
 @click.option("--scene", default="spheres", show_default=True,
-              help="Which synthetic scene: spheres or boxes.")
-@click.option("--resolution", type=click.IntRange(min=4), default=64, show_default=True,
-              help="Image width and height in pixels.")
-@click.option("--frames", type=click.IntRange(min=1), default=50, show_default=True,
-              help="Number of train frames (val and test get about 10% as many each).")
+              help="Which synthetic scene: spheres or boxes, or one scene of the stress suite "
+                   "(occluder, crossing, scaling, split_merge, spinning_textures, thin_rod, "
+                   "fast_few_frames; MuJoCo protocol, see --suite).")
+@click.option("--suite", type=click.Choice(["stress"]), default=None,
+              help="Write the whole stress suite into OUT/NAME, one scene per failure class of "
+                   "dynamic scenes, in the MuJoCo protocol (12 fixed cameras, one per timestamp, "
+                   "120 timestamps, label masks, fused.ply; --resolution defaults to 400 there, "
+                   "--frames to 120).")
+@click.option("--resolution", type=click.IntRange(min=4), default=None,
+              help="Image width and height in pixels  [default: 64; 400 for stress scenes]")
+@click.option("--frames", type=click.IntRange(min=1), default=None,
+              help="Number of train frames (val and test get about 10% as many each); for "
+                   "stress scenes the number of timestamps (14 of each 20 train)  [default: 50; "
+                   "120 for stress scenes]")
 @click.option("--seed", type=click.IntRange(0, 2**32 - 1), default=0, show_default=True,
               help="Seed of the cameras and times.")
 @click.option("--fixed-time", type=FiniteFloat(0.0, 1.0), default=None,
@@ -38,14 +47,28 @@ from .errors import InputError, user_errors
                    "poses_bounds.npy; --frames is then the frames per video).")
 @click.option("--cameras", type=click.IntRange(min=2), default=4, show_default=True,
               help="dynerf: number of cameras (cam00 is the test camera).")
-def synth(out, scene, resolution, frames, seed, fixed_time, num_gaussians, fmt, cameras):
+def synth(out, scene, suite, resolution, frames, seed, fixed_time, num_gaussians, fmt, cameras):
     """Write a synthetic dynamic scene to the folder OUT (D-NeRF layout unless --format).
 
-    D-NeRF: OUT gets train/, val/, test/ (RGBA PNGs), transforms_{train,val,test}.json,
-    points3d.ply (initial points) and gaussians.ply (a ready-made 3DGS PLY of the scene, to
-    render). HyperNeRF and DyNeRF: the files of those releases, RGB over black (see README).
+    D-NeRF: OUT gets train/, val/, test/ (RGBA PNGs, label masks in */masks/),
+    transforms_{train,val,test}.json, class_mapping.json, points3d.ply (initial points) and
+    gaussians.ply (a ready-made 3DGS PLY of the scene, to render). HyperNeRF and DyNeRF: the
+    files of those releases, RGB over black (see README). Stress scenes (--suite stress, or a
+    stress --scene): the MuJoCo layout with a random fused.ply (docs/usage.md).
     """
     from nehad.data.synth import SCENES, synthesize_scene
+    from nehad.data.synth_stress import STRESS_SCENES
+
+    if suite is not None or scene in STRESS_SCENES:
+        if fmt != "dnerf" or fixed_time is not None:
+            raise click.UsageError("stress scenes are written in the D-NeRF (MuJoCo) layout "
+                                   "only, without --fixed-time")
+        with user_errors():
+            check_synth_memory(resolution or 400, frames or 120)
+        return _synth_stress(out, STRESS_SCENES if suite is not None else (scene,),
+                             suite is not None, resolution or 400, frames or 120, seed)
+    resolution = 64 if resolution is None else resolution
+    frames = 50 if frames is None else frames
 
     with user_errors():
         check_synth_memory(resolution, frames, cameras if fmt == "dynerf" else 1,
@@ -123,6 +146,28 @@ def _removed_on_failure(out: Path):
         if created and out.is_dir():
             shutil.rmtree(out, ignore_errors=True)
         raise
+
+
+def _synth_stress(out, names, nested, resolution, frames, seed):
+    from nehad.data.synth_stress import synthesize_stress_scene
+
+    if frames < 20:
+        raise click.BadParameter("stress scenes need at least 20 timestamps", param_hint="'--frames'")
+    if out.exists() and not out.is_dir():
+        raise click.BadParameter(f"{out} exists and is not a folder", param_hint="'OUT'")
+    start = time.perf_counter()
+    with user_errors(), _removed_on_failure(out):
+        from tqdm import tqdm
+
+        with tqdm(total=frames * len(names), desc="synth", unit="frame", delay=1.0, disable=None,
+                  leave=False, file=sys.stderr) as bar:
+            for name in names:
+                synthesize_stress_scene(out / name if nested else out, name, resolution=resolution,
+                                        frames=frames, seed=seed, progress=lambda: bar.update(1))
+    click.echo(f"wrote {out}/ ({', '.join(names)}; {frames} timestamps at {resolution}x{resolution}"
+               f", {time.perf_counter() - start:.1f} s)")
+    q = shlex.quote(str(out / names[0] if nested else out))
+    click.echo(f"try: nehad train {q} -o run && nehad eval run   # scores every labelled object")
 
 
 def _synth_other_format(out, fmt, scene, resolution, frames, seed, fixed_time, cameras):

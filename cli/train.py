@@ -142,12 +142,14 @@ def eval_(run, split, data_dir, no_lpips, max_frames, quiet):
     with user_errors():
         if not (run / "model.pt").exists():
             raise InputError(f"{run}: not a finished training run (no model.pt)")
-        from nehad.evaluate import evaluate_run, format_table
+        from nehad.evaluate import evaluate_run, format_table, object_warnings
 
         result = evaluate_run(run, split, data_dir, lpips=not no_lpips, progress=not quiet,
                               max_frames=max_frames)
-    click.echo(format_table(result))
+    click.echo(format_table(result, warnings=False))
     click.echo(f"wrote {run}/eval_{split}/metrics.json")
+    for line in object_warnings(result):  # last, so that they cannot scroll away unseen
+        click.secho(line, fg="red", bold=True)
 
 
 @click.command()

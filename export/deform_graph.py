@@ -437,8 +437,9 @@ class FastDeform(nn.Module):
         disp, ds, q = rows[0:3], rows[3:6], rows[6:10]
         t_eq = t_eq.reshape(1, n)
         if cfg.bed_position:
+            at = mu + disp if cfg.bed_distance == "deformed" else mu
             disp = disp * (1.0 - position_mask(
-                mu, mu_eq.t(), t, t_eq, sigma_s=cfg.sigma_s_fraction * self.extent.to(means.dtype),
+                at, mu_eq.t(), t, t_eq, sigma_s=cfg.sigma_s_fraction * self.extent.to(means.dtype),
                 sigma_t=cfg.sigma_t, beta=cfg.beta, gamma=cfg.gamma, lam=cfg.lam,
                 eps=cfg.norm_eps, dim=0))
         if cfg.bed_scale:

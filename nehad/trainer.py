@@ -154,6 +154,7 @@ class Trainer:
         self._scaled_views: dict = {}
         self.extent = float(self.scene.extent)
         self.aabb = scene_bounds(self.scene.initial_points)
+        self.carve_box = self.aabb.copy()  # residual carving samples depths in it (nehad.carve)
         self.total_steps = self.schedule.total_steps
         self.step = 0
         self._check_run_dir(resume)
@@ -369,6 +370,7 @@ class Trainer:
         gen = torch.Generator().manual_seed(int(cfg.train.seed) * 1_000_003 + step)
         did = self.strategy.step_post_backward(self.model.gaussians, self.optimizer, phase.it + 1,
                                                gen)
+        did.update(self._carve_if_due(phase, step, window, views))
         record = {"step": step + 1, "stage": phase.stage, "loss": float(total.item()),
                   "psnr": float(np.mean(psnrs)), "gaussians": len(self.model.gaussians),
                   "sh_degree": degree, "window": [round(window.lo, 4), round(window.hi, 4)],
@@ -376,6 +378,71 @@ class Trainer:
                   **{k: v for k, v in did.items() if k != "gaussians"}}
         schedule.end(self, phase, step, record)
         return record
+
+    def _carve_if_due(self, phase: Phase, step: int, window, views: Views) -> dict:
+        """A residual carving pass (nehad.carve) every carve.every iterations of the stage's
+        densification window: the carve.views frames of the time window nearest to one time
+        (the canonical time in the coarse stage, a random frame's time in the fine stage),
+        each rendered at its own time."""
+        from nehad.carve import carve_points, new_gaussians
+        from nehad.densify import append_gaussians, keep_gaussians
+        from nehad.runtime.raster import render
+
+        c = self.cfg.carve
+        sched = self.strategy.schedule
+        it = phase.it + 1
+        if (c.every <= 0 or c.max_new <= 0 or phase.layer > 0 or self.strategy.frozen
+                or not sched.start <= it < sched.stop or it % c.every):
+            return {}
+        rng = np.random.default_rng([self.cfg.train.seed, step, 7])
+        pool = eligible_frames(views.times, window)
+        times = np.asarray(views.times, np.float64)
+        t_c = (float(times[rng.choice(pool)]) if phase.deforms
+               else float(self.cfg.train.canonical_time))
+        nearest = pool[np.argsort(np.abs(times[pool] - t_c), kind="stable")[:c.views]]
+        degree = self.active_sh_degree(step)
+        cams, targets, alphas, drawn = [], [], [], []
+        canonical = None if phase.deforms else cloud_at(self.model, None, degree)
+        for k in nearest:
+            cloud = canonical if canonical is not None else cloud_at(self.model, times[k], degree)
+            cams.append(views.cameras[k])
+            drawn.append(render(cloud, views.cameras[k], self.background))
+            targets.append(views.images[k].numpy())
+            a = views.alphas[k]
+            alphas.append(None if a is None else a.numpy()[:, :, 0])
+        pts, cols, widths, n_bad = carve_points(
+            cams, targets, alphas, [d.rgb for d in drawn], self.carve_box, times[nearest],
+            render_alphas=[d.alpha for d in drawn], render_depths=[d.depth for d in drawn],
+            residual=c.residual, stride=c.stride, depth_samples=c.depth_samples,
+            min_views=c.min_views, agree=c.agree, colour_tol=c.colour_tol, motion=c.motion,
+            rng=rng)
+        if len(pts) > c.max_new:
+            pick = rng.choice(len(pts), c.max_new, replace=False)
+            pts, cols, widths = pts[pick], cols[pick], widths[pick]
+        out = {"carve_time": round(t_c, 4), "carve_unexplained": n_bad, "carved": len(pts)}
+        if not len(pts):
+            return out
+        g = self.model.gaussians
+        state = self.strategy.state
+        cap = self.cfg.densify.max_gaussians
+        over = len(g) + len(pts) - cap if cap > 0 else 0
+        if over > 0:  # relocate: the least opaque Gaussians make room (nehad.carve)
+            opac = g.opacity_logits.detach().reshape(-1)
+            keep = torch.ones(len(g), dtype=torch.bool)
+            keep[torch.argsort(opac)[:min(over, len(g))]] = False
+            keep_gaussians(g, self.optimizer, keep)
+            if state.grad_accum.shape[0] == len(keep):
+                state.grad_accum, state.visible_count, state.max_radii = (
+                    state.grad_accum[keep], state.visible_count[keep], state.max_radii[keep])
+            out["relocated"] = int((~keep).sum())
+        extra = new_gaussians(pts, cols, widths, t_c, g, c.opacity)
+        append_gaussians(g, self.optimizer, extra)
+        if state.grad_accum.shape[0] == len(g) - len(pts):
+            zeros = torch.zeros(len(pts))
+            state.grad_accum = torch.cat([state.grad_accum, zeros])
+            state.visible_count = torch.cat([state.visible_count, zeros])
+            state.max_radii = torch.cat([state.max_radii, zeros])
+        return out
 
     # -- loop ----------------------------------------------------------------------------
     def checkpoint_state(self) -> dict:

@@ -23,7 +23,7 @@ OUTPUTS = ("means", "scales", "quats", "opacities", "sh")
 TIMES = (0.0, 0.13, 0.5, 0.77, 1.0)
 
 
-def make_run(root, decoder: str, seed: int = 0):
+def make_run(root, decoder: str, seed: int = 0, extra=()):
     """A tiny trained run (test preset) whose deformation is made clearly non-trivial: the
     adapters / last head layers get random weights (a fresh field is the identity), the
     equilibrium parameters are spread out. Returns (run dir, data dir)."""
@@ -35,11 +35,11 @@ def make_run(root, decoder: str, seed: int = 0):
     data = root / "scene"
     if not data.exists():
         synthesize_scene(data, resolution=24, frames=8, points=300, seed=seed)
-    run = root / f"run_{decoder}"
+    run = root / (f"run_{decoder}" + "".join(f"_{x.split('=')[-1]}" for x in extra))
     # short stages; the HNN run ends at SH degree 0 of the stored 1 (the export truncates)
     sets = [f"field.decoder={decoder}", "coarse.iterations=10", "fine.iterations=6",
 
-            f"train.sh_degree_interval={100 if decoder == 'hnn' else 5}"]
+            f"train.sh_degree_interval={100 if decoder == 'hnn' else 5}", *extra]
     Trainer(build_config("test", None, sets), data, run, progress=False).train()
     state = load_state(run / "model.pt")
     g = torch.Generator().manual_seed(seed + 7)
@@ -160,6 +160,34 @@ def test_render_from_onnx_matches_run_render(runs, tmp_path, decoder):
         print(f"{decoder} t={t}: ONNX vs torch render PSNR {psnr:.1f} dB")
         assert psnr > 60.0
         assert 0.02 < float(np.mean(np.abs(x - 1.0))) or x.std() > 0.01  # something is drawn
+
+
+def test_bed_deformed_reading_exports_with_parity(tmp_path):
+    """field.bed_distance=deformed (M_pos from the integrated position, docs/design.md section
+    4.7): the exported graph computes the same Gaussians as torch, and the reading changes them."""
+    from nehad.checkpoint import atomic_torch_save, load_state
+
+    run, _ = make_run(tmp_path, "hnn", extra=("field.bed_distance=deformed",))
+    path = tmp_path / "model.onnx"
+    res = CliRunner().invoke(main, ["export", str(run), "-o", str(path)])
+    assert res.exit_code == 0, res.output
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    worst = 0.0
+    for t in TIMES:
+        got = sess.run(None, {"time": np.array([t], np.float32)})
+        for a, b in zip(got, torch_reference(run, t)):
+            worst = max(worst, parity_error(a, b))
+    assert worst <= 1e-5
+    # the same weights read the other way place the Gaussians elsewhere
+    state = load_state(run / "model.pt")
+    state["config"]["field"]["bed_distance"] = "canonical"
+    atomic_torch_save(state, run / "model.pt")
+    other = torch_reference(run, 0.13)[0]
+    assert np.abs(got_means_at(sess, 0.13) - other).max() > 1e-3
+
+
+def got_means_at(sess, t):
+    return sess.run(["means"], {"time": np.array([t], np.float32)})[0]
 
 
 def test_fp16_weights_smaller_and_exact_vs_rounded_model(runs, tmp_path):

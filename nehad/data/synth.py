@@ -10,7 +10,9 @@ docs/design.md section 3 conventions):
 - ``transforms_{train,val,test}.json``: ``camera_angle_x`` and frames
   ``{"file_path": "./train/r_000", "time": t, "transform_matrix": c2w}`` where ``c2w`` is
   camera-to-world in Blender/OpenGL axes (y up, z back) and ``file_path`` has no extension;
-- ``points3d.ply`` (optional): points on the object surfaces at mid time, ``x y z red green blue``.
+- ``points3d.ply`` (optional): points on the object surfaces at mid time, ``x y z red green blue``;
+- ``SPLIT/masks/r_XXX.png`` and ``class_mapping.json``: per-object label masks (uint8 ids,
+  0 = background) as the MuJoCo scenes have them (:func:`label_mask`).
 
 The world is z-up like the Blender scenes; every object stays inside [-1.3, 1.3]^3, the cube
 D-NeRF's random initialisation fills (docs/design.md section 5). Cameras sit on a sphere of radius 4 and look
@@ -34,8 +36,8 @@ from nehad.runtime.cameras import Camera
 from nehad.runtime.images import atomic_write_bytes, write_image
 
 __all__ = [
-    "SCENES", "BOUND", "Sphere", "Box", "scene_objects", "orbit_camera_to_world",
-    "render_view", "synthesize_scene",
+    "SCENES", "BOUND", "Sphere", "Box", "Surface", "scene_objects", "orbit_camera_to_world",
+    "render_view", "label_mask", "class_mapping", "write_frame", "synthesize_scene",
 ]
 
 #: Names accepted by :func:`synthesize_scene` and :func:`scene_objects`.
@@ -51,13 +53,37 @@ _NEAR = 1e-3
 
 
 @dataclass(frozen=True)
+class Surface:
+    """How an object's surface looks: a flat colour, or a two-colour pattern fixed to the object.
+
+    `pattern` is None, ``"checker"`` or ``"stripes"``; `cells` the number of pattern cells around
+    the object (checker: `cells` around x `cells // 2` from pole to pole on a sphere, `cells` per
+    box edge; stripes: `cells` stripes around a sphere's local z axis, across a box's local x).
+    `unlit` surfaces show their colour unshaded (a floor that looks like the background).
+    """
+
+    pattern: str | None = None
+    second_colour: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    cells: int = 8
+    unlit: bool = False
+
+
+PLAIN = Surface()
+
+
+@dataclass(frozen=True)
 class Sphere:
-    """A sphere with a flat (Lambertian) colour."""
+    """A sphere with a Lambertian colour; `rotation` (columns: the local axes in world
+    coordinates) only matters for a patterned `surface`. `labelled` objects get an id in label
+    masks; the others (a floor) count as background there."""
 
     name: str
     centre: np.ndarray  # (3,)
     radius: float
     colour: tuple[float, float, float]
+    rotation: np.ndarray | None = None
+    surface: Surface = PLAIN
+    labelled: bool = True
 
     @property
     def bounding_radius(self) -> float:
@@ -73,6 +99,8 @@ class Box:
     half_size: np.ndarray  # (3,)
     rotation: np.ndarray  # (3, 3), columns are the box axes in world coordinates
     colour: tuple[float, float, float]
+    surface: Surface = PLAIN
+    labelled: bool = True
 
     @property
     def bounding_radius(self) -> float:
@@ -193,6 +221,60 @@ def _intersect(obj, origin: np.ndarray, d: np.ndarray):
     return s, normal
 
 
+def _surface_colour(obj, points: np.ndarray) -> np.ndarray:
+    """Colour of `obj` at world surface `points` (..., 3): (3,) for a plain surface, else
+    (..., 3) from the pattern in the object's own frame (so the pattern turns with it)."""
+    surf = obj.surface
+    base = np.asarray(obj.colour, dtype=np.float64)
+    if surf.pattern is None:
+        return base
+    rot = obj.rotation if obj.rotation is not None else np.eye(3)
+    local = (points - obj.centre) @ rot  # = rot.T (p - c), row-wise
+    n = int(surf.cells)
+    if isinstance(obj, Sphere):
+        u = (np.arctan2(local[..., 1], local[..., 0]) + math.pi) / (2.0 * math.pi)  # [0, 1]
+        v = np.arccos(np.clip(local[..., 2] / max(obj.radius, 1e-12), -1.0, 1.0)) / math.pi
+        if surf.pattern == "stripes":
+            parity = np.floor(u * n)
+        else:
+            parity = np.floor(u * n) + np.floor(v * max(n // 2, 1))
+    else:
+        rel = (local / obj.half_size + 1.0) * 0.5  # [0, 1] across each box axis
+        if surf.pattern == "stripes":
+            parity = np.floor(rel[..., 0] * n)
+        else:
+            parity = np.floor(rel * n).sum(axis=-1)
+    odd = (parity.astype(np.int64) % 2 == 1)[..., None]
+    return np.where(odd, np.asarray(surf.second_colour, dtype=np.float64), base)
+
+
+def label_mask(objects, coverage: np.ndarray) -> np.ndarray:
+    """uint8 label mask (MuJoCo layout: 0 = background, k = the k-th labelled object, in list
+    order) from :func:`render_view`'s per-object coverage: a pixel takes the id of the object
+    that covers most of it, when that object covers at least half of it and is labelled."""
+    h, w = coverage.shape[:2]
+    if not objects:
+        return np.zeros((h, w), dtype=np.uint8)
+    ids = np.zeros(len(objects), dtype=np.uint8)
+    next_id = 1
+    for k, obj in enumerate(objects):
+        if obj.labelled:
+            ids[k] = next_id
+            next_id += 1
+    front = coverage.argmax(axis=-1)
+    most = np.take_along_axis(coverage, front[..., None], axis=-1)[..., 0]
+    return np.where(most >= 0.5, ids[front], 0).astype(np.uint8)
+
+
+def class_mapping(objects) -> dict[str, str]:
+    """``class_mapping.json``'s content for `objects` (ids as :func:`label_mask` gives them)."""
+    names = {"0": "background"}
+    for obj in objects:
+        if obj.labelled:
+            names[str(len(names))] = obj.name
+    return names
+
+
 def render_view(objects, camera: Camera, supersample: int = 3, return_coverage: bool = False):
     """Ray-cast `objects` from `camera` (a :class:`~nehad.runtime.cameras.Camera`, OpenCV axes).
 
@@ -232,9 +314,12 @@ def render_view(objects, camera: Camera, supersample: int = 3, return_coverage: 
         closer = s < depth[win]
         if not closer.any():
             continue
-        lambert = np.clip(normal @ _LIGHT, 0.0, None)
-        shade = _AMBIENT + (1.0 - _AMBIENT) * lambert
-        rgb = shade[..., None] * np.asarray(obj.colour)
+        if obj.surface.unlit:
+            shade = np.ones(s.shape)
+        else:
+            shade = _AMBIENT + (1.0 - _AMBIENT) * np.clip(normal @ _LIGHT, 0.0, None)
+        points = origin + np.where(np.isfinite(s), s, 0.0)[..., None] * d
+        rgb = shade[..., None] * _surface_colour(obj, points)
         depth[win] = np.where(closer, s, depth[win])
         colour[win] = np.where(closer[..., None], rgb, colour[win])
         ids[win] = np.where(closer, k, ids[win])
@@ -296,6 +381,17 @@ def _ply_bytes(points: np.ndarray, colours: np.ndarray) -> bytes:
     return header.encode("ascii") + rec.tobytes()
 
 
+def write_frame(root: Path, split: str, name: str, objects, camera: Camera,
+                supersample: int = 3) -> None:
+    """Ray cast `objects` and write ``root/split/name.png`` (RGBA) and its label mask
+    ``root/split/masks/name.png`` (the MuJoCo layout, :func:`label_mask`)."""
+    rgba, coverage = render_view(objects, camera, supersample=supersample, return_coverage=True)
+    write_image(root / split / f"{name}.png", rgba, bit_depth=8)
+    (root / split / "masks").mkdir(exist_ok=True)
+    write_image(root / split / "masks" / f"{name}.png",
+                label_mask(objects, coverage).astype(np.float32) / 255.0, bit_depth=8)
+
+
 def synthesize_scene(out_dir, scene: str = "spheres", resolution: int = 64, frames: int = 50,
                      seed: int = 0, fixed_time: float | None = None, fov_deg: float = 45.0,
                      supersample: int = 3, points: int = 2000, progress=None) -> Path:
@@ -350,9 +446,8 @@ def synthesize_scene(out_dir, scene: str = "spheres", resolution: int = 64, fram
             c2w = orbit_camera_to_world(float(azimuth[k]), float(elevation[k]))
             t = float(times[k])
             cam = Camera.from_camera_to_world(c2w, resolution, resolution, focal, focal, time=t)
-            rgba = render_view(scene_objects(scene, t), cam, supersample=supersample)
             name = f"r_{k:0{digits}d}"
-            write_image(out / split / f"{name}.png", rgba, bit_depth=8)
+            write_frame(out, split, name, scene_objects(scene, t), cam, supersample)
             if progress is not None:
                 progress()
             records.append({"file_path": f"./{split}/{name}", "time": t,
@@ -360,6 +455,8 @@ def synthesize_scene(out_dir, scene: str = "spheres", resolution: int = 64, fram
         doc = {"camera_angle_x": angle_x, "frames": records}
         atomic_write_bytes(out / f"transforms_{split}.json",
                             (json.dumps(doc, indent=2) + "\n").encode("utf-8"))
+    atomic_write_bytes(out / "class_mapping.json", (json.dumps(
+        class_mapping(scene_objects(scene, 0.0)), indent=2) + "\n").encode("utf-8"))
     if points > 0:
         t_pts = 0.5 if fixed_time is None else fixed_time
         pts, cols = _surface_points(scene_objects(scene, t_pts), int(points), rng_pts)

@@ -111,6 +111,14 @@ class FieldConfig:
     """Blend positions with M_pos; off: mu' = mu~ (equivalent to M_pos = 0)."""
     bed_scale: bool = True
     """Blend log-scale offsets with M_scale; off: s' = s + ds (equivalent to M_scale = 0)."""
+    bed_distance: str = "canonical"
+    """What the spatial deviation dd = |x - mu_eq| / sigma_s of M_pos measures (the paper's
+    mu_i is ambiguous, docs/design.md section 4.7): "canonical": x = the canonical mean mu (the
+    appendix's symbols; mu_eq starts at mu, so the mask starts as a function of t - t_eq alone
+    and holds every Gaussian still around t_eq); "deformed": x = mu~, the Verlet-integrated
+    position at time t, so a Gaussian the field moves far from its equilibrium is deformed
+    freely and one it barely moves is held static (the paper's "larger distances indicate ...
+    more intense motion, hence more likely to be dynamic primitives")."""
     sigma_s_fraction: float = 0.1
     """sigma_s = sigma_s_fraction * scene extent (spatial sensitivity)."""
     sigma_t: float = 0.25
@@ -205,6 +213,8 @@ class FieldConfig:
             bad("hnn_init_gain", "must be > 0")
         if finite("dt") <= 0:
             bad("dt", "must be > 0")
+        if self.bed_distance not in ("canonical", "deformed"):
+            bad("bed_distance", "must be 'canonical' or 'deformed'")
         if finite("sigma_s_fraction") <= 0:
             bad("sigma_s_fraction", "must be > 0")
         if finite("sigma_t") <= 0:

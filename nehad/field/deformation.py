@@ -225,7 +225,8 @@ class DeformationField(nn.Module):
                                  "bed_position / bed_scale on")
             t_eq = t_eq.reshape(n, 1)
         if cfg.bed_position:
-            m_pos = position_mask(means, mu_eq, t_col, t_eq,
+            at = means + disp if cfg.bed_distance == "deformed" else means
+            m_pos = position_mask(at, mu_eq, t_col, t_eq,
                                   sigma_s=cfg.sigma_s_fraction * self.extent.to(means.dtype),
                                   sigma_t=cfg.sigma_t, beta=cfg.beta, gamma=cfg.gamma,
                                   lam=cfg.lam, eps=cfg.norm_eps)

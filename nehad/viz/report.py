@@ -47,6 +47,9 @@ figcaption{font-size:.85em;color:#555;margin-top:4px;max-width:640px}
  display:inline-block}
 pre{background:#fff;border:1px solid #e3e3e3;padding:10px;overflow:auto;font-size:.85em}
 .row{display:flex;gap:4px}
+.warn{color:#fff;background:#b00020;font-weight:bold;padding:6px 10px;margin:.4em 0;
+ display:inline-block}
+td.bad{background:#fdd;color:#900;font-weight:bold}td.skip{color:#999}
 """
 
 _SCRIPT = """
@@ -192,6 +195,7 @@ def metrics_section(run: Path) -> str:
     lp = results[0].get("lpips_input")
     if lp:
         parts.append(f"<p class=sub>LPIPS input: {_e(lp)}. From RUN/eval_SPLIT/metrics.json.</p>")
+    n_head = len(parts)
     for r in results:
         pf = r.get("per_frame") or []
         if pf:
@@ -200,7 +204,52 @@ def metrics_section(run: Path) -> str:
             parts.append(f"<details><summary>per frame ({_e(r.get('split'))}, {len(pf)})</summary>"
                          + table(["file", "t"] + [lab for _, lab, _ in keys], rows, 1)
                          + "</details>")
-    return "".join(parts)
+    # per-object scores (datasets with label masks): warnings first, the table after the metrics
+    warns = [f'<p class="warn">{_e(r.get("split"))}: {_e(w)}</p><br>'
+             for r in results for w in r.get("object_warnings") or []]
+    parts[n_head:n_head] = [objects_section(r) for r in results if r.get("objects")]
+    return "".join(warns) + "".join(parts)
+
+
+def objects_section(result: dict) -> str:
+    """The per-object table of one metrics.json (object x time quarter: PSNR of the model and
+    of the blank image on the object's ground-truth pixels, and the gain), the cells under the
+    warning threshold highlighted (the warning lines go at the top of the metrics section)."""
+    objects = result.get("objects") or []
+    rules = result.get("object_rules") or {}
+    warn = float(rules.get("warn_gain_db", 3.0))
+    split = result.get("split", "?")
+    ranges = [tb["range"] for tb in max(objects, key=lambda o: len(o["time_bins"]))["time_bins"]]
+    head = ('<tr><th class="l" rowspan="2">object</th>'
+            + "".join(f'<th colspan="3">t {a:.2f}-{b:.2f}</th>' for a, b in ranges)
+            + '<th colspan="3">all frames</th></tr><tr>'
+            + "<th>model</th><th>blank</th><th>gain</th>" * (len(ranges) + 1) + "</tr>")
+    rows = []
+    for o in objects:
+        by_range = {tuple(tb["range"]): tb for tb in o["time_bins"]}
+        cells = [f'<td class="l">{_e(o.get("name"))}</td>']
+        for cell in [by_range.get(tuple(r)) for r in ranges] + [o]:
+            gain = None if cell is None else cell.get("gain")
+            if gain is None:
+                why = "no frame" if cell is None else cell.get("skipped", "not scored")
+                px = "" if cell is None else f", {cell.get('pixels', 0)} px"
+                cells.append(f'<td class="skip" colspan="3" title="{_e(why)}">'
+                             f"n/a ({_e(why)}{_e(px)})</td>")
+                continue
+            cls = ' class="bad"' if cell is not o and gain < warn else ""
+            title = f' title="{cell["pixels"]} object pixels"' if "pixels" in cell else ""
+            cells.append(f"<td{title}>{_fmt(cell.get('psnr'), 2)}</td>"
+                         f"<td>{_fmt(cell.get('blank_psnr'), 2)}</td>"
+                         f"<td{cls}>{gain:+.2f}</td>")
+        rows.append("<tr>" + "".join(cells) + "</tr>")
+    out = [f"<h3>Objects ({_e(split)})</h3>"]
+    out.append("<table>" + head + "".join(rows) + "</table>")
+    out.append(f"<p class=sub>PSNR (dB) on each labelled object's ground-truth pixels "
+               f"({_e(rules.get('pixel', 'label masks'))}), the squared error pooled over all its "
+               f"pixels of the quarter's frames, beside a blank image (the background colour); "
+               f"red: gain under +{warn:g} dB; a quarter with fewer than "
+               f"{_e(rules.get('min_pixels', '?'))} object pixels is not scored.</p>")
+    return "".join(out)
 
 
 def _psnr(a, b) -> float:
@@ -439,5 +488,5 @@ def build_report(run_dir, output, data_dir=None, frames: int = 4, score: bool = 
             "sections": [sid for sid, _, _ in sections], "skipped": skipped}
 
 
-__all__ = ["build_report", "figure", "img_tag", "metrics_section", "read_log", "table",
-           "training_plots"]
+__all__ = ["build_report", "figure", "img_tag", "metrics_section", "objects_section", "read_log",
+           "table", "training_plots"]

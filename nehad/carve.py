@@ -1,0 +1,215 @@
+"""Residual carving: Gaussians where the picture is consistently wrong and no Gaussian is near
+(docs/training.md, "Objects that were never created").
+
+3DGS densification clones and splits Gaussians that already sit on an object, so it cannot create
+an object no Gaussian reaches. From a random initial cloud (the MuJoCo ``fused.ply``) a small
+object, or one that is behind a large occluder from part of the rig, then never gets any: the
+random Gaussians that overlap it in one view cover background in the others and are made
+transparent before they find it (measured in docs/results.md: 0 Gaussians on the occluded
+sphere of the stress suite after the coarse stage, at 100 and at 400 pixels, with 2500 or 20000
+initial points).
+
+A carving pass looks at the training views nearest to one time, as space carving does with
+silhouettes, but with the residual:
+
+1. render each view with the current model; a pixel is *unexplained* where the render differs from
+   the target by more than `residual` in some channel (and, for images with alpha, the target is
+   foreground: alpha >= 0.5);
+2. cast a ray through each unexplained pixel of each view (on a grid of `stride` pixels) and
+   sample it at `depth_samples` depths across the scene box;
+3. a sample is *voted for* by every other view in which it projects onto an unexplained pixel
+   whose target chromaticity (rgb / (r + g + b): shading divided out, since the lit and the
+   shaded side of one object differ in brightness) is within `colour_tol` of the ray's; it is accepted when it is in frame in
+   at least `min_views` other views and voted for by `agree` of them, at the depth with the most
+   votes along its ray. Points behind a correctly drawn occluder lose the views that see the
+   occluder, points off the object land on explained pixels: only the object's own place gathers
+   the votes;
+4. each accepted point becomes a Gaussian of the target colour, opacity `opacity`, as wide as
+   the pixel grid at its depth, with its Boltzmann equilibrium at the pass's time
+   (mu_eq = its position, t_eq = that time: the position mask holds it still there, paper Sec.
+   "Boltzmann Equilibrium Decomposition"), so it is drawn where it was seen.
+
+When the Gaussian cap is reached, as many of the least opaque Gaussians are removed first (they
+are relocated, as 3DGS-MCMC relocates dead Gaussians), so a full budget cannot starve an object.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from nehad.gaussians import rgb_to_sh_dc
+
+
+@dataclass
+class CarveStats:
+    views: int
+    unexplained: int  # unexplained pixels on the ray grid, all views
+    rays: int
+    added: int
+    relocated: int
+    time: float | None
+
+
+def _ray_box(origin: np.ndarray, dirs: np.ndarray, box: np.ndarray):
+    """Entry and exit ray parameters of rays origin + s dirs through the box (2, 3)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / np.where(np.abs(dirs) < 1e-12, 1e-12, dirs)
+        t1 = (box[0] - origin) * inv
+        t2 = (box[1] - origin) * inv
+    near = np.minimum(t1, t2).max(axis=1)
+    far = np.maximum(t1, t2).min(axis=1)
+    return np.maximum(near, 1e-3), far
+
+
+def _chroma(rgb: np.ndarray) -> np.ndarray:
+    """rgb / (r + g + b): a surface's colour with its shading divided out (a lit and a shaded
+    side of one object agree), and 1/3 each for white, grey and black."""
+    return rgb / np.maximum(rgb.sum(axis=-1, keepdims=True), 1e-3)
+
+
+def unexplained_mask(render: np.ndarray, target: np.ndarray, alpha: np.ndarray | None,
+                     residual: float) -> np.ndarray:
+    """(H, W) bool: the render misses the target by more than `residual` in some channel (and
+    the target is foreground where alpha is known)."""
+    bad = np.abs(render - target).max(axis=-1) > residual
+    if alpha is not None:
+        bad &= alpha.reshape(bad.shape) >= 0.5
+    return bad
+
+
+def _match_distances(bad, targets, centre: np.ndarray, tol: float) -> list[np.ndarray]:
+    """Per view: the distance in pixels from each pixel to the nearest unexplained pixel whose
+    target chromaticity is within `tol` of `centre` (inf where there is none)."""
+    import cv2
+
+    out = []
+    for b, t in zip(bad, targets):
+        match = b & (np.abs(_chroma(t) - centre).max(axis=-1) <= tol)
+        if not match.any():
+            out.append(np.full(b.shape, np.inf, np.float32))
+            continue
+        out.append(cv2.distanceTransform((~match).astype(np.uint8), cv2.DIST_L2, 3))
+    return out
+
+
+def carve_points(cameras, targets, alphas, renders, box: np.ndarray, times=None, *,
+                 render_alphas=None, render_depths=None, residual: float = 0.25, stride: int = 2, depth_samples: int = 96,
+                 min_views: int = 2, agree: float = 0.6, colour_tol: float = 0.08,
+                 motion: float = 1.5, max_rays: int = 3000,
+                 rng: np.random.Generator | None = None):
+    """The accepted points of one carving pass (module docstring, steps 1-3).
+
+    `cameras`: runtime Cameras; `targets`, `renders`: (H, W, 3) float arrays per view; `alphas`:
+    (H, W) or None per view; `box`: (2, 3) scene box to sample depths in; `times`: each view's
+    time (None: all the same). An object may move between views of different times: view j's
+    vote for a point of view k counts an unexplained pixel of the ray's chromaticity within
+    1 + `motion` |t_j - t_k| W pixels of the point's projection (W the image width: `motion` is
+    the largest image speed expected, in image widths per unit of time). With the renders'
+    alpha and depth, a view in which the point lies behind a drawn, explained surface (by more
+    than 2% of the box's diagonal) is occluded there and neither votes nor counts. Returns (points (M, 3),
+    colours (M, 3), pixel widths (M,): the world size of `stride` pixels at each point) and the
+    number of unexplained grid pixels.
+    """
+    rng = rng or np.random.default_rng(0)
+    margin = 0.02 * float(np.linalg.norm(box[1] - box[0]))
+    times = np.zeros(len(cameras)) if times is None else np.asarray(times, np.float64)
+    bad = [unexplained_mask(r, t, a, residual) for r, t, a in zip(renders, targets, alphas)]
+    rays = []  # (view, v, u)
+    for k, b in enumerate(bad):
+        vs, us = np.nonzero(b[::stride, ::stride])
+        rays += [(k, v * stride, u * stride) for v, u in zip(vs, us)]
+    n_bad = len(rays)
+    empty = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), n_bad
+    if not rays or len(cameras) < min_views + 1:
+        return empty
+    rays = np.asarray(rays)
+    if len(rays) > max_rays:
+        rays = rays[rng.choice(len(rays), max_rays, replace=False)]
+    # one colour class per chromaticity cell of size colour_tol: each gets its distance maps
+    chroma = np.stack([_chroma(targets[k][v, u]) for k, v, u in rays])
+    keys = np.round(chroma[:, :2] / colour_tol).astype(np.int64)
+    pts_out, cols_out, width_out = [], [], []
+    s = (np.arange(depth_samples) + 0.5) / depth_samples
+    for key in np.unique(keys, axis=0):
+        in_class = np.all(keys == key, axis=1)
+        centre = np.array([key[0] * colour_tol, key[1] * colour_tol,
+                           1.0 - (key[0] + key[1]) * colour_tol])
+        dist = _match_distances(bad, targets, centre, colour_tol)
+        for k in np.unique(rays[in_class, 0]):
+            cam = cameras[k]
+            mine = rays[in_class & (rays[:, 0] == k)]
+            v, u = mine[:, 1], mine[:, 2]
+            c2w = cam.camera_to_world
+            dirs_cam = np.stack([(u + 0.5 - cam.cx) / cam.fx, (v + 0.5 - cam.cy) / cam.fy,
+                                 np.ones(len(u))], 1)
+            dirs = dirs_cam @ c2w[:3, :3].T  # depth = ray parameter (camera z)
+            origin = c2w[:3, 3]
+            near, far = _ray_box(origin, dirs, box)
+            hit = far > near
+            if not hit.any():
+                continue
+            v, u, dirs, near, far = v[hit], u[hit], dirs[hit], near[hit], far[hit]
+            depth = near[:, None] + (far - near)[:, None] * s[None, :]  # (R, S)
+            pts = origin + depth[..., None] * dirs[:, None, :]  # (R, S, 3)
+            votes = np.zeros(depth.shape, np.int32)
+            seen = np.zeros(depth.shape, np.int32)
+            flat = pts.reshape(-1, 3)
+            for j, other in enumerate(cameras):
+                if j == k:
+                    continue
+                uv, z = other.project(flat)
+                uj = np.floor(uv[:, 0]).astype(np.int64)
+                vj = np.floor(uv[:, 1]).astype(np.int64)
+                inside = ((z > 1e-3) & (uj >= 0) & (vj >= 0) & (uj < other.width)
+                          & (vj < other.height))
+                idx = np.flatnonzero(inside)
+                if render_depths is not None:  # behind a drawn surface that is right: hidden
+                    a_j = render_alphas[j][vj[idx], uj[idx]]
+                    d_j = render_depths[j][vj[idx], uj[idx]]
+                    hidden = (a_j >= 0.5) & ~bad[j][vj[idx], uj[idx]] & (d_j < z[idx] - margin)
+                    inside[idx[hidden]] = False
+                    idx = idx[~hidden]
+                slack = 1.0 + motion * abs(times[j] - times[k]) * other.width
+                ok = np.zeros(len(flat), bool)
+                ok[idx] = dist[j][vj[idx], uj[idx]] <= slack
+                seen += inside.reshape(depth.shape)
+                votes += ok.reshape(depth.shape)
+            # the most votes; among equals the nearest depth (the first surface)
+            best = votes.argmax(axis=1)
+            r = np.arange(len(best))
+            bv, bs = votes[r, best], seen[r, best]
+            take = (bs >= min_views) & (bv >= agree * np.maximum(bs, 1))
+            if not take.any():
+                continue
+            pts_out.append(pts[r, best][take])
+            cols_out.append(targets[k][v[take], u[take]])
+            width_out.append(depth[r, best][take] * stride / cam.fx)
+    if not pts_out:
+        return empty
+    return (np.concatenate(pts_out), np.concatenate(cols_out), np.concatenate(width_out), n_bad)
+
+
+def new_gaussians(points: np.ndarray, colours: np.ndarray, widths: np.ndarray, t_eq: float,
+                  like, opacity: float) -> dict:
+    """Parameter tensors (a dict per GaussianParameters.NAMES) for Gaussians at `points`."""
+    n = len(points)
+    f32 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)
+    means = f32(points)
+    sh_rest = torch.zeros((n,) + tuple(like.sh_rest.shape[1:]))
+    sh_dc = torch.zeros((n,) + tuple(like.sh_dc.shape[1:]))
+    sh_dc[:, 0, :] = rgb_to_sh_dc(f32(colours))
+    quats = torch.zeros(n, 4)
+    quats[:, 0] = 1.0
+    return {"means": means, "log_scales": torch.log(f32(widths)).reshape(n, 1).repeat(1, 3),
+            "quats": quats,
+            "opacity_logits": torch.full((n,) + tuple(like.opacity_logits.shape[1:]),
+                                         math.log(opacity / (1.0 - opacity))),
+            "sh_dc": sh_dc, "sh_rest": sh_rest, "mu_eq": means.clone(),
+            "t_eq": torch.full((n,) + tuple(like.t_eq.shape[1:]), float(t_eq))}
+
+
+__all__ = ["CarveStats", "carve_points", "new_gaussians", "unexplained_mask"]
