@@ -62,9 +62,7 @@ class _Commands(click.Group):
 def _interrupted(ctx) -> None:
     from nehad.runtime.interrupts import exit_interrupted
 
-    name = ctx.invoked_subcommand or ""
-    sub = ctx.protected_args[1:] if name == "viz" and len(ctx.protected_args) > 1 else []
-    command = " ".join(["nehad", name, *sub[:1]]).strip()
+    command = " ".join(["nehad", ctx.invoked_subcommand or ""]).strip()
     click.echo(f"interrupted: {command} stopped before it finished; every file is written whole "
                f"or not at all, so nothing partial is left", err=True)
     exit_interrupted(130)
