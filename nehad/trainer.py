@@ -371,6 +371,11 @@ class Trainer:
         did = self.strategy.step_post_backward(self.model.gaussians, self.optimizer, phase.it + 1,
                                                gen)
         did.update(self._carve_if_due(phase, step, window, views))
+        if len(self.model.gaussians) == 0 and not getattr(self, "_warned_empty", False):
+            self._warned_empty = True  # the stress suite's thin rod: docs/results.md
+            self.warn(f"warning: step {step + 1}: every Gaussian was pruned; the model now "
+                      f"draws only the background (objects too small or too fast for the "
+                      f"recipe, docs/training.md)")
         record = {"step": step + 1, "stage": phase.stage, "loss": float(total.item()),
                   "psnr": float(np.mean(psnrs)), "gaussians": len(self.model.gaussians),
                   "sh_degree": degree, "window": [round(window.lo, 4), round(window.hi, 4)],

@@ -31,7 +31,10 @@ class GaussianCloud:
         self.scales = np.ascontiguousarray(self.scales, dtype=np.float32).reshape(n, 3)
         self.quats = np.ascontiguousarray(self.quats, dtype=np.float32).reshape(n, 4)
         self.opacities = np.ascontiguousarray(self.opacities, dtype=np.float32).reshape(n)
-        self.sh = np.ascontiguousarray(self.sh, dtype=np.float32).reshape(n, -1, 3)
+        sh = np.ascontiguousarray(self.sh, dtype=np.float32)
+        # (N, K, 3); an empty cloud keeps its K (reshape cannot infer it from 0 values)
+        k = sh.shape[1] if sh.ndim == 3 else (sh.size // (3 * n) if n else 1)
+        self.sh = sh.reshape(n, k, 3)
 
     def __len__(self) -> int:
         return int(self.means.shape[0])

@@ -363,3 +363,17 @@ def test_frames_and_tile_lists_do_not_depend_on_the_thread_count():
         np.testing.assert_array_equal(out.stop, first.stop)
         np.testing.assert_array_equal(out.bins.gauss_ids, first.bins.gauss_ids)
         np.testing.assert_array_equal(out.bins.tile_offsets, first.bins.tile_offsets)
+
+
+def test_an_empty_cloud_renders_the_background():
+    """A model whose Gaussians were all pruned (the stress suite's thin rod) still renders and
+    scores: the background everywhere, alpha 0."""
+    from nehad.runtime.gaussians import GaussianCloud
+
+    cloud = GaussianCloud(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 4)), np.zeros(0),
+                          np.zeros((0, 16, 3)))
+    assert cloud.sh.shape == (0, 16, 3) and cloud.sh_degree == 3
+    cam = Camera.from_camera_to_world(np.eye(4), 24, 16, 20.0, 20.0)
+    out = render(cloud, cam, (0.25, 0.5, 1.0))
+    assert out.rgb.shape == (16, 24, 3) and np.allclose(out.rgb, [0.25, 0.5, 1.0])
+    assert np.all(out.alpha == 0)
