@@ -129,7 +129,7 @@ def stress_objects(name: str, t: float) -> list:
                 _axis_angle([0.3, 0.2, 1.0], 8.0 * math.pi * t), (0.9, 0.25, 0.2)),
         ]
     if name == "fast_few_frames":
-        u = (t - 0.3) / 0.15
+        u = (t - 0.33) / 0.15  # in flight over timestamps 40-57: test frames 54-56 see it
         if u < 0.0:
             ball = np.array([-1.5, 0.3, -0.6])  # under the floor: hidden from every camera
         elif u > 1.0:
