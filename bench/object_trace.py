@@ -1,7 +1,7 @@
 """Where each labelled object's Gaussians are over a run's checkpoints (issue 25: why an object
 vanishes: never created, pruned, starved by the cap, lost at the canonical time, ...).
 
-    python bench/object_trace.py RUN [--data DATA] [--split train] [--frames 24]
+    python bench/object_trace.py RUN --data DATA [--split train] [--frames 24]
 
 For each checkpoint of RUN (keep them with --set train.keep_checkpoints=50) and each labelled
 object of the dataset (``SPLIT/masks`` + ``class_mapping.json``), over `--frames` frames of the
@@ -25,62 +25,24 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 
-def _masks(data: Path, frames, factor: int):
-    from nehad.viz.masks import mask_path, read_label_mask
-
-    out = []
-    for f in frames:
-        m = read_label_mask(mask_path(f.path))
-        if factor > 1:  # the majority of each factor x factor block
-            h, w = m.shape[0] // factor, m.shape[1] // factor
-            blocks = m[:h * factor, :w * factor].reshape(h, factor, w, factor)
-            flat = blocks.transpose(0, 2, 1, 3).reshape(h, w, factor * factor)
-            m = np.apply_along_axis(lambda v: np.bincount(v).argmax(), 2, flat)
-        out.append(m)
-    return out
-
-
-def _model_from_state(state):
-    import torch
-
-    from nehad.config import config_from_dict
-    from nehad.field.deformation import DeformationField
-    from nehad.gaussians import GaussianParameters
-    from nehad.trainer import NeHaDModel
-
-    cfg = config_from_dict(state["config"])
-    g = GaussianParameters.empty_like_state(state["gaussians"])
-    g.load_state_dict(state["gaussians"])
-    aabb = state["field"].get("aabb", torch.zeros(2, 3))
-    field = DeformationField(cfg.field, aabb, 1.0)
-    field.load_state_dict(state["field"])
-    return NeHaDModel(g, field).eval(), cfg
-
-
 def trace(run: Path, data: Path | None, split: str, n_frames: int) -> list[dict]:
-    import torch
-
     from nehad.checkpoint import list_checkpoints, load_state
     from nehad.data.loader import load_dataset
+    from nehad.evaluate import object_label_map
     from nehad.runtime.raster import render
-    from nehad.trainer import cloud_at
-    from nehad.viz.masks import class_names
+    from nehad.trainer import cloud_at, model_from_state
+    from nehad.viz.masks import class_names, mask_path, read_label_mask
 
-    first = load_state(list_checkpoints(run)[0])
-    cfg0 = first["config"]
-    data = data or Path(json.loads(json.dumps(cfg0.get("data_dir", ""))) or "")
-    if not data.is_dir():
-        raise SystemExit("pass --data DIR")
+    cfg0 = load_state(list_checkpoints(run)[0])["config"]
+    if data is None or not data.is_dir():
+        raise SystemExit("--data DIR: the run's dataset folder (checkpoints do not name it)")
     downscale = int(cfg0["data"]["downscale"])
     scene = load_dataset(data, splits=(split,), background=(1.0, 1.0, 1.0), downscale=downscale)
     frames = scene.frames[split]
     pick = np.unique(np.linspace(0, len(frames) - 1, n_frames).round().astype(int))
     frames = [frames[i] for i in pick]
-    h0 = read_h = None
-    from nehad.viz.masks import mask_path, read_label_mask
-    read_h = read_label_mask(mask_path(frames[0].path)).shape[0]
-    h0 = frames[0].image.shape[0]
-    masks = _masks(data, frames, max(read_h // h0, 1))
+    masks = [object_label_map(read_label_mask(mask_path(f.path)), f.camera.width,
+                              f.camera.height) for f in frames]  # nehad eval's pixel rule
     names = class_names(data)
     ids = sorted(i for i in names if i != 0)
     coarse_iters = int(cfg0["coarse"]["iterations"])
@@ -90,7 +52,7 @@ def trace(run: Path, data: Path | None, split: str, n_frames: int) -> list[dict]
     for ck in list_checkpoints(run):
         state = load_state(ck)
         step = int(state["step"])
-        model, cfg = _model_from_state(state)
+        model = model_from_state(state)
         deform = step > coarse_iters
         row = {"step": step, "gaussians": len(model.gaussians), "objects": {}}
         per = {i: {"n": [], "se": [0.0, 0.0], "blank": [0.0, 0.0], "px": [0, 0]} for i in ids}

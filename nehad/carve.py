@@ -1,11 +1,11 @@
 """Residual carving: Gaussians where the picture is consistently wrong and no Gaussian is near
-(docs/training.md, "Objects that were never created").
+(docs/training.md, "Objects that are never created").
 
 3DGS densification clones and splits Gaussians that already sit on an object, so it cannot create
 an object no Gaussian reaches. From a random initial cloud (the MuJoCo ``fused.ply``) a small
 object, or one that is behind a large occluder from part of the rig, then never gets any: the
 random Gaussians that overlap it in one view cover background in the others and are made
-transparent before they find it (measured in docs/results.md: 0 Gaussians on the occluded
+transparent before they find it (measured in docs/training.md: 0 Gaussians on the occluded
 sphere of the stress suite after the coarse stage, at 100 and at 400 pixels, with 2500 or 20000
 initial points).
 
@@ -19,8 +19,9 @@ silhouettes, but with the residual:
    sample it at `depth_samples` depths across the scene box;
 3. a sample is *voted for* by every other view in which it projects onto an unexplained pixel
    whose target chromaticity (rgb / (r + g + b): shading divided out, since the lit and the
-   shaded side of one object differ in brightness) is within `colour_tol` of the ray's; it is accepted when it is in frame in
-   at least `min_views` other views and voted for by `agree` of them, at the depth with the most
+   shaded side of one object differ in brightness) is within `colour_tol` of the ray's (within
+   a motion allowance for views of other times); it is accepted when it is in frame in at least
+   `min_views` other views and voted for by `agree` of them, at the depth with the most
    votes along its ray. Points behind a correctly drawn occluder lose the views that see the
    occluder, points off the object land on explained pixels: only the object's own place gathers
    the votes;
@@ -36,22 +37,10 @@ are relocated, as 3DGS-MCMC relocates dead Gaussians), so a full budget cannot s
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-
 import numpy as np
 import torch
 
 from nehad.gaussians import rgb_to_sh_dc
-
-
-@dataclass
-class CarveStats:
-    views: int
-    unexplained: int  # unexplained pixels on the ray grid, all views
-    rays: int
-    added: int
-    relocated: int
-    time: float | None
 
 
 def _ray_box(origin: np.ndarray, dirs: np.ndarray, box: np.ndarray):
@@ -81,14 +70,15 @@ def unexplained_mask(render: np.ndarray, target: np.ndarray, alpha: np.ndarray |
     return bad
 
 
-def _match_distances(bad, targets, centre: np.ndarray, tol: float) -> list[np.ndarray]:
+def _match_distances(bad, chromas, centre: np.ndarray, tol: float) -> list[np.ndarray]:
     """Per view: the distance in pixels from each pixel to the nearest unexplained pixel whose
-    target chromaticity is within `tol` of `centre` (inf where there is none)."""
+    target chromaticity (`chromas`, per view) is within `tol` of `centre` (inf where there is
+    none)."""
     import cv2
 
     out = []
-    for b, t in zip(bad, targets):
-        match = b & (np.abs(_chroma(t) - centre).max(axis=-1) <= tol)
+    for b, c in zip(bad, chromas):
+        match = b & (np.abs(c - centre).max(axis=-1) <= tol)
         if not match.any():
             out.append(np.full(b.shape, np.inf, np.float32))
             continue
@@ -97,10 +87,10 @@ def _match_distances(bad, targets, centre: np.ndarray, tol: float) -> list[np.nd
 
 
 def carve_points(cameras, targets, alphas, renders, box: np.ndarray, times=None, *,
-                 render_alphas=None, render_depths=None, residual: float = 0.25, stride: int = 2, depth_samples: int = 96,
-                 min_views: int = 2, agree: float = 0.6, colour_tol: float = 0.08,
-                 motion: float = 1.5, max_rays: int = 3000,
-                 rng: np.random.Generator | None = None):
+                 render_alphas=None, render_depths=None, residual: float = 0.25,
+                 stride: int = 2, depth_samples: int = 96, min_views: int = 2,
+                 agree: float = 0.6, colour_tol: float = 0.08, motion: float = 1.5,
+                 max_rays: int = 3000, rng: np.random.Generator | None = None):
     """The accepted points of one carving pass (module docstring, steps 1-3).
 
     `cameras`: runtime Cameras; `targets`, `renders`: (H, W, 3) float arrays per view; `alphas`:
@@ -110,9 +100,9 @@ def carve_points(cameras, targets, alphas, renders, box: np.ndarray, times=None,
     1 + `motion` |t_j - t_k| W pixels of the point's projection (W the image width: `motion` is
     the largest image speed expected, in image widths per unit of time). With the renders'
     alpha and depth, a view in which the point lies behind a drawn, explained surface (by more
-    than 2% of the box's diagonal) is occluded there and neither votes nor counts. Returns (points (M, 3),
-    colours (M, 3), pixel widths (M,): the world size of `stride` pixels at each point) and the
-    number of unexplained grid pixels.
+    than 2% of the box's diagonal) is occluded there and neither votes nor counts. Returns
+    (points (M, 3), colours (M, 3), pixel widths (M,): the world size of `stride` pixels at each
+    point) and the number of unexplained grid pixels.
     """
     rng = rng or np.random.default_rng(0)
     margin = 0.02 * float(np.linalg.norm(box[1] - box[0]))
@@ -130,7 +120,8 @@ def carve_points(cameras, targets, alphas, renders, box: np.ndarray, times=None,
     if len(rays) > max_rays:
         rays = rays[rng.choice(len(rays), max_rays, replace=False)]
     # one colour class per chromaticity cell of size colour_tol: each gets its distance maps
-    chroma = np.stack([_chroma(targets[k][v, u]) for k, v, u in rays])
+    chromas = [_chroma(t) for t in targets]
+    chroma = np.stack([chromas[k][v, u] for k, v, u in rays])
     keys = np.round(chroma[:, :2] / colour_tol).astype(np.int64)
     pts_out, cols_out, width_out = [], [], []
     s = (np.arange(depth_samples) + 0.5) / depth_samples
@@ -138,7 +129,7 @@ def carve_points(cameras, targets, alphas, renders, box: np.ndarray, times=None,
         in_class = np.all(keys == key, axis=1)
         centre = np.array([key[0] * colour_tol, key[1] * colour_tol,
                            1.0 - (key[0] + key[1]) * colour_tol])
-        dist = _match_distances(bad, targets, centre, colour_tol)
+        dist = _match_distances(bad, chromas, centre, colour_tol)
         for k in np.unique(rays[in_class, 0]):
             cam = cameras[k]
             mine = rays[in_class & (rays[:, 0] == k)]
@@ -212,4 +203,4 @@ def new_gaussians(points: np.ndarray, colours: np.ndarray, widths: np.ndarray, t
             "t_eq": torch.full((n,) + tuple(like.t_eq.shape[1:]), float(t_eq))}
 
 
-__all__ = ["CarveStats", "carve_points", "new_gaussians", "unexplained_mask"]
+__all__ = ["carve_points", "new_gaussians", "unexplained_mask"]

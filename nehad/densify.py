@@ -101,6 +101,15 @@ class DensifyState:
     def zeros(cls, n: int) -> "DensifyState":
         return cls(torch.zeros(n), torch.zeros(n), torch.zeros(n))
 
+    def kept(self, mask: torch.Tensor, added: int = 0) -> "DensifyState":
+        """The statistics of the Gaussians `mask` keeps, then `added` new ones at zero (the
+        order `keep_gaussians` then `append_gaussians` leaves them in)."""
+        def grow(v):
+            return torch.cat([v[mask], torch.zeros(added)])
+
+        return DensifyState(grow(self.grad_accum), grow(self.visible_count),
+                            grow(self.max_radii))
+
 
 class DensifyStrategy:
     """3DGS densification; `iteration` is counted from the start of the current stage."""

@@ -428,25 +428,16 @@ class Trainer:
         if not len(pts):
             return out
         g = self.model.gaussians
-        state = self.strategy.state
         cap = self.cfg.densify.max_gaussians
         over = len(g) + len(pts) - cap if cap > 0 else 0
+        keep = torch.ones(len(g), dtype=torch.bool)
         if over > 0:  # relocate: the least opaque Gaussians make room (nehad.carve)
-            opac = g.opacity_logits.detach().reshape(-1)
-            keep = torch.ones(len(g), dtype=torch.bool)
-            keep[torch.argsort(opac)[:min(over, len(g))]] = False
+            keep[torch.argsort(g.opacity_logits.detach().reshape(-1))[:min(over, len(g))]] = False
             keep_gaussians(g, self.optimizer, keep)
-            if state.grad_accum.shape[0] == len(keep):
-                state.grad_accum, state.visible_count, state.max_radii = (
-                    state.grad_accum[keep], state.visible_count[keep], state.max_radii[keep])
             out["relocated"] = int((~keep).sum())
-        extra = new_gaussians(pts, cols, widths, t_c, g, c.opacity)
-        append_gaussians(g, self.optimizer, extra)
-        if state.grad_accum.shape[0] == len(g) - len(pts):
-            zeros = torch.zeros(len(pts))
-            state.grad_accum = torch.cat([state.grad_accum, zeros])
-            state.visible_count = torch.cat([state.visible_count, zeros])
-            state.max_radii = torch.cat([state.max_radii, zeros])
+        append_gaussians(g, self.optimizer, new_gaussians(pts, cols, widths, t_c, g, c.opacity))
+        if self.strategy.state.grad_accum.shape[0] == len(keep):  # statistics follow
+            self.strategy.state = self.strategy.state.kept(keep, len(pts))
         return out
 
     # -- loop ----------------------------------------------------------------------------
@@ -520,14 +511,20 @@ def load_run(run_dir) -> tuple[NeHaDModel, dict]:
     if not path.exists():
         raise RunError(f"{run}: no model.pt (training not finished?)")
     state = load_state(path)
-    cfg = config_from_dict(state["config"])
     try:
-        gaussians = GaussianParameters.empty_like_state(state["gaussians"])
-        gaussians.load_state_dict(state["gaussians"])
-        field = DeformationField(cfg.field, state["aabb"], float(state["extent"]))
-        field.load_state_dict(state["field"])
+        model = model_from_state(state)
     except (RuntimeError, KeyError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise RunError(f"{path}: its tensors do not fit its config ({first})") from None
-    model = NeHaDModel(gaussians, field).eval()
     return model, {k: v for k, v in state.items() if k not in ("gaussians", "field")}
+
+
+def model_from_state(state: dict) -> NeHaDModel:
+    """The model (in eval mode) of a saved state: RUN/model.pt or a checkpoint (the field's box
+    and extent are buffers of its state dict, so both kinds rebuild the same way)."""
+    cfg = config_from_dict(state["config"])
+    gaussians = GaussianParameters.empty_like_state(state["gaussians"])
+    gaussians.load_state_dict(state["gaussians"])
+    field = DeformationField(cfg.field, state["field"]["aabb"], float(state["field"]["extent"]))
+    field.load_state_dict(state["field"])
+    return NeHaDModel(gaussians, field).eval()

@@ -1,4 +1,4 @@
-"""The stress suite: one synthetic scene per failure class of dynamic scenes, in the MuJoCo protocol.
+"""The stress suite: one synthetic scene per failure class of dynamic scenes, MuJoCo protocol.
 
 Each scene is drawn by the analytic ray caster of :mod:`nehad.data.synth` (exact intersections,
 nothing shared with a Gaussian rasteriser) and written the way the MuJoCo scenes of
@@ -61,6 +61,11 @@ _TARGET = (0.0, 0.0, 0.4)
 _FOV_DEG = 50.0
 _BLOCK, _BLOCK_TRAIN, _BLOCK_TEST = 20, 14, 3  # per 20 timestamps: 14 train, 3 test, 3 val
 _RIG_ORDER = (11, 6, 5, 7, 0, 4, 10, 2, 9, 1, 8, 3)  # which rig camera sees timestamp k (k mod 12)
+
+
+def _unknown(name: str) -> ValueError:
+    return ValueError(f"scene: unknown stress scene {name!r}; expected one of "
+                      f"{', '.join(STRESS_SCENES)}")
 
 
 def _smooth(x: float) -> float:
@@ -142,7 +147,7 @@ def stress_objects(name: str, t: float) -> list:
                 _axis_angle([0.0, 0.0, 1.0], 0.3), (0.3, 0.7, 0.35)),
             Sphere("ball", ball, 0.15, (0.95, 0.8, 0.1)),
         ]
-    raise ValueError(f"scene: unknown stress scene {name!r}; expected one of {', '.join(STRESS_SCENES)}")
+    raise _unknown(name)
 
 
 def rig_cameras() -> list[np.ndarray]:
@@ -177,7 +182,7 @@ def synthesize_stress_scene(out_dir, name: str, resolution: int = 400, frames: i
     image. Same arguments give the same bytes.
     """
     if name not in STRESS_SCENES:
-        raise ValueError(f"scene: unknown stress scene {name!r}; expected one of {', '.join(STRESS_SCENES)}")
+        raise _unknown(name)
     resolution, frames = int(resolution), int(frames)
     if resolution < 4:
         raise ValueError(f"resolution: expected an integer >= 4, got {resolution}")
