@@ -417,8 +417,10 @@ class FastDeform(nn.Module):
             cols = F.linear(out.v_c, self.q_c, self.q_bias) + F.linear(out.v_s, self.q_s)
         return cols.t()  # (N, k) -> (k, N): one cheap Transpose (a transB Gemm was slower)
 
-    def forward(self, means, log_scales, quats, opacity_logits, sh, mu_eq, t_eq, time):
-        # the tail runs on (k, N) rows (see the module doc)
+    def forward(self, means, log_scales, quats, opacity_logits, sh, mu_eq, t_eq, time,
+                life_rate=None):
+        # the tail runs on (k, N) rows (see the module doc); `life_rate` [N,1] (None: every
+        # Gaussian lives at every time): GaussianParameters.life_factor
         cfg = self.cfg
         n = means.shape[0]
         t = time.reshape(1, 1).to(means.dtype)
@@ -429,6 +431,9 @@ class FastDeform(nn.Module):
             opacity = opacity + rows[10:11]
             sh = sh + rows[11:11 + 3 * self.k].t().reshape(n, self.k, 3)
         opacities = torch.sigmoid(opacity).reshape(n)
+        if life_rate is not None:
+            lived = life_rate.reshape(n) * (t.reshape(1) - t_eq.reshape(n))
+            opacities = opacities * torch.exp(-0.5 * lived * lived)
         mu, log_s, quat = means.t(), log_scales.t(), quats.t()
         if self.mlp is not None:  # 4DGS: mu + dmu, s + ds, r + dr (normalised as gaussians_at)
             new_quats = quat + rows[6:10]

@@ -54,6 +54,9 @@ class SplitBaseGraph(nn.Module):
 
     def __init__(self, model, sh_degree: int, n0: int):
         super().__init__()
+        if model.gaussians.has_life():
+            raise ExportError("the split-layer export does not carry the finite lives of carved "
+                              "Gaussians (carve.every > 0); export the run as one file instead")
         self.model = model
         self.deform = FastDeform(model, sh_degree, constant_means=False)
         self.k = (int(sh_degree) + 1) ** 2

@@ -28,7 +28,10 @@ silhouettes, but with the residual:
 4. each accepted point becomes a Gaussian of the target colour, opacity `opacity`, as wide as
    the pixel grid at its depth, with its Boltzmann equilibrium at the pass's time
    (mu_eq = its position, t_eq = that time: the position mask holds it still there, paper Sec.
-   "Boltzmann Equilibrium Decomposition"), so it is drawn where it was seen.
+   "Boltzmann Equilibrium Decomposition"), so it is drawn where it was seen; in a deforming
+   stage it also lives only around that time (life rate k = 1 / sigma, nehad.gaussians): at
+   other times the object it stands for is elsewhere, and a Gaussian drawn there would be made
+   transparent and pruned before the field learns to carry it.
 
 When the Gaussian cap is reached, as many of the least opaque Gaussians are removed first (they
 are relocated, as 3DGS-MCMC relocates dead Gaussians), so a full budget cannot starve an object.
@@ -185,8 +188,9 @@ def carve_points(cameras, targets, alphas, renders, box: np.ndarray, times=None,
 
 
 def new_gaussians(points: np.ndarray, colours: np.ndarray, widths: np.ndarray, t_eq: float,
-                  like, opacity: float) -> dict:
-    """Parameter tensors (a dict per GaussianParameters.NAMES) for Gaussians at `points`."""
+                  like, opacity: float, life_sigma: float = 0.0) -> dict:
+    """Parameter tensors (a dict per GaussianParameters.NAMES) for Gaussians at `points`, living
+    around `t_eq` with a temporal standard deviation `life_sigma` (0: at every time)."""
     n = len(points)
     f32 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)
     means = f32(points)
@@ -200,7 +204,9 @@ def new_gaussians(points: np.ndarray, colours: np.ndarray, widths: np.ndarray, t
             "opacity_logits": torch.full((n,) + tuple(like.opacity_logits.shape[1:]),
                                          math.log(opacity / (1.0 - opacity))),
             "sh_dc": sh_dc, "sh_rest": sh_rest, "mu_eq": means.clone(),
-            "t_eq": torch.full((n,) + tuple(like.t_eq.shape[1:]), float(t_eq))}
+            "t_eq": torch.full((n,) + tuple(like.t_eq.shape[1:]), float(t_eq)),
+            "life_rate": torch.full((n,) + tuple(like.life_rate.shape[1:]),
+                                    1.0 / life_sigma if life_sigma > 0 else 0.0)}
 
 
 __all__ = ["carve_points", "new_gaussians", "unexplained_mask"]

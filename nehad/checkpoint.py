@@ -143,7 +143,8 @@ def _check_contents(state: dict, source: str) -> None:
     from nehad.gaussians import GaussianParameters
 
     g = state["gaussians"]
-    absent = [n for n in GaussianParameters.NAMES if not torch.is_tensor(g.get(n))]
+    absent = [n for n in GaussianParameters.NAMES
+              if not torch.is_tensor(GaussianParameters.with_defaults(g).get(n))]
     if absent:
         raise CheckpointError(f"{source}: not a nehad run file (its Gaussians lack "
                               f"{', '.join(absent)})")

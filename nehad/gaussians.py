@@ -1,7 +1,11 @@
 """Learnable canonical Gaussians in torch, stored as 3DGS stores them (docs/design.md section 3): means,
 log-scales, quaternions (w, x, y, z, unnormalised), opacity logits, SH coefficients split into the
 DC term and the rest (they get different learning rates), and the Boltzmann equilibrium
-parameters of docs/design.md section 4.7 (mu_eq, t_eq), set when the fine stage starts.
+parameters of docs/design.md section 4.7 (mu_eq, t_eq), set when the fine stage starts, and a
+life rate k >= 0: the Gaussian's opacity at time t is scaled by exp(-(k (t - t_eq))^2 / 2)
+(`life_factor`; docs/training.md, "Objects that are never created"). Every Gaussian starts with
+k = 0 (it lives at every time, and the gradient of k is zero there, so it stays so); residual
+carving (nehad.carve) gives the Gaussians it adds a finite life around the time they were seen.
 
 Every parameter's first dimension is the Gaussian index, so densification (nehad.densify) treats
 them all alike: clone, split and prune apply to each one, and children inherit mu_eq and t_eq."""
@@ -34,10 +38,11 @@ def _nearest_neighbour_distance(points: np.ndarray, k: int = 3) -> np.ndarray:
 class GaussianParameters(nn.Module):
     """N Gaussians' raw parameters; `activated()` gives what the renderer consumes."""
 
-    NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest", "mu_eq", "t_eq")
+    NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest", "mu_eq", "t_eq",
+             "life_rate")
 
     def __init__(self, means, log_scales, quats, opacity_logits, sh_dc, sh_rest, mu_eq=None,
-                 t_eq=None):
+                 t_eq=None, life_rate=None):
         super().__init__()
         f32 = lambda a: torch.as_tensor(np.asarray(a) if not torch.is_tensor(a) else a,
                                         dtype=torch.float32).clone()
@@ -50,11 +55,25 @@ class GaussianParameters(nn.Module):
         n = self.means.shape[0]
         self.mu_eq = nn.Parameter(self.means.detach().clone() if mu_eq is None else f32(mu_eq))
         self.t_eq = nn.Parameter(torch.full((n, 1), 0.5) if t_eq is None else f32(t_eq))
+        self.life_rate = nn.Parameter(torch.zeros(n, 1) if life_rate is None else f32(life_rate))
 
     @classmethod
     def empty_like_state(cls, state: dict) -> "GaussianParameters":
-        """Parameters shaped like a saved state dict (to load a checkpoint into)."""
+        """Parameters shaped like a saved state dict (to load a checkpoint into). A state saved
+        before the life rate existed gets k = 0 (`with_defaults`)."""
+        state = cls.with_defaults(state)
         return cls(*(torch.zeros_like(state[name]) for name in cls.NAMES))
+
+    @staticmethod
+    def with_defaults(state: dict) -> dict:
+        """`state` (a state dict of these parameters) with `life_rate` = 0 added if absent."""
+        if "life_rate" in state or "means" not in state:
+            return state
+        return {**state, "life_rate": torch.zeros(state["means"].shape[0], 1)}
+
+    def has_life(self) -> bool:
+        """Whether any Gaussian has a finite life (k != 0)."""
+        return bool((self.life_rate.detach() != 0).any())
 
     def reset_equilibrium(self, t_eq: float = 0.5) -> None:
         """docs/design.md section 4.7: mu_eq starts as mu and t_eq at the canonical time (train.canonical_time,
@@ -101,6 +120,14 @@ class GaussianParameters(nn.Module):
         quats = self.quats / self.quats.norm(dim=-1, keepdim=True)
         return (self.means, torch.exp(self.log_scales), quats, torch.sigmoid(self.opacity_logits),
                 torch.cat([self.sh_dc, self.sh_rest], 1))
+
+    def life_factor(self, t) -> torch.Tensor | None:
+        """(N,) the opacity factor exp(-(k (t - t_eq))^2 / 2) at time t, or None when every
+        Gaussian lives at every time (k = 0: the factor is 1)."""
+        if t is None or not self.has_life():
+            return None
+        t = torch.as_tensor(t, dtype=self.t_eq.dtype).reshape(())
+        return torch.exp(-0.5 * (self.life_rate * (t - self.t_eq)).square()).reshape(-1)
 
     def to_cloud(self) -> GaussianCloud:
         with torch.no_grad():

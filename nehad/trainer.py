@@ -103,15 +103,21 @@ class NeHaDModel(torch.nn.Module):
 
     def gaussians_at(self, t, deform: bool = True):
         """Activated (means, scales, quats, opacities (N,), sh) at time t (canonical if not
-        deform). t is a float or a one-element tensor (the ONNX export traces it as an input)."""
+        deform). t is a float or a one-element tensor (the ONNX export traces it as an input).
+        The opacities carry each Gaussian's life factor at t (GaussianParameters.life_factor),
+        deformed or not."""
         g = self.gaussians
+        life = g.life_factor(t)
         if not deform or t is None:
-            return g.activated()
+            means, scales, quats, opacities, sh = g.activated()
+            return means, scales, quats, opacities if life is None else opacities * life, sh
         sh = torch.cat([g.sh_dc, g.sh_rest], 1)
         out = self.field(g.means, g.log_scales, g.quats, t, g.mu_eq, g.t_eq,
                          opacity_logits=g.opacity_logits, sh=sh)
         quats = out.quats / out.quats.norm(dim=-1, keepdim=True)
         opacities = torch.sigmoid(out.opacity_logits).reshape(g.means.shape[0])
+        if life is not None:
+            opacities = opacities * life
         return out.means, torch.exp(out.log_scales), quats, opacities, out.sh
 
 
@@ -233,6 +239,7 @@ class Trainer:
             {"name": "quats", "params": [g.quats], "lr": o.rotation_lr},
             {"name": "mu_eq", "params": [g.mu_eq], "lr": 0.0},
             {"name": "t_eq", "params": [g.t_eq], "lr": 0.0},
+            {"name": "life_rate", "params": [g.life_rate], "lr": o.life_rate_lr},
         ]
         field_groups = self.model.field.param_groups()
         groups.append({"name": "grid", "params": list(field_groups["grid"]), "lr": 0.0})
@@ -435,7 +442,10 @@ class Trainer:
             keep[torch.argsort(g.opacity_logits.detach().reshape(-1))[:min(over, len(g))]] = False
             keep_gaussians(g, self.optimizer, keep)
             out["relocated"] = int((~keep).sum())
-        append_gaussians(g, self.optimizer, new_gaussians(pts, cols, widths, t_c, g, c.opacity))
+        spacing = float(np.median(np.diff(np.unique(times)))) if len(np.unique(times)) > 1 else 0.0
+        life = c.life * spacing if phase.deforms else 0.0
+        append_gaussians(g, self.optimizer,
+                         new_gaussians(pts, cols, widths, t_c, g, c.opacity, life))
         if self.strategy.state.grad_accum.shape[0] == len(keep):  # statistics follow
             self.strategy.state = self.strategy.state.kept(keep, len(pts))
         return out
@@ -524,7 +534,7 @@ def model_from_state(state: dict) -> NeHaDModel:
     and extent are buffers of its state dict, so both kinds rebuild the same way)."""
     cfg = config_from_dict(state["config"])
     gaussians = GaussianParameters.empty_like_state(state["gaussians"])
-    gaussians.load_state_dict(state["gaussians"])
+    gaussians.load_state_dict(GaussianParameters.with_defaults(state["gaussians"]))
     field = DeformationField(cfg.field, state["field"]["aabb"], float(state["field"]["extent"]))
     field.load_state_dict(state["field"])
     return NeHaDModel(gaussians, field).eval()

@@ -6,11 +6,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
-from nehad.carve import carve_points, new_gaussians, unexplained_mask
-from nehad.data.synth import Box, Sphere, render_view
-from nehad.data.synth_stress import rig_cameras
-from nehad.runtime.cameras import Camera
+torch = pytest.importorskip("torch")
+
+from nehad.carve import carve_points, new_gaussians, unexplained_mask  # noqa: E402
+from nehad.data.synth import Box, Sphere, render_view  # noqa: E402
+from nehad.data.synth_stress import rig_cameras  # noqa: E402
+from nehad.runtime.cameras import Camera  # noqa: E402
 
 SIZE = 64
 BOX = np.array([[-2.0, -2.0, -2.0], [2.0, 2.0, 2.0]])
@@ -147,3 +150,34 @@ def test_a_training_run_carves_and_stays_consistent(tmp_path):
     assert len(trainer.strategy.state.grad_accum) in (0, len(trainer.model.gaussians))
     model, _ = load_run(tmp_path / "run")
     assert len(model.gaussians) == len(trainer.model.gaussians)
+
+
+def test_life_factor_and_immortal_gaussians_stay_immortal():
+    """GaussianParameters.life_factor against the formula; a Gaussian with k = 0 has a zero
+    gradient in k (it stays immortal under any loss), one with k > 0 does not."""
+    from nehad.gaussians import GaussianParameters
+
+    g = GaussianParameters.random_in_box(4, sh_degree=0)
+    assert g.life_factor(0.3) is None  # every k = 0: no factor at all
+    with torch.no_grad():
+        g.life_rate[:2] = torch.tensor([[10.0], [40.0]])
+        g.t_eq[:] = torch.tensor([[0.5], [0.2], [0.5], [0.9]])
+    f = g.life_factor(0.3)
+    expect = torch.exp(-0.5 * (torch.tensor([10.0, 40.0, 0.0, 0.0]) * (0.3 - g.t_eq.reshape(-1)))**2)
+    assert torch.allclose(f, expect)
+    assert float(f[0].detach()) == pytest.approx(float(np.exp(-0.5 * 4.0)), rel=1e-6)
+    (f * torch.arange(1.0, 5.0)).sum().backward()
+    grad = g.life_rate.grad.reshape(-1)
+    assert float(grad[2]) == 0.0 and float(grad[3]) == 0.0
+    assert float(grad[0]) < 0.0  # a longer life (smaller k) raises this loss's opacity sum
+
+
+def test_state_saved_before_life_rate_loads_immortal():
+    """A checkpoint written before the life rate existed loads with k = 0 for every Gaussian."""
+    from nehad.gaussians import GaussianParameters
+
+    g = GaussianParameters.random_in_box(5, sh_degree=0)
+    state = {k: v for k, v in g.state_dict().items() if k != "life_rate"}
+    h = GaussianParameters.empty_like_state(state)
+    h.load_state_dict(GaussianParameters.with_defaults(state))
+    assert h.life_rate.shape == (5, 1) and not h.has_life()

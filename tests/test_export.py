@@ -234,3 +234,39 @@ def test_export_cli_bad_inputs(runs, tmp_path):
         assert res.exit_code != 0 and needle in res.output, res.output
         assert "Traceback" not in res.output
     assert not any(p.suffix.startswith(".on") for p in tmp_path.rglob("*"))
+
+
+def test_carved_gaussians_life_exports_with_parity(tmp_path):
+    """Gaussians with a finite life (life rate k > 0, nehad.gaussians): the exported graph scales
+    their opacity by exp(-(k (t - t_eq))^2 / 2) as torch does, and the split-layer export refuses
+    them with a message instead of dropping the life."""
+    from nehad.checkpoint import atomic_torch_save, load_state
+    from nehad.export.layers import SplitBaseGraph
+    from nehad.trainer import load_run
+
+    run, _ = make_run(tmp_path, "hnn")
+    state = load_state(run / "model.pt")
+    gs = state["gaussians"]
+    n = gs["means"].shape[0]
+    life = torch.zeros(n, 1)
+    life[: n // 2] = torch.linspace(2.0, 30.0, n // 2).reshape(-1, 1)
+    gs["life_rate"] = life
+    atomic_torch_save(state, run / "model.pt")
+    path = tmp_path / "model.onnx"
+    res = CliRunner().invoke(main, ["export", str(run), "-o", str(path)])
+    assert res.exit_code == 0, res.output
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    t_eq = gs["t_eq"].reshape(-1).numpy()
+    for t in TIMES:
+        got = sess.run(["opacities"], {"time": np.array([t], np.float32)})[0]
+        ref = torch_reference(run, t)[3]
+        assert parity_error(got, ref) <= 1e-5
+        # independent of torch: the mortal half is the immortal opacity times the factor
+        base = 1.0 / (1.0 + np.exp(-gs["opacity_logits"].reshape(-1).numpy()))
+        expect = base * np.exp(-0.5 * (life.reshape(-1).numpy() * (t - t_eq)) ** 2)
+        np.testing.assert_allclose(got, expect, rtol=1e-5, atol=1e-7)
+        if t == 1.0:  # the life matters: some mortal Gaussians are mostly faded at t = 1
+            assert (got[: n // 2] < 0.5 * base[: n // 2]).sum() >= 3
+    model, _ = load_run(run)
+    with pytest.raises(ExportError, match="finite lives"):
+        SplitBaseGraph(model, 0, n)
