@@ -86,6 +86,14 @@ class DensifySchedule:
         return (self.reset_every > 0 and it > 0 and it < self.stop
                 and it % self.reset_every == 0)
 
+    def recovering(self, it: int) -> bool:
+        """Whether iteration `it` lies in the first quarter of the period after an opacity reset
+        (the opacities are still growing back: a render then misses what the model holds)."""
+        if self.reset_every <= 0:
+            return False
+        last = (it // self.reset_every) * self.reset_every  # resets at 0 < last < stop
+        return 0 < last < self.stop and it - last < max(self.reset_every // 4, 1)
+
     def prunes_large(self, it: int) -> bool:
         return (self.prune_large_every > 0 and self.reset_every > 0 and it > self.reset_every
                 and it % self.prune_large_every == 0)

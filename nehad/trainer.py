@@ -394,8 +394,9 @@ class Trainer:
     def _carve_if_due(self, phase: Phase, step: int, window, views: Views) -> dict:
         """A residual carving pass (nehad.carve) every carve.every iterations of the stage's
         densification window: the carve.views frames of the time window nearest to one time
-        (the canonical time in the coarse stage, a random frame's time in the fine stage),
-        each rendered at its own time."""
+        (the canonical time in the coarse stage; in the fine stage the frame time nearest to
+        the next point of a van der Corput sequence over the window, so that successive passes
+        cover the time range evenly), each rendered at its own time."""
         from nehad.carve import carve_points, new_gaussians
         from nehad.densify import append_gaussians, keep_gaussians
         from nehad.runtime.raster import render
@@ -404,13 +405,16 @@ class Trainer:
         sched = self.strategy.schedule
         it = phase.it + 1
         if (c.every <= 0 or c.max_new <= 0 or phase.layer > 0 or self.strategy.frozen
-                or not sched.start <= it < sched.stop or it % c.every):
+                or not sched.start <= it < sched.stop or it % c.every or sched.recovering(it)):
             return {}
         rng = np.random.default_rng([self.cfg.train.seed, step, 7])
         pool = eligible_frames(views.times, window)
         times = np.asarray(views.times, np.float64)
-        t_c = (float(times[rng.choice(pool)]) if phase.deforms
-               else float(self.cfg.train.canonical_time))
+        if phase.deforms:  # the passes' times spread evenly over the window (van der Corput)
+            at = window.lo + (window.hi - window.lo) * van_der_corput(it // c.every)
+            t_c = float(times[pool[np.argmin(np.abs(times[pool] - at))]])
+        else:
+            t_c = float(self.cfg.train.canonical_time)
         nearest = pool[np.argsort(np.abs(times[pool] - t_c), kind="stable")[:c.views]]
         degree = self.active_sh_degree(step)
         cams, targets, alphas, drawn = [], [], [], []
@@ -501,6 +505,17 @@ def make_trainer(cfg: Config, data_dir, run_dir, resume: bool = False, progress:
     from `cfg` (coarse + fine stages; streaming layers when lod.levels > 1)."""
     return Trainer(cfg, data_dir, run_dir, resume=resume, progress=progress, log=log,
                    schedule=schedule_for(cfg))
+
+
+def van_der_corput(i: int) -> float:
+    """The i-th point (i >= 1) of the base-2 van der Corput sequence in [0, 1): 0.5, 0.25,
+    0.75, 0.125, ...; any run of consecutive points spreads evenly over [0, 1)."""
+    x, f = 0.0, 0.5
+    while i > 0:
+        x += f * (i & 1)
+        i >>= 1
+        f *= 0.5
+    return x
 
 
 def cloud_at(model: NeHaDModel, t: float | None, sh_degree: int):

@@ -181,3 +181,13 @@ def test_state_saved_before_life_rate_loads_immortal():
     h = GaussianParameters.empty_like_state(state)
     h.load_state_dict(GaussianParameters.with_defaults(state))
     assert h.life_rate.shape == (5, 1) and not h.has_life()
+
+
+def test_van_der_corput_passes_cover_the_window_evenly():
+    """The fine stage's carving times: any first n passes leave no gap wider than 2 / n."""
+    from nehad.trainer import van_der_corput
+
+    for n in (4, 7, 16, 33):
+        pts = np.sort([0.0, 1.0] + [van_der_corput(i) for i in range(1, n + 1)])
+        assert np.diff(pts).max() <= 2.0 / n + 1e-12
+    assert [van_der_corput(i) for i in (1, 2, 3, 4)] == [0.5, 0.25, 0.75, 0.125]

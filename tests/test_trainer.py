@@ -198,6 +198,10 @@ def test_densify_schedule_scales_with_the_stage_and_never_resets_at_its_end():
             resets = [it for it in range(1, length + 1) if s.resets(it)]
             assert length not in resets and all(it < s.stop for it in resets)
             assert all(s.start <= it < s.stop for it in range(1, length + 1) if s.densifies(it))
+    # the quarter period after each reset is "recovering" (no carving pass), and only it
+    s = DensifySchedule.for_stage(fine_stage(12000), 12000, 100)
+    rec = [it for it in range(1, 12001) if s.recovering(it)]
+    assert rec == [it for r in (1800, 3600, 5400, 7200, 9000) for it in range(r, r + 450)]
 
 
 def test_time_window_grows_from_the_canonical_time_to_the_whole_range():
