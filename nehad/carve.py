@@ -187,10 +187,52 @@ def carve_points(cameras, targets, alphas, renders, box: np.ndarray, times=None,
     return (np.concatenate(pts_out), np.concatenate(cols_out), np.concatenate(width_out), n_bad)
 
 
+def seed_rays(cameras, targets, alphas, renders, box: np.ndarray, *, residual: float = 0.25,
+              stride: int = 2, depth_samples: int = 24, max_rays: int = 400,
+              rng: np.random.Generator | None = None):
+    """Ray seeding: points at `depth_samples` jittered depths across `box` along the ray of
+    every unexplained pixel (on a `stride` grid) of each view, no vote. Where voting needs the
+    object in several views at once (a fast object is seen by one camera per time in a MuJoCo
+    rig), seeding leaves the choice of depth to the optimisation: each seed lives around its
+    view's time, the views of the neighbouring times see the seeds at the wrong depths over
+    background and make them transparent, the one on the object stays. Returns (points,
+    colours, pixel widths, number of unexplained grid pixels) like `carve_points`."""
+    rng = rng or np.random.default_rng(0)
+    pts_out, cols_out, width_out, n_bad = [], [], [], 0
+    for cam, target, alpha, drawn in zip(cameras, targets, alphas, renders):
+        bad = unexplained_mask(drawn, target, alpha, residual)
+        vs, us = np.nonzero(bad[::stride, ::stride])
+        vs, us = vs * stride, us * stride
+        n_bad += len(vs)
+        if len(vs) > max_rays:
+            pick = rng.choice(len(vs), max_rays, replace=False)
+            vs, us = vs[pick], us[pick]
+        if not len(vs):
+            continue
+        c2w = cam.camera_to_world
+        dirs = np.stack([(us + 0.5 - cam.cx) / cam.fx, (vs + 0.5 - cam.cy) / cam.fy,
+                         np.ones(len(us))], 1) @ c2w[:3, :3].T
+        near, far = _ray_box(c2w[:3, 3], dirs, box)
+        hit = far > near
+        vs, us, dirs, near, far = vs[hit], us[hit], dirs[hit], near[hit], far[hit]
+        s = (np.arange(depth_samples)[None, :] + rng.random((len(vs), depth_samples))) \
+            / depth_samples
+        depth = near[:, None] + (far - near)[:, None] * s
+        pts_out.append((c2w[:3, 3] + depth[..., None] * dirs[:, None, :]).reshape(-1, 3))
+        cols_out.append(np.repeat(target[vs, us], depth_samples, axis=0))
+        width_out.append((depth * stride / cam.fx).reshape(-1))
+    if not pts_out:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), n_bad
+    return (np.concatenate(pts_out), np.concatenate(cols_out), np.concatenate(width_out), n_bad)
+
+
 def new_gaussians(points: np.ndarray, colours: np.ndarray, widths: np.ndarray, t_eq: float,
-                  like, opacity: float, life_sigma: float = 0.0) -> dict:
+                  like, opacity: float, life_sigma: float = 0.0,
+                  free_offset: float = 0.0) -> dict:
     """Parameter tensors (a dict per GaussianParameters.NAMES) for Gaussians at `points`, living
-    around `t_eq` with a temporal standard deviation `life_sigma` (0: at every time)."""
+    around `t_eq` with a temporal standard deviation `life_sigma` (0: at every time). Their
+    equilibrium mu_eq is their position, or, with `free_offset` > 0, that far from it along +x
+    (out of the position mask's reach: the field moves them from the start)."""
     n = len(points)
     f32 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)
     means = f32(points)
@@ -203,10 +245,11 @@ def new_gaussians(points: np.ndarray, colours: np.ndarray, widths: np.ndarray, t
             "quats": quats,
             "opacity_logits": torch.full((n,) + tuple(like.opacity_logits.shape[1:]),
                                          math.log(opacity / (1.0 - opacity))),
-            "sh_dc": sh_dc, "sh_rest": sh_rest, "mu_eq": means.clone(),
+            "sh_dc": sh_dc, "sh_rest": sh_rest,
+            "mu_eq": means + torch.tensor([float(free_offset), 0.0, 0.0]),
             "t_eq": torch.full((n,) + tuple(like.t_eq.shape[1:]), float(t_eq)),
             "life_rate": torch.full((n,) + tuple(like.life_rate.shape[1:]),
                                     1.0 / life_sigma if life_sigma > 0 else 0.0)}
 
 
-__all__ = ["carve_points", "new_gaussians", "unexplained_mask"]
+__all__ = ["carve_points", "new_gaussians", "seed_rays", "unexplained_mask"]

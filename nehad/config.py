@@ -109,6 +109,10 @@ class CarveConfig:
     # 0 = off: on the stress suite's occluded sphere it was measured not to keep the object
     # (docs/training.md), so it is not part of the recipe yet
     views: int = 6  # training views nearest in time to the pass's time
+    mode: str = "vote"  # "vote": a point where the views agree (nehad.carve.carve_points);
+    # "rays": seeds along every unexplained pixel's ray, the optimisation picks the depth
+    # (nehad.carve.seed_rays)
+    seed_views: int = 1  # "rays": the views nearest the pass's time that are seeded
     residual: float = 0.25  # a pixel is unexplained when render and target differ by more
     stride: int = 2  # one ray per stride x stride pixels
     depth_samples: int = 96  # samples per ray across the scene box
@@ -118,6 +122,10 @@ class CarveConfig:
     motion: float = 1.5  # image widths per unit of time an object may move between the views
     opacity: float = 0.3  # opacity of a carved Gaussian
     max_new: int = 1500  # Gaussians added per pass at most
+    hold: bool = True  # a carved Gaussian's BED equilibrium is where it was seen (the position
+    # mask holds it still around the pass's time); false: its equilibrium is put out of reach
+    # (M_pos = gamma), so the deformation field moves it from the start, as it moves anything
+    # that is out of equilibrium
     life: float = 3.0  # a carved Gaussian lives around the pass's time: its opacity is scaled
     # by exp(-((t - t_c) / sigma)^2 / 2), sigma = life x the median spacing of the training
     # times (learnt after); 0 = it lives at every time

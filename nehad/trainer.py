@@ -391,13 +391,18 @@ class Trainer:
         schedule.end(self, phase, step, record)
         return record
 
+    def free_offset(self) -> float:
+        """A distance from a Gaussian to its equilibrium at which the BED position mask is at
+        its floor gamma to float32 precision (dd = 12 sigma_s: exp(-72) ~ 1e-31)."""
+        return 12.0 * self.cfg.field.sigma_s_fraction * float(self.model.field.extent)
+
     def _carve_if_due(self, phase: Phase, step: int, window, views: Views) -> dict:
         """A residual carving pass (nehad.carve) every carve.every iterations of the stage's
         densification window: the carve.views frames of the time window nearest to one time
         (the canonical time in the coarse stage; in the fine stage the frame time nearest to
         the next point of a van der Corput sequence over the window, so that successive passes
         cover the time range evenly), each rendered at its own time."""
-        from nehad.carve import carve_points, new_gaussians
+        from nehad.carve import carve_points, new_gaussians, seed_rays
         from nehad.densify import append_gaussians, keep_gaussians
         from nehad.runtime.raster import render
 
@@ -426,12 +431,18 @@ class Trainer:
             targets.append(views.images[k].numpy())
             a = views.alphas[k]
             alphas.append(None if a is None else a.numpy()[:, :, 0])
-        pts, cols, widths, n_bad = carve_points(
-            cams, targets, alphas, [d.rgb for d in drawn], self.carve_box, times[nearest],
-            render_alphas=[d.alpha for d in drawn], render_depths=[d.depth for d in drawn],
-            residual=c.residual, stride=c.stride, depth_samples=c.depth_samples,
-            min_views=c.min_views, agree=c.agree, colour_tol=c.colour_tol, motion=c.motion,
-            rng=rng)
+        if c.mode == "rays":
+            n = max(1, c.seed_views)
+            pts, cols, widths, n_bad = seed_rays(
+                cams[:n], targets[:n], alphas[:n], [d.rgb for d in drawn[:n]], self.carve_box,
+                residual=c.residual, stride=c.stride, depth_samples=c.depth_samples, rng=rng)
+        else:
+            pts, cols, widths, n_bad = carve_points(
+                cams, targets, alphas, [d.rgb for d in drawn], self.carve_box, times[nearest],
+                render_alphas=[d.alpha for d in drawn], render_depths=[d.depth for d in drawn],
+                residual=c.residual, stride=c.stride, depth_samples=c.depth_samples,
+                min_views=c.min_views, agree=c.agree, colour_tol=c.colour_tol,
+                motion=c.motion, rng=rng)
         if len(pts) > c.max_new:
             pick = rng.choice(len(pts), c.max_new, replace=False)
             pts, cols, widths = pts[pick], cols[pick], widths[pick]
@@ -449,7 +460,8 @@ class Trainer:
         spacing = float(np.median(np.diff(np.unique(times)))) if len(np.unique(times)) > 1 else 0.0
         life = c.life * spacing if phase.deforms else 0.0
         append_gaussians(g, self.optimizer,
-                         new_gaussians(pts, cols, widths, t_c, g, c.opacity, life))
+                         new_gaussians(pts, cols, widths, t_c, g, c.opacity, life,
+                                       0.0 if c.hold else self.free_offset()))
         if self.strategy.state.grad_accum.shape[0] == len(keep):  # statistics follow
             self.strategy.state = self.strategy.state.kept(keep, len(pts))
         return out

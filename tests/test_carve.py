@@ -10,7 +10,7 @@ import pytest
 
 torch = pytest.importorskip("torch")
 
-from nehad.carve import carve_points, new_gaussians, unexplained_mask  # noqa: E402
+from nehad.carve import carve_points, new_gaussians, seed_rays, unexplained_mask  # noqa: E402
 from nehad.data.synth import Box, Sphere, render_view  # noqa: E402
 from nehad.data.synth_stress import rig_cameras  # noqa: E402
 from nehad.runtime.cameras import Camera  # noqa: E402
@@ -43,6 +43,32 @@ def test_missing_sphere_is_carved_where_it_is():
     assert np.all(d <= sphere.radius + 0.12), d.max()
     assert np.median(d) <= sphere.radius + 0.02
     assert np.all(widths > 0) and np.allclose(cols.mean(0), [0.9, 0.4, 0.1], atol=0.35)
+
+
+def test_seeded_rays_pass_through_the_missing_object():
+    """Ray seeding (carve.mode=rays): every seed lies on the ray of an unexplained pixel of the
+    seeding view (it projects back onto the object's silhouette), the seeds of a ray span the
+    box in depth, and the seed of each ray nearest the sphere is within one depth spacing of
+    its surface (the optimisation then keeps that one)."""
+    sphere = Sphere("s", np.array([0.3, -0.2, 0.5]), 0.25, (0.9, 0.4, 0.1))
+    cams = _cams([0])
+    targets, alphas = _views([sphere], cams)
+    blank = [np.ones_like(t) for t in targets]
+    depths = 32
+    pts, cols, widths, n_bad = seed_rays(cams, targets, alphas, blank, BOX, stride=1,
+                                         depth_samples=depths, max_rays=10_000)
+    n_rays = len(pts) // depths
+    assert n_bad == n_rays == int((alphas[0] >= 0.5).sum()) > 20
+    uv, z = cams[0].project(pts)
+    u, v = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+    assert np.all(z > 0) and np.all(alphas[0][v, u] >= 0.5)
+    per_ray = np.linalg.norm(pts - sphere.centre, axis=1).reshape(n_rays, depths)
+    spacing = float(np.linalg.norm(BOX[1] - BOX[0])) / depths  # the longest chord / samples
+    assert np.all(per_ray.min(axis=1) <= sphere.radius + spacing), per_ray.min(axis=1).max()
+    assert np.all(per_ray.max(axis=1) > 1.0)  # the other seeds of a ray are far from it
+    assert np.allclose(cols.mean(0), [0.9, 0.4, 0.1], atol=0.35) and np.all(widths > 0)
+    none = seed_rays(cams, targets, alphas, targets, BOX)  # nothing missing: nothing seeded
+    assert none[3] == 0 and len(none[0]) == 0
 
 
 def test_nothing_missing_nothing_carved():
