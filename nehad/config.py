@@ -253,6 +253,8 @@ class Config:
                 raise ConfigError(f"{name}.time_window: must lie in (0, 1] (1 = every frame)")
         if not 0.0 <= self.train.canonical_time <= 1.0:
             raise ConfigError("train.canonical_time: must lie in [0, 1]")
+        if self.carve.mode not in ("vote", "rays"):
+            raise ConfigError(f"carve.mode: must be 'vote' or 'rays', got {self.carve.mode!r}")
         last = -1.0
         for k, entry in enumerate(self.data.resolution_schedule):
             frac, factor = entry
@@ -312,7 +314,7 @@ class Config:
         ("train.init_max_points", 0, None), ("train.fit_box_padding", 0.0, None),
         ("train.checkpoint_interval", 1, None), ("train.log_interval", 1, None),
         ("train.keep_checkpoints", 1, None), ("coarse.min_window_frames", 0, None),
-        ("lod.base_max_gaussians", 0, None),
+        ("lod.base_max_gaussians", 0, None), ("carve.seed_views", 1, None),
         ("train.seed", 0, 2**32 - 1),  # numpy's generators take no negative seed
     )
 

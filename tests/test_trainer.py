@@ -37,7 +37,8 @@ def test_presets_yaml_and_overrides(tmp_path):
     assert cfg.field.multires == (1, 2) and cfg.data.background == (1.0, 1.0, 1.0)
     assert cfg.field.verlet is False
     for bad, word in [("fine.iterations=abc", "fine.iterations"), ("nope=1", "nope"),
-                      ("field.lam=1.5", "lam"), ("fine", "KEY=VALUE")]:
+                      ("field.lam=1.5", "lam"), ("fine", "KEY=VALUE"),
+                      ("carve.mode=ray", "carve.mode"), ("carve.seed_views=0", "seed_views")]:
         with pytest.raises(ConfigError, match=word):
             build_config("test", None, [bad])
     with pytest.raises(ConfigError, match="preset"):
