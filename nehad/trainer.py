@@ -398,8 +398,9 @@ class Trainer:
 
     def _carve_if_due(self, phase: Phase, step: int, window, views: Views) -> dict:
         """A residual carving pass (nehad.carve) every carve.every iterations of the stage's
-        densification window: the carve.views frames of the time window nearest to one time
-        (the canonical time in the coarse stage; in the fine stage the frame time nearest to
+        densification window: the carve.views frames (carve.mode=rays: carve.seed_views) of the
+        time window nearest to one time (the canonical time in the coarse stage; in the fine
+        stage the frame time nearest to
         the next point of a van der Corput sequence over the window, so that successive passes
         cover the time range evenly), each rendered at its own time."""
         from nehad.carve import carve_points, new_gaussians, seed_rays
@@ -420,7 +421,8 @@ class Trainer:
             t_c = float(times[pool[np.argmin(np.abs(times[pool] - at))]])
         else:
             t_c = float(self.cfg.train.canonical_time)
-        nearest = pool[np.argsort(np.abs(times[pool] - t_c), kind="stable")[:c.views]]
+        count = c.seed_views if c.mode == "rays" else c.views
+        nearest = pool[np.argsort(np.abs(times[pool] - t_c), kind="stable")[:count]]
         degree = self.active_sh_degree(step)
         cams, targets, alphas, drawn = [], [], [], []
         canonical = None if phase.deforms else cloud_at(self.model, None, degree)
@@ -432,9 +434,8 @@ class Trainer:
             a = views.alphas[k]
             alphas.append(None if a is None else a.numpy()[:, :, 0])
         if c.mode == "rays":
-            n = max(1, c.seed_views)
             pts, cols, widths, n_bad = seed_rays(
-                cams[:n], targets[:n], alphas[:n], [d.rgb for d in drawn[:n]], self.carve_box,
+                cams, targets, alphas, [d.rgb for d in drawn], self.carve_box,
                 residual=c.residual, stride=c.stride, depth_samples=c.depth_samples, rng=rng)
         else:
             pts, cols, widths, n_bad = carve_points(
@@ -443,14 +444,15 @@ class Trainer:
                 residual=c.residual, stride=c.stride, depth_samples=c.depth_samples,
                 min_views=c.min_views, agree=c.agree, colour_tol=c.colour_tol,
                 motion=c.motion, rng=rng)
-        if len(pts) > c.max_new:
-            pick = rng.choice(len(pts), c.max_new, replace=False)
+        cap = self.cfg.densify.max_gaussians
+        most = min(c.max_new, cap) if cap > 0 else c.max_new  # a pass never overfills the cap
+        if len(pts) > most:
+            pick = rng.choice(len(pts), most, replace=False)
             pts, cols, widths = pts[pick], cols[pick], widths[pick]
         out = {"carve_time": round(t_c, 4), "carve_unexplained": n_bad, "carved": len(pts)}
         if not len(pts):
             return out
         g = self.model.gaussians
-        cap = self.cfg.densify.max_gaussians
         over = len(g) + len(pts) - cap if cap > 0 else 0
         keep = torch.ones(len(g), dtype=torch.bool)
         if over > 0:  # relocate: the least opaque Gaussians make room (nehad.carve)

@@ -154,10 +154,11 @@ def test_unexplained_mask_and_new_gaussians_shapes():
                                                                           new["means"])
 
 
-def test_a_training_run_carves_and_stays_consistent(tmp_path):
-    """carve.every > 0 in a run: passes are logged, Gaussians are added (the test scene's cloud
-    is random and sparse), the densification statistics keep the Gaussians' count, and the run
-    finishes and reloads."""
+@pytest.mark.parametrize("mode", ["vote", "rays"])
+def test_a_training_run_carves_and_stays_consistent(tmp_path, mode):
+    """carve.every > 0 in a run (either carve.mode): passes are logged, Gaussians are added (the
+    test scene's cloud is random and sparse), the densification statistics keep the Gaussians'
+    count, and the run finishes and reloads."""
     import json
 
     from nehad.config import build_config
@@ -165,7 +166,8 @@ def test_a_training_run_carves_and_stays_consistent(tmp_path):
     from nehad.trainer import Trainer, load_run
 
     data = synthesize_scene(tmp_path / "scene", resolution=32, frames=12, points=0, seed=3)
-    sets = ["carve.every=10", "carve.views=4", "train.init=random", "coarse.iterations=30",
+    sets = [f"carve.mode={mode}", "carve.every=10", "carve.views=4", "train.init=random",
+            "coarse.iterations=30",
             "fine.iterations=30", "train.log_interval=10", "densify.max_gaussians=900"]
     trainer = Trainer(build_config("test", None, sets), data, tmp_path / "run", progress=False)
     trainer.train()
