@@ -418,9 +418,10 @@ class FastDeform(nn.Module):
         return cols.t()  # (N, k) -> (k, N): one cheap Transpose (a transB Gemm was slower)
 
     def forward(self, means, log_scales, quats, opacity_logits, sh, mu_eq, t_eq, time,
-                life_rate=None):
+                life_rate=None, velocity=None):
         # the tail runs on (k, N) rows (see the module doc); `life_rate` [N,1] (None: every
-        # Gaussian lives at every time): GaussianParameters.life_factor
+        # Gaussian lives at every time): GaussianParameters.life_factor; `velocity` [N,3]
+        # (0 where the life rate is 0): GaussianParameters.drift
         cfg = self.cfg
         n = means.shape[0]
         t = time.reshape(1, 1).to(means.dtype)
@@ -435,9 +436,13 @@ class FastDeform(nn.Module):
             lived = life_rate.reshape(n) * (t.reshape(1) - t_eq.reshape(n))
             opacities = opacities * torch.exp(-0.5 * lived * lived)
         mu, log_s, quat = means.t(), log_scales.t(), quats.t()
+        drift = None
+        if velocity is not None:  # added after the field, as gaussians_at adds it
+            drift = velocity.t() * (t.reshape(1, 1) - t_eq.reshape(1, n))
         if self.mlp is not None:  # 4DGS: mu + dmu, s + ds, r + dr (normalised as gaussians_at)
             new_quats = quat + rows[6:10]
-            return ((mu + rows[0:3]).t(), torch.exp(log_s + rows[3:6]).t(),
+            moved = mu + rows[0:3]
+            return ((moved if drift is None else moved + drift).t(), torch.exp(log_s + rows[3:6]).t(),
                     (new_quats / new_quats.norm(dim=0, keepdim=True)).t(), opacities, sh)
         disp, ds, q = rows[0:3], rows[3:6], rows[6:10]
         t_eq = t_eq.reshape(1, n)
@@ -452,7 +457,8 @@ class FastDeform(nn.Module):
                                         gamma=cfg.gamma))
         dr = clamp_rotation_delta(q, cfg.phi_max, cfg.norm_eps, dim=0).dr if cfg.rigidity else q
         new_quats = safe_normalize(quat_multiply(quat, dr, dim=0), cfg.norm_eps, dim=0)
-        return ((mu + disp).t(), torch.exp(log_s + ds).t(),
+        moved = mu + disp
+        return ((moved if drift is None else moved + drift).t(), torch.exp(log_s + ds).t(),
                 (new_quats / new_quats.norm(dim=0, keepdim=True)).t(), opacities, sh)
 
 

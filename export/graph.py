@@ -63,7 +63,8 @@ class ExportGraph(nn.Module):
         g = self.model.gaussians
         out = self.deform(g.means, g.log_scales, g.quats, g.opacity_logits,
                           torch.cat([g.sh_dc, g.sh_rest], 1), g.mu_eq, g.t_eq, time,
-                          g.life_rate if g.has_life() else None)
+                          g.life_rate if g.has_life() else None,
+                          g.drift_velocity() if g.has_life() else None)
         return out + (self.layer,) if self.with_layer else out
 
 

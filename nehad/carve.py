@@ -249,7 +249,8 @@ def new_gaussians(points: np.ndarray, colours: np.ndarray, widths: np.ndarray, t
             "mu_eq": means + torch.tensor([float(free_offset), 0.0, 0.0]),
             "t_eq": torch.full((n,) + tuple(like.t_eq.shape[1:]), float(t_eq)),
             "life_rate": torch.full((n,) + tuple(like.life_rate.shape[1:]),
-                                    1.0 / life_sigma if life_sigma > 0 else 0.0)}
+                                    1.0 / life_sigma if life_sigma > 0 else 0.0),
+            "velocity": torch.zeros((n,) + tuple(like.velocity.shape[1:]))}
 
 
 __all__ = ["carve_points", "new_gaussians", "seed_rays", "unexplained_mask"]

@@ -82,6 +82,8 @@ class OptimConfig:
     # its deformation network 10x too) gained 1.0-2.3 dB on two MuJoCo scenes, two seeds each
     # (docs/training.md)
     t_eq_lr: float = 1e-3  # BED equilibrium times (mu_eq learns like positions)
+    velocity_lr: float = 0.01  # straight-line velocities of carved Gaussians (scene extents
+    # per unit of time; 0 for every other Gaussian)
     life_rate_lr: float = 0.5  # life rates k of carved Gaussians (k = 0 never moves: its
     # gradient is 0 there), in 1/time units; a carved Gaussian starts at k = 1 / carve.life
 
@@ -306,7 +308,7 @@ class Config:
         ("optim.scaling_lr", 0.0, None), ("optim.rotation_lr", 0.0, None),
         ("optim.grid_lr_init", 0.0, None), ("optim.grid_lr_final", 0.0, None),
         ("optim.decoder_lr", 0.0, None), ("optim.decoder_lr_final", 0.0, None),
-        ("optim.t_eq_lr", 0.0, None), ("optim.life_rate_lr", 0.0, None), ("carve.life", 0.0, None), ("optim.sh_rest_lr_divisor", 1e-12, None),
+        ("optim.t_eq_lr", 0.0, None), ("optim.life_rate_lr", 0.0, None), ("optim.velocity_lr", 0.0, None), ("carve.life", 0.0, None), ("optim.sh_rest_lr_divisor", 1e-12, None),
         ("densify.grad_threshold", 0.0, None), ("densify.min_opacity", 0.0, 1.0),
         ("densify.percent_dense", 0.0, None), ("densify.max_screen_size", 0, None),
         ("densify.max_gaussians", 0, None), ("loss.ssim_weight", 0.0, 1.0),

@@ -5,7 +5,10 @@ parameters of docs/design.md section 4.7 (mu_eq, t_eq), set when the fine stage 
 life rate k >= 0: the Gaussian's opacity at time t is scaled by exp(-(k (t - t_eq))^2 / 2)
 (`life_factor`; docs/training.md, "Objects that are never created"). Every Gaussian starts with
 k = 0 (it lives at every time, and the gradient of k is zero there, so it stays so); residual
-carving (nehad.carve) gives the Gaussians it adds a finite life around the time they were seen.
+carving (nehad.carve) gives the Gaussians it adds a finite life around the time they were seen,
+and a velocity v: over its life such a Gaussian moves in a straight line, mu + v (t - t_eq) after
+the deformation field (`drift`), so that it can follow its object into the times next to the one
+it was carved at (docs/training.md). A Gaussian with k = 0 never drifts.
 
 Every parameter's first dimension is the Gaussian index, so densification (nehad.densify) treats
 them all alike: clone, split and prune apply to each one, and children inherit mu_eq and t_eq."""
@@ -39,10 +42,10 @@ class GaussianParameters(nn.Module):
     """N Gaussians' raw parameters; `activated()` gives what the renderer consumes."""
 
     NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest", "mu_eq", "t_eq",
-             "life_rate")
+             "life_rate", "velocity")
 
     def __init__(self, means, log_scales, quats, opacity_logits, sh_dc, sh_rest, mu_eq=None,
-                 t_eq=None, life_rate=None):
+                 t_eq=None, life_rate=None, velocity=None):
         super().__init__()
         f32 = lambda a: torch.as_tensor(np.asarray(a) if not torch.is_tensor(a) else a,
                                         dtype=torch.float32).clone()
@@ -56,6 +59,7 @@ class GaussianParameters(nn.Module):
         self.mu_eq = nn.Parameter(self.means.detach().clone() if mu_eq is None else f32(mu_eq))
         self.t_eq = nn.Parameter(torch.full((n, 1), 0.5) if t_eq is None else f32(t_eq))
         self.life_rate = nn.Parameter(torch.zeros(n, 1) if life_rate is None else f32(life_rate))
+        self.velocity = nn.Parameter(torch.zeros(n, 3) if velocity is None else f32(velocity))
 
     @classmethod
     def empty_like_state(cls, state: dict) -> "GaussianParameters":
@@ -66,10 +70,14 @@ class GaussianParameters(nn.Module):
 
     @staticmethod
     def with_defaults(state: dict) -> dict:
-        """`state` (a state dict of these parameters) with `life_rate` = 0 added if absent."""
-        if "life_rate" in state or "means" not in state:
+        """`state` (a state dict of these parameters) with `life_rate` and `velocity` = 0 added
+        where absent (states saved before they existed)."""
+        if "means" not in state:
             return state
-        return {**state, "life_rate": torch.zeros(state["means"].shape[0], 1)}
+        n = state["means"].shape[0]
+        extra = {name: torch.zeros(n, width) for name, width in (("life_rate", 1), ("velocity", 3))
+                 if name not in state}
+        return {**state, **extra} if extra else state
 
     def has_life(self) -> bool:
         """Whether any Gaussian has a finite life (k != 0)."""
@@ -128,6 +136,19 @@ class GaussianParameters(nn.Module):
             return None
         t = torch.as_tensor(t, dtype=self.t_eq.dtype).reshape(())
         return torch.exp(-0.5 * (self.life_rate * (t - self.t_eq)).square()).reshape(-1)
+
+    def drift(self, t) -> torch.Tensor | None:
+        """(N, 3) the straight-line motion v (t - t_eq) of the Gaussians with a finite life (a
+        carved Gaussian follows its object over its life; nehad.carve), 0 for the others (their
+        velocity's gradient is masked, so it stays 0), or None when no Gaussian has a life."""
+        if t is None or not self.has_life():
+            return None
+        t = torch.as_tensor(t, dtype=self.t_eq.dtype).reshape(())
+        return self.drift_velocity() * (t - self.t_eq)
+
+    def drift_velocity(self) -> torch.Tensor:
+        """(N, 3) the velocities of the Gaussians with a finite life, 0 for the others."""
+        return self.velocity * (self.life_rate.detach() != 0).to(self.velocity.dtype)
 
     def to_cloud(self) -> GaussianCloud:
         with torch.no_grad():

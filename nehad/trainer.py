@@ -104,21 +104,25 @@ class NeHaDModel(torch.nn.Module):
     def gaussians_at(self, t, deform: bool = True):
         """Activated (means, scales, quats, opacities (N,), sh) at time t (canonical if not
         deform). t is a float or a one-element tensor (the ONNX export traces it as an input).
-        The opacities carry each Gaussian's life factor at t (GaussianParameters.life_factor),
-        deformed or not."""
+        The opacities carry each Gaussian's life factor at t (GaussianParameters.life_factor)
+        and the means its drift (GaussianParameters.drift), deformed or not."""
         g = self.gaussians
         life = g.life_factor(t)
         if not deform or t is None:
             means, scales, quats, opacities, sh = g.activated()
-            return means, scales, quats, opacities if life is None else opacities * life, sh
+            if life is None:
+                return means, scales, quats, opacities, sh
+            return means + g.drift(t), scales, quats, opacities * life, sh
         sh = torch.cat([g.sh_dc, g.sh_rest], 1)
         out = self.field(g.means, g.log_scales, g.quats, t, g.mu_eq, g.t_eq,
                          opacity_logits=g.opacity_logits, sh=sh)
         quats = out.quats / out.quats.norm(dim=-1, keepdim=True)
         opacities = torch.sigmoid(out.opacity_logits).reshape(g.means.shape[0])
+        means = out.means
         if life is not None:
             opacities = opacities * life
-        return out.means, torch.exp(out.log_scales), quats, opacities, out.sh
+            means = means + g.drift(t)
+        return means, torch.exp(out.log_scales), quats, opacities, out.sh
 
 
 def scene_bounds(points: np.ndarray | None) -> np.ndarray:
@@ -240,6 +244,7 @@ class Trainer:
             {"name": "mu_eq", "params": [g.mu_eq], "lr": 0.0},
             {"name": "t_eq", "params": [g.t_eq], "lr": 0.0},
             {"name": "life_rate", "params": [g.life_rate], "lr": o.life_rate_lr},
+            {"name": "velocity", "params": [g.velocity], "lr": o.velocity_lr * self.extent},
         ]
         field_groups = self.model.field.param_groups()
         groups.append({"name": "grid", "params": list(field_groups["grid"]), "lr": 0.0})

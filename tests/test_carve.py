@@ -200,6 +200,33 @@ def test_life_factor_and_immortal_gaussians_stay_immortal():
     assert float(grad[0]) < 0.0  # a longer life (smaller k) raises this loss's opacity sum
 
 
+def test_drift_moves_only_mortal_gaussians():
+    """GaussianParameters.drift = v (t - t_eq) for Gaussians with k > 0, 0 for the others (and
+    their velocity's gradient is 0, so it stays 0); a model's means at t carry it."""
+    from nehad.field.config import FieldConfig
+    from nehad.field.deformation import DeformationField
+    from nehad.gaussians import GaussianParameters
+    from nehad.trainer import NeHaDModel
+
+    g = GaussianParameters.random_in_box(3, sh_degree=0)
+    with torch.no_grad():
+        g.velocity[:] = torch.tensor([[1.0, -2.0, 0.5], [3.0, 0.0, 0.0], [4.0, 4.0, 4.0]])
+    assert g.drift(0.8) is None  # no Gaussian has a life: none drifts
+    with torch.no_grad():
+        g.life_rate[:2] = 20.0
+        g.t_eq[:] = torch.tensor([[0.5], [0.7], [0.1]])
+    d = g.drift(0.8)
+    expect = torch.tensor([[0.3, -0.6, 0.15], [0.3, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    assert torch.allclose(d, expect, atol=1e-6)
+    (d * torch.randn(3, 3)).sum().backward()
+    assert torch.all(g.velocity.grad[2] == 0) and torch.any(g.velocity.grad[0] != 0)
+    field = DeformationField(FieldConfig(), np.array([[-2.0] * 3, [2.0] * 3]), 4.0)
+    model = NeHaDModel(g, field)  # a fresh field is the identity: the means are mu + drift
+    with torch.no_grad():
+        means = model.gaussians_at(0.8)[0]
+    assert torch.allclose(means, g.means + expect, atol=1e-5)
+
+
 def test_state_saved_before_life_rate_loads_immortal():
     """A checkpoint written before the life rate existed loads with k = 0 for every Gaussian."""
     from nehad.gaussians import GaussianParameters

@@ -270,3 +270,41 @@ def test_carved_gaussians_life_exports_with_parity(tmp_path):
     model, _ = load_run(run)
     with pytest.raises(ExportError, match="finite lives"):
         SplitBaseGraph(model, 0, n)
+
+
+def test_carved_gaussians_velocity_exports_with_parity(tmp_path):
+    """A carved Gaussian's straight-line drift v (t - t_eq) (nehad.gaussians.drift) is in the
+    exported means; Gaussians with k = 0 do not drift whatever their velocity holds."""
+    from nehad.checkpoint import atomic_torch_save, load_state
+
+    run, _ = make_run(tmp_path, "hnn")
+    state = load_state(run / "model.pt")
+    gs = state["gaussians"]
+    n = gs["means"].shape[0]
+    life = torch.zeros(n, 1)
+    life[: n // 2] = 5.0
+    gs["life_rate"] = life
+    gs["velocity"] = torch.linspace(-2.0, 2.0, 3 * n).reshape(n, 3)
+    atomic_torch_save(state, run / "model.pt")
+    import shutil
+
+    still = tmp_path / "still"  # the same model without velocities
+    shutil.copytree(run, still)
+    state["gaussians"] = {**gs, "velocity": torch.zeros(n, 3)}
+    atomic_torch_save(state, still / "model.pt")
+    paths = []
+    for r in (run, still):
+        paths.append(tmp_path / f"{r.name}.onnx")
+        res = CliRunner().invoke(main, ["export", str(r), "-o", str(paths[-1])])
+        assert res.exit_code == 0, res.output
+    sessions = [ort.InferenceSession(str(p), providers=["CPUExecutionProvider"]) for p in paths]
+    t_eq = gs["t_eq"].reshape(-1, 1).numpy()
+    for t in TIMES:
+        feed = {"time": np.array([t], np.float32)}
+        moving, fixed = (s.run(["means"], feed)[0] for s in sessions)
+        assert parity_error(moving, torch_reference(run, t)[0]) <= 1e-5
+        # independent of torch: the mortal half moved by v (t - t_eq), the rest not at all
+        drift = gs["velocity"].numpy() * (t - t_eq)
+        np.testing.assert_allclose(moving[: n // 2] - fixed[: n // 2], drift[: n // 2],
+                                   atol=2e-5)
+        np.testing.assert_array_equal(moving[n // 2:], fixed[n // 2:])
