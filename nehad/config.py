@@ -115,6 +115,8 @@ class CarveConfig:
     # "rays": seeds along every unexplained pixel's ray, the optimisation picks the depth
     # (nehad.carve.seed_rays)
     seed_views: int = 1  # "rays": the views nearest the pass's time that are seeded
+    static_stage: bool = True  # passes in the static (coarse) stage too, at the canonical
+    # time (their Gaussians live at every time); false: only in the deforming stage
     residual: float = 0.25  # a pixel is unexplained when render and target differ by more
     stride: int = 2  # one ray per stride x stride pixels
     depth_samples: int = 96  # samples per ray across the scene box

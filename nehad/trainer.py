@@ -416,6 +416,7 @@ class Trainer:
         sched = self.strategy.schedule
         it = phase.it + 1
         if (c.every <= 0 or c.max_new <= 0 or phase.layer > 0 or self.strategy.frozen
+                or (not phase.deforms and not c.static_stage)
                 or not sched.start <= it < sched.stop or it % c.every or sched.recovering(it)):
             return {}
         rng = np.random.default_rng([self.cfg.train.seed, step, 7])

@@ -180,6 +180,26 @@ def test_a_training_run_carves_and_stays_consistent(tmp_path, mode):
     assert len(model.gaussians) == len(trainer.model.gaussians)
 
 
+def test_no_static_stage_passes_when_asked(tmp_path):
+    """carve.static_stage=false: carving passes run in the deforming stage only."""
+    import json
+
+    from nehad.config import build_config
+    from nehad.data.synth import synthesize_scene
+    from nehad.trainer import Trainer
+
+    data = synthesize_scene(tmp_path / "scene", resolution=32, frames=12, points=0, seed=3)
+    log = {}
+    for static in ("true", "false"):
+        sets = ["carve.every=10", "carve.views=4", "train.init=random", "coarse.iterations=30",
+                "fine.iterations=30", "train.log_interval=10", f"carve.static_stage={static}"]
+        run = tmp_path / f"run_{static}"
+        Trainer(build_config("test", None, sets), data, run, progress=False).train()
+        records = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+        log[static] = {r["stage"] for r in records if "carved" in r}
+    assert log["true"] == {"coarse", "fine"} and log["false"] == {"fine"}
+
+
 def test_life_factor_and_immortal_gaussians_stay_immortal():
     """GaussianParameters.life_factor against the formula; a Gaussian with k = 0 has a zero
     gradient in k (it stays immortal under any loss), one with k > 0 does not."""
