@@ -57,6 +57,18 @@ def _ray_box(origin: np.ndarray, dirs: np.ndarray, box: np.ndarray):
     return np.maximum(near, 1e-3), far
 
 
+def _pixel_rays(cam, u: np.ndarray, v: np.ndarray, box: np.ndarray):
+    """Rays through the centres of pixels (u, v) of `cam`: (origin (3,), directions (R, 3)
+    scaled so that the ray parameter is the depth along the camera z, entry and exit
+    parameters through `box`)."""
+    c2w = cam.camera_to_world
+    dirs = np.stack([(u + 0.5 - cam.cx) / cam.fx, (v + 0.5 - cam.cy) / cam.fy,
+                     np.ones(len(u))], 1) @ c2w[:3, :3].T
+    origin = c2w[:3, 3]
+    near, far = _ray_box(origin, dirs, box)
+    return origin, dirs, near, far
+
+
 def _chroma(rgb: np.ndarray) -> np.ndarray:
     """rgb / (r + g + b): a surface's colour with its shading divided out (a lit and a shaded
     side of one object agree), and 1/3 each for white, grey and black."""
@@ -137,12 +149,7 @@ def carve_points(cameras, targets, alphas, renders, box: np.ndarray, times=None,
             cam = cameras[k]
             mine = rays[in_class & (rays[:, 0] == k)]
             v, u = mine[:, 1], mine[:, 2]
-            c2w = cam.camera_to_world
-            dirs_cam = np.stack([(u + 0.5 - cam.cx) / cam.fx, (v + 0.5 - cam.cy) / cam.fy,
-                                 np.ones(len(u))], 1)
-            dirs = dirs_cam @ c2w[:3, :3].T  # depth = ray parameter (camera z)
-            origin = c2w[:3, 3]
-            near, far = _ray_box(origin, dirs, box)
+            origin, dirs, near, far = _pixel_rays(cam, u, v, box)
             hit = far > near
             if not hit.any():
                 continue
@@ -209,16 +216,13 @@ def seed_rays(cameras, targets, alphas, renders, box: np.ndarray, *, residual: f
             vs, us = vs[pick], us[pick]
         if not len(vs):
             continue
-        c2w = cam.camera_to_world
-        dirs = np.stack([(us + 0.5 - cam.cx) / cam.fx, (vs + 0.5 - cam.cy) / cam.fy,
-                         np.ones(len(us))], 1) @ c2w[:3, :3].T
-        near, far = _ray_box(c2w[:3, 3], dirs, box)
+        origin, dirs, near, far = _pixel_rays(cam, us, vs, box)
         hit = far > near
         vs, us, dirs, near, far = vs[hit], us[hit], dirs[hit], near[hit], far[hit]
         s = (np.arange(depth_samples)[None, :] + rng.random((len(vs), depth_samples))) \
             / depth_samples
         depth = near[:, None] + (far - near)[:, None] * s
-        pts_out.append((c2w[:3, 3] + depth[..., None] * dirs[:, None, :]).reshape(-1, 3))
+        pts_out.append((origin + depth[..., None] * dirs[:, None, :]).reshape(-1, 3))
         cols_out.append(np.repeat(target[vs, us], depth_samples, axis=0))
         width_out.append((depth * stride / cam.fx).reshape(-1))
     if not pts_out:

@@ -405,9 +405,9 @@ class Trainer:
         """A residual carving pass (nehad.carve) every carve.every iterations of the stage's
         densification window: the carve.views frames (carve.mode=rays: carve.seed_views) of the
         time window nearest to one time (the canonical time in the coarse stage; in the fine
-        stage the frame time nearest to
-        the next point of a van der Corput sequence over the window, so that successive passes
-        cover the time range evenly), each rendered at its own time."""
+        stage the frame time nearest to the next point of a van der Corput sequence over the
+        window, so that successive passes cover the time range evenly), each rendered at its
+        own time."""
         from nehad.carve import carve_points, new_gaussians, seed_rays
         from nehad.densify import append_gaussians, keep_gaussians
         from nehad.runtime.raster import render
