@@ -137,7 +137,8 @@ def export_split_model(model, meta: dict, out_dir, *, cfg=None, opset: int = MIN
     if layer is None:
         raise ExportError("the model has no streaming layers (train it with --lod-levels L)")
     if np.any(np.diff(layer) < 0):
-        raise ExportError(f"{run}: model.pt's layers are not stored in order")
+        raise ExportError("the model's streaming layers are not stored in order (layer 0 "
+                          "first, then 1, ...); a run trained with --lod-levels stores them so")
     sizes = np.bincount(layer, minlength=int(layer.max()) + 1).tolist()
     sh_degree = int(meta.get("sh_degree", model.gaussians.sh_degree))
     k = (sh_degree + 1) ** 2

@@ -248,3 +248,16 @@ def test_mipmap_split_layers_parity(tmp_path):
             err = max(parity_error(out[name], r.numpy()[:n])
                       for name, r in zip(("means", "scales", "quats", "opacities"), ref))
             assert err <= 1e-5, (k, t, err)
+
+
+def test_split_export_rejects_layers_out_of_order(tmp_path):
+    """The out-of-order error path names the problem (it raised NameError before) and writes
+    nothing."""
+    from nehad.export.layers import export_split_model
+    from nehad.export.onnx_export import ExportError
+
+    model, meta = _field_model(False, n=60, seed=3)
+    meta = {**meta, "layer": torch.tensor([0] * 20 + [2] * 20 + [1] * 20, dtype=torch.int32)}
+    with pytest.raises(ExportError, match="not stored in order"):
+        export_split_model(model, meta, tmp_path / "layers")
+    assert not (tmp_path / "layers").exists()
