@@ -12,7 +12,8 @@ as medians over --repeats calls after a warm-up:
   step        Trainer.train_step of a fine step, everything included;
   field       the deformation of the N Gaussians, forward and backward;
   render      projection + rasterization of the deformed Gaussians, forward and backward;
-  loss        the photometric loss (L1 + D-SSIM) of an image, forward and backward;
+  loss        the photometric loss (L1 + D-SSIM) of an image, forward and backward, with the
+              configured loss.kernel (numba unless --set loss.kernel=torch);
   regularise  the hex-plane regularisers, forward and backward;
   adam        one optimizer step over every parameter.
 
@@ -116,7 +117,10 @@ def measure(tr, repeats: int) -> dict:
 
     out["render"] = median_ms(render, repeats)
     image = target.clone().mul_(0.9).requires_grad_(True)
-    out["loss"] = median_ms(lambda: photometric_loss(image, target, 0.2).backward(), repeats)
+    kernel = getattr(tr.cfg.loss, "kernel", None)  # None: a checkout without the fused loss
+    extra = () if kernel is None else (kernel,)
+    out["loss"] = median_ms(lambda: photometric_loss(image, target, 0.2, *extra).backward(),
+                            repeats)
     out["regularise"] = median_ms(lambda: model.field.regularization_loss().backward(), repeats)
     opt = tr.optimizer
     for group in opt.param_groups:

@@ -62,8 +62,17 @@ def ssim(img: torch.Tensor, ref: torch.Tensor, window: int = 11) -> torch.Tensor
     return (num / den).mean()
 
 
-def photometric_loss(img: torch.Tensor, ref: torch.Tensor, ssim_weight: float = 0.2):
-    """(1 - w) L1 + w D-SSIM with D-SSIM = 1 - SSIM, the 3DGS/4DGS image loss (docs/design.md section 5)."""
+def photometric_loss(img: torch.Tensor, ref: torch.Tensor, ssim_weight: float = 0.2,
+                     kernel: str = "torch"):
+    """(1 - w) L1 + w D-SSIM with D-SSIM = 1 - SSIM, the 3DGS/4DGS image loss (docs/design.md section 5).
+    `kernel="numba"` computes the same loss and its gradient in the fused passes of
+    nehad.fused_loss when `img` is one (H, W, C) float32 CPU image (else this autograd version)."""
+    if (kernel == "numba" and ssim_weight > 0 and img.dim() == 3 and img.device.type == "cpu"
+            and img.dtype == torch.float32 and ref.dtype == torch.float32
+            and not ref.requires_grad):
+        from nehad.fused_loss import fused_photometric_loss
+
+        return fused_photometric_loss(img, ref, ssim_weight)
     l1 = (img - ref).abs().mean()
     if ssim_weight == 0:
         return l1

@@ -354,7 +354,8 @@ class Trainer:
                 background = tuple(float(v) for v in rng.random(3))
                 target = recomposite(target, alpha, self.load_background, background)
             res = render_torch(*params, cam, background=background, sh_degree=degree)
-            loss = photometric_loss(res.rgb, target, cfg.loss.ssim_weight) / batch
+            loss = photometric_loss(res.rgb, target, cfg.loss.ssim_weight,
+                                    cfg.loss.kernel) / batch
             total = total + loss
             # logged against the evaluation background, whatever the step trained over
             psnrs.append(psnr(recomposite(res.rgb.detach(), res.alpha.detach()[:, :, None],
