@@ -20,34 +20,45 @@ def gaussian_taps(size: int = 11, sigma: float = 1.5) -> np.ndarray:
     return (g / g.sum()).astype(np.float32)
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True)
-def _blur_rows_then_columns(src, taps, out):
-    """src, out: (M, H, W) float32; zero padding outside the image. Both passes loop over whole
+@numba.njit(fastmath=True, cache=True)
+def _blur_one(img, taps, dst):
+    """Blur one (H, W) map into `dst`; zero padding outside the image. Both passes loop over whole
     rows in the innermost loop (contiguous, vectorisable)."""
-    m, h, w = src.shape
+    h, w = img.shape
     k = taps.shape[0]
     r = k // 2
-    for idx in numba.prange(m):
-        img = src[idx]
-        tmp = np.zeros((h, w), np.float32)
-        for y in range(h):
-            for t in range(k):
+    tmp = np.zeros((h, w), np.float32)
+    for y in range(h):
+        trow = tmp[y]
+        irow = img[y]
+        for t in range(k):
+            wt = taps[t]
+            off = t - r
+            x0 = max(0, -off)
+            x1 = min(w, w - off)
+            a = trow[x0:x1]  # views, so that every index below is a non-negative loop counter
+            b = irow[x0 + off:x1 + off]
+            for x in range(x1 - x0):
+                a[x] += wt * b[x]
+    for y in range(h):
+        drow = dst[y]
+        for x in range(w):
+            drow[x] = 0.0
+        for t in range(k):
+            yy = y + t - r
+            if 0 <= yy < h:
                 wt = taps[t]
-                off = t - r
-                x0 = max(0, -off)
-                x1 = min(w, w - off)
-                for x in range(x0, x1):
-                    tmp[y, x] += wt * img[y, x + off]
-        dst = out[idx]
-        for y in range(h):
-            for x in range(w):
-                dst[y, x] = 0.0
-            for t in range(k):
-                yy = y + t - r
-                if 0 <= yy < h:
-                    wt = taps[t]
-                    for x in range(w):
-                        dst[y, x] += wt * tmp[yy, x]
+                srow = tmp[yy]
+                for x in range(w):
+                    drow[x] += wt * srow[x]
+
+
+@numba.njit(parallel=True, fastmath=True, cache=True)
+def _blur_rows_then_columns(src, taps, out):
+    """src, out: (M, H, W) float32. The body is a function of its own: Numba vectorises the
+    inner loops of a called function but not those written inside a prange body."""
+    for idx in numba.prange(src.shape[0]):
+        _blur_one(src[idx], taps, out[idx])
 
 
 def gaussian_blur(stack: np.ndarray, taps: np.ndarray) -> np.ndarray:

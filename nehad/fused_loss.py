@@ -44,6 +44,10 @@ def _ssim_row(x, y, taps, coef_a, coef_b, coef_c, row):
     bxx = np.zeros(w + 2 * r, np.float32)
     byy = np.zeros(w + 2 * r, np.float32)
     bxy = np.zeros(w + 2 * r, np.float32)
+    # views with non-negative loop-counter indices (a negative-index check would stop LLVM
+    # from vectorising the loops)
+    bx_in, by_in, bxx_in = bx[r:r + w], by[r:r + w], bxx[r:r + w]
+    byy_in, bxy_in = byy[r:r + w], bxy[r:r + w]
     mx = np.empty(w, np.float32)
     my = np.empty(w, np.float32)
     exx = np.empty(w, np.float32)
@@ -53,11 +57,11 @@ def _ssim_row(x, y, taps, coef_a, coef_b, coef_c, row):
     l1_sum = 0.0
     for c in range(nc):
         for i in range(w):
-            bx[r + i] = 0.0
-            by[r + i] = 0.0
-            bxx[r + i] = 0.0
-            byy[r + i] = 0.0
-            bxy[r + i] = 0.0
+            bx_in[i] = 0.0
+            by_in[i] = 0.0
+            bxx_in[i] = 0.0
+            byy_in[i] = 0.0
+            bxy_in[i] = 0.0
         for t in range(k):  # vertical taps into the padded row buffers
             src = row + t - r
             if src < 0 or src >= h:
@@ -68,15 +72,15 @@ def _ssim_row(x, y, taps, coef_a, coef_b, coef_c, row):
             # one array written per loop: LLVM vectorises a loop only when its run-time
             # alias checks stay few
             for i in range(w):
-                bx[r + i] += wt * xr[i]
+                bx_in[i] += wt * xr[i]
             for i in range(w):
-                by[r + i] += wt * yr[i]
+                by_in[i] += wt * yr[i]
             for i in range(w):
-                bxx[r + i] += wt * xr[i] * xr[i]
+                bxx_in[i] += wt * xr[i] * xr[i]
             for i in range(w):
-                byy[r + i] += wt * yr[i] * yr[i]
+                byy_in[i] += wt * yr[i] * yr[i]
             for i in range(w):
-                bxy[r + i] += wt * xr[i] * yr[i]
+                bxy_in[i] += wt * xr[i] * yr[i]
         for i in range(w):
             mx[i] = 0.0
             my[i] = 0.0
@@ -85,16 +89,18 @@ def _ssim_row(x, y, taps, coef_a, coef_b, coef_c, row):
             exy[i] = 0.0
         for t in range(k):  # horizontal taps (the pads are zero)
             wt = taps[t]
+            bx_t, by_t, bxx_t = bx[t:t + w], by[t:t + w], bxx[t:t + w]
+            byy_t, bxy_t = byy[t:t + w], bxy[t:t + w]
             for i in range(w):
-                mx[i] += wt * bx[i + t]
+                mx[i] += wt * bx_t[i]
             for i in range(w):
-                my[i] += wt * by[i + t]
+                my[i] += wt * by_t[i]
             for i in range(w):
-                exx[i] += wt * bxx[i + t]
+                exx[i] += wt * bxx_t[i]
             for i in range(w):
-                eyy[i] += wt * byy[i + t]
+                eyy[i] += wt * byy_t[i]
             for i in range(w):
-                exy[i] += wt * bxy[i + t]
+                exy[i] += wt * bxy_t[i]
         xr = x[c, row]
         yr = y[c, row]
         for i in range(w):
@@ -134,14 +140,15 @@ def _ssim_grad_row(x, y, coef_a, coef_b, coef_c, taps, w_ssim, w_l1, grad, row):
     ba = np.zeros(w + 2 * r, np.float32)
     bb = np.zeros(w + 2 * r, np.float32)
     bc = np.zeros(w + 2 * r, np.float32)
+    ba_in, bb_in, bc_in = ba[r:r + w], bb[r:r + w], bc[r:r + w]
     ga = np.empty(w, np.float32)
     gb = np.empty(w, np.float32)
     gc = np.empty(w, np.float32)
     for c in range(nc):
         for i in range(w):
-            ba[r + i] = 0.0
-            bb[r + i] = 0.0
-            bc[r + i] = 0.0
+            ba_in[i] = 0.0
+            bb_in[i] = 0.0
+            bc_in[i] = 0.0
         for t in range(k):
             src = row + t - r
             if src < 0 or src >= h:
@@ -151,37 +158,50 @@ def _ssim_grad_row(x, y, coef_a, coef_b, coef_c, taps, w_ssim, w_l1, grad, row):
             br = coef_b[c, src]
             cr = coef_c[c, src]
             for i in range(w):
-                ba[r + i] += wt * ar[i]
+                ba_in[i] += wt * ar[i]
             for i in range(w):
-                bb[r + i] += wt * br[i]
+                bb_in[i] += wt * br[i]
             for i in range(w):
-                bc[r + i] += wt * cr[i]
+                bc_in[i] += wt * cr[i]
         for i in range(w):
             ga[i] = 0.0
             gb[i] = 0.0
             gc[i] = 0.0
         for t in range(k):
             wt = taps[t]
+            ba_t, bb_t, bc_t = ba[t:t + w], bb[t:t + w], bc[t:t + w]
             for i in range(w):
-                ga[i] += wt * ba[i + t]
+                ga[i] += wt * ba_t[i]
             for i in range(w):
-                gb[i] += wt * bb[i + t]
+                gb[i] += wt * bb_t[i]
             for i in range(w):
-                gc[i] += wt * bc[i + t]
+                gc[i] += wt * bc_t[i]
         xr = x[c, row]
         yr = y[c, row]
+        gr = grad[c, row]
         for i in range(w):
-            d = xr[i] - yr[i]
-            sign = 1.0 if d > 0 else (-1.0 if d < 0 else 0.0)
-            grad[row, i, c] = (w_l1 * sign
-                               + w_ssim * (ga[i] + _TWO * xr[i] * gb[i] + yr[i] * gc[i]))
+            gr[i] = (w_l1 * np.sign(xr[i] - yr[i])
+                     + w_ssim * (ga[i] + _TWO * xr[i] * gb[i] + yr[i] * gc[i]))
 
 
 @numba.njit(parallel=True, fastmath=True, cache=True)
 def _ssim_grad_rows(x, y, coef_a, coef_b, coef_c, taps, w_ssim, w_l1, grad):
-    """grad (H, W, C) = w_l1 sign(x - y) + w_ssim ((G*A) + 2 x (G*B) + y (G*C))."""
+    """grad (C, H, W) = w_l1 sign(x - y) + w_ssim ((G*A) + 2 x (G*B) + y (G*C))."""
     for row in numba.prange(x.shape[1]):
         _ssim_grad_row(x, y, coef_a, coef_b, coef_c, taps, w_ssim, w_l1, grad, row)
+
+
+_WORKSPACE: dict = {}
+
+
+def _workspace(nc: int, h: int, w: int) -> np.ndarray:
+    """The (3, C, H, W) buffer of A, B, C, kept between calls of one image size: a fresh one costs
+    its page faults at every step (about as much as a pass, measured at 400x400)."""
+    key = (nc, h, w)
+    if key not in _WORKSPACE:
+        _WORKSPACE.clear()
+        _WORKSPACE[key] = np.empty((3, nc, h, w), np.float32)
+    return _WORKSPACE[key]
 
 
 def photometric_loss_and_grad(img: np.ndarray, ref: np.ndarray, ssim_weight: float = 0.2,
@@ -192,7 +212,7 @@ def photometric_loss_and_grad(img: np.ndarray, ref: np.ndarray, ssim_weight: flo
     x = np.ascontiguousarray(np.moveaxis(np.asarray(img, np.float32), 2, 0))
     y = np.ascontiguousarray(np.moveaxis(np.asarray(ref, np.float32), 2, 0))
     taps = gaussian_taps(window, 1.5)
-    coef = np.empty((3, nc, h, w), np.float32)
+    coef = _workspace(nc, h, w)
     s_rows = np.empty(h, np.float64)
     l1_rows = np.empty(h, np.float64)
     _ssim_rows(x, y, taps, coef[0], coef[1], coef[2], s_rows, l1_rows)
@@ -201,10 +221,10 @@ def photometric_loss_and_grad(img: np.ndarray, ref: np.ndarray, ssim_weight: flo
             + ssim_weight * (1.0 - s_rows.sum() / count))
     if not need_grad:
         return loss, None
-    grad = np.empty((h, w, nc), np.float32)
+    grad = np.empty((nc, h, w), np.float32)
     _ssim_grad_rows(x, y, coef[0], coef[1], coef[2], taps, np.float32(-ssim_weight / count),
                     np.float32((1.0 - ssim_weight) / count), grad)
-    return loss, grad
+    return loss, np.moveaxis(grad, 0, 2)  # (H, W, C), a strided view
 
 
 class _FusedPhotometricLoss(torch.autograd.Function):
