@@ -119,8 +119,8 @@ def main() -> None:
                 print(f"{n:>9} {threads:>7} {t_torch:>9.1f} {t_ort:>9.1f} "
                       f"{t_ort / t_torch:>6.2f} {size_mb:>8.1f} {export_s:>8.1f} {load_s:>6.1f} "
                       f"{max(report.parity.values()):>8.1e}", flush=True)
-                del sess
-        del model
+                sess = None
+        model = None
 
 
 if __name__ == "__main__":

@@ -8,7 +8,6 @@ finish (``--resume``); frames already written are whole (atomic writes).
 from __future__ import annotations
 
 import os
-import sys
 from pathlib import Path
 
 import click

@@ -8,7 +8,6 @@ adjoint and the autograd backward pass is the same blur of the incoming gradient
 
 from __future__ import annotations
 
-import math
 
 import numba
 import numpy as np

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 from nehad.blur import gaussian_blur, gaussian_taps

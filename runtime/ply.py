@@ -256,7 +256,7 @@ def read_gaussian_ply(path) -> GaussianCloud:
                            f"(exp overflows float32)")
         q = group(["rot_0", "rot_1", "rot_2", "rot_3"]).astype(np.float64)
     finally:
-        del table  # drop the memory map before returning
+        table = None  # drop the memory map before returning
     norm = np.sqrt(np.einsum("ij,ij->i", q, q))
     zero = norm == 0
     if zero.any():

@@ -215,7 +215,7 @@ def test_dask_via_the_cli_and_rerun_skips_existing_frames(model, reference, clus
     assert f"rendered {N} frames" in res.output and f"Dask at {address}" in res.output
     assert same_frames(tmp_path / "f", reference)
     res = CliRunner().invoke(main, [*args, "--resume"])
-    assert res.exit_code == 0 and f"rendered 0 frames" in res.output, res.output
+    assert res.exit_code == 0 and "rendered 0 frames" in res.output, res.output
 
 
 def test_dask_task_errors_name_the_frame(model, cluster, tmp_path):

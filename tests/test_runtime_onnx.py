@@ -4,7 +4,6 @@ imported, and one-line errors for bad inputs."""
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -42,7 +41,7 @@ def exported(tmp_path_factory):
 
 def fake_model(path, n=2, sh_degree=0, means=None, metadata=None, drop_output=None):
     """A hand-built nehad-format ONNX (constant outputs) for validation tests; needs `onnx`."""
-    onnx = pytest.importorskip("onnx")
+    pytest.importorskip("onnx")
     from onnx import TensorProto, helper, numpy_helper
 
     k = (sh_degree + 1) ** 2

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from nehad.data.synth import Box, Sphere, orbit_camera_to_world, render_view, scene_objects
+from nehad.data.synth import Sphere, orbit_camera_to_world, render_view, scene_objects
 from nehad.data.synth_gaussians import rotation_to_quat, scene_gaussians
 from nehad.runtime.cameras import Camera
 from nehad.runtime.raster import render

@@ -5,7 +5,6 @@ before a server starts. Skips without Chromium or viser."""
 
 from __future__ import annotations
 
-import json
 import socket
 import subprocess
 import sys
