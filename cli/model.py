@@ -61,6 +61,11 @@ def export_(run, output, opset, fp16_weights, split_dir):
                f"{rep.opset}, {rep.file_size / 1e6:.2f} MB, {sum(rep.operators.values())} nodes "
                f"({len(rep.operators)} operator types); parity vs torch {worst:.2g}; "
                f"exported in {rep.seconds:.1f} s")
+    if rep.num_static:
+        dev = rep.static_deviation
+        click.echo(f"  {rep.num_static} of {rep.num_gaussians} Gaussians do not move (at most "
+                   f"{dev.get('position', 0):.1e} of the extent over time): written "
+                   f"pre-deformed, the field runs on the other {rep.num_gaussians - rep.num_static}")
 
 
 def _export_split(run: Path, folder: Path, opset: int, fp16_field: bool = False) -> None:
@@ -109,6 +114,9 @@ def info(model):
         split = (" (split: this file holds layer 0; chunks add the rest)"
                  if md.get("lod_split") == "1" else "")
         click.echo(f"  layers:       {md['lod_layers']}{split}")
+    if "static_gaussians" in md:  # nehad.export.static_split
+        click.echo(f"  static:       {md['static_gaussians']} of {i.num_gaussians} Gaussians "
+                   f"written pre-deformed (the field runs on the others)")
     for key, label in (("decoder", "decoder"), ("config_hash", "config hash"),
                        ("nehad_version", "exported by"), ("fp16_weights", "fp16 weights")):
         if key in md:

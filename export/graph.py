@@ -42,17 +42,44 @@ class ExportGraph(nn.Module):
     """forward(time [1]) -> (means [N,3], scales [N,3], quats [N,4], opacities [N], sh [N,K,3])
     and, when `layer` ([N] layer index of each Gaussian, docs/design.md section 8) is given, `layer` [N] int32."""
 
-    def __init__(self, model, sh_degree: int, layer=None):
+    def __init__(self, model, sh_degree: int, layer=None, static=None):
         super().__init__()
         if not 0 <= int(sh_degree) <= model.gaussians.sh_degree:
             raise ValueError(f"ExportGraph: sh_degree {sh_degree} outside 0..{model.gaussians.sh_degree}")
-        self.model = model
-        self.deform = FastDeform(model, sh_degree)
         self.sh_degree = int(sh_degree)
         self.k = (self.sh_degree + 1) ** 2
+        self.split = static is not None and static.num_static > 0
+        if self.split:  # nehad.export.static_split: the field runs on the moving Gaussians only
+            model = self._moving_part(model, static)
+        self.model = model
+        self.deform = FastDeform(model, sh_degree)
         self.with_layer = layer is not None
         if self.with_layer:
             self.register_buffer("layer", torch.as_tensor(layer, dtype=torch.int32).reshape(-1))
+
+    def _moving_part(self, model, static):
+        """A copy of `model` holding only the Gaussians that move; the frozen outputs of the
+        others and the permutation back to the model's order become buffers."""
+        from nehad.gaussians import GaussianParameters
+
+        g = model.gaussians
+        mask = torch.as_tensor(static.mask)
+        moving, still = torch.nonzero(~mask).reshape(-1), torch.nonzero(mask).reshape(-1)
+        order = torch.cat([moving, still])
+        inverse = torch.empty_like(order)
+        inverse[order] = torch.arange(len(order))
+        self.register_buffer("inverse", inverse)
+        for name, value in zip(OUTPUT_NAMES, static.frozen):
+            self.register_buffer(f"frozen_{name}", torch.as_tensor(value, dtype=torch.float32))
+        # SH the field does not deform pass through whole (no gather)
+        self.sh_passes = not model.field.cfg.deform_opacity_sh
+        self.register_buffer("sh_all", torch.cat([g.sh_dc, g.sh_rest], 1)[:, :self.k].detach()
+                             .clone())
+        part = copy.copy(model)
+        part._modules = dict(model._modules)
+        part._modules["gaussians"] = GaussianParameters(
+            *(getattr(g, name).detach()[moving] for name in GaussianParameters.NAMES))
+        return part
 
     @property
     def output_names(self) -> tuple[str, ...]:
@@ -65,6 +92,12 @@ class ExportGraph(nn.Module):
                           torch.cat([g.sh_dc, g.sh_rest], 1), g.mu_eq, g.t_eq, time,
                           g.life_rate if g.has_life() else None,
                           g.drift_velocity() if g.has_life() else None)
+        if self.split:  # moving rows, then the frozen ones, put back in the model's order
+            merged = [torch.cat([o, getattr(self, f"frozen_{name}")], 0)[self.inverse]
+                      for name, o in zip(OUTPUT_NAMES[:4], out[:4])]
+            sh = (self.sh_all if self.sh_passes
+                  else torch.cat([out[4], self.frozen_sh], 0)[self.inverse])
+            out = tuple(merged) + (sh,)
         return out + (self.layer,) if self.with_layer else out
 
 

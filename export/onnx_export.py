@@ -49,6 +49,8 @@ class ExportReport:
     parity: dict = field(default_factory=dict)  # output name -> max error over the check times
     parity_vs_fp32: dict = field(default_factory=dict)  # with fp16 weights: vs the unrounded model
     metadata: dict = field(default_factory=dict)
+    num_static: int = 0  # Gaussians written pre-deformed (nehad.export.static_split)
+    static_deviation: dict = field(default_factory=dict)  # their largest change over time
 
 
 def parity_error(got: np.ndarray, ref: np.ndarray) -> float:
@@ -220,9 +222,12 @@ def run_layers_of(meta: dict, n: int):
 
 def export_model(model, meta: dict, out_path, *, opset: int = MIN_OPSET, fp16_weights: bool = False,
                  cfg=None, sh_degree: int | None = None, times=PARITY_TIMES,
-                 tol: float = PARITY_TOL) -> ExportReport:
+                 tol: float = PARITY_TOL, static: bool = True) -> ExportReport:
     """Export `model` (a NeHaDModel) with run metadata `meta` (as returned by load_run) to
-    `out_path`. Raises ExportError (nothing written) when a check fails."""
+    `out_path`. Raises ExportError (nothing written) when a check fails. `static`: Gaussians that
+    do not move are written pre-deformed and skip the field (nehad.export.static_split); the
+    parity check holds the graph to the model with those rows frozen, and the report's
+    `static_deviation` says how far the frozen rows are from the model at any sampled time."""
     import onnx
 
     start = _time.perf_counter()
@@ -240,7 +245,13 @@ def export_model(model, meta: dict, out_path, *, opset: int = MIN_OPSET, fp16_we
     if fp16_weights:
         round_to_fp16(work.parameters())
     layer = run_layers_of(meta, len(model.gaussians))
-    graph = ExportGraph(work, sh_degree, layer).eval()
+    split = None
+    if static:
+        from nehad.export.static_split import find_static
+
+        canonical = float(getattr(getattr(cfg, "train", None), "canonical_time", 0.5))
+        split = find_static(work, sh_degree, canonical_time=canonical)
+    graph = ExportGraph(work, sh_degree, layer, static=split).eval()
     names_out = graph.output_names
     for name, value in zip(("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest"),
                            (work.gaussians.means, work.gaussians.log_scales, work.gaussians.quats,
@@ -258,6 +269,8 @@ def export_model(model, meta: dict, out_path, *, opset: int = MIN_OPSET, fp16_we
         _to_fp16_initializers(proto)
     md = build_metadata(model, meta, sh_degree, cfg)
     md["fp16_weights"] = "1" if fp16_weights else "0"
+    if split is not None and split.num_static:
+        md["static_gaussians"] = str(split.num_static)
     if layer is not None:  # docs/design.md section 8: Gaussians per layer, layer 0 first
         md["lod_layers"] = json.dumps(np.bincount(layer, minlength=int(layer.max()) + 1
                                                   if len(layer) else 1).tolist())
@@ -270,14 +283,18 @@ def export_model(model, meta: dict, out_path, *, opset: int = MIN_OPSET, fp16_we
     original = closed_form_copy(model) if fp16_weights else None
     parity = {n: 0.0 for n in names_out}
     vs32 = {n: 0.0 for n in names_out}
+    def reference(m, t):
+        ref = reference_outputs(m, t, sh_degree, layer)
+        return ref if split is None else split.apply(ref[:5]) + ref[5:]
+
     for t in times:
         got = sess.run(None, {"time": np.array([t], np.float32)})
-        for n, a, b in zip(names_out, got, reference_outputs(work, t, sh_degree, layer)):
+        for n, a, b in zip(names_out, got, reference(work, t)):
             if not np.isfinite(a).all():
                 raise ExportError(f"exported graph: output {n} at time {t} holds NaN/inf")
             parity[n] = max(parity[n], parity_error(a, b))
         if original is not None:
-            for n, a, b in zip(names_out, got, reference_outputs(original, t, sh_degree, layer)):
+            for n, a, b in zip(names_out, got, reference(original, t)):
                 vs32[n] = max(vs32[n], parity_error(a, b))
     worst = max(parity.values())
     if not worst <= tol:
@@ -287,7 +304,9 @@ def export_model(model, meta: dict, out_path, *, opset: int = MIN_OPSET, fp16_we
     atomic_write_bytes(out_path, data, ExportError)
     return ExportReport(out_path, len(model.gaussians), int(sh_degree), int(opset), len(data),
                         _time.perf_counter() - start, dict(ops), parity,
-                        vs32 if fp16_weights else {}, md)
+                        vs32 if fp16_weights else {}, md,
+                        0 if split is None else split.num_static,
+                        {} if split is None else split.deviation)
 
 
 def export_run(run_dir, out_path, *, opset: int = MIN_OPSET, fp16_weights: bool = False,
