@@ -37,9 +37,8 @@ import torch
 
 from nehad.curriculum import TimeWindow
 from nehad.densify import append_gaussians, keep_gaussians
-from nehad.schedule import Phase, StagedSchedule
+from nehad.schedule import Phase, Schedule, StagedSchedule
 from nehad.splat.projection import quat_to_rotmat
-from nehad.trainer import make_trainer  # noqa: F401  (re-exported: `nehad train` imports it here)
 
 if TYPE_CHECKING:
     from nehad.trainer import Trainer, Views
@@ -255,4 +254,11 @@ def run_layers(meta: dict, n: int) -> np.ndarray:
     return arr
 
 
-__all__ = ["LayeredSchedule", "layer_downscales", "layer_ids", "make_trainer", "run_layers"]
+def schedule_for(cfg) -> Schedule:
+    """The schedule `cfg` asks for: `LayeredSchedule` when lod.levels > 1, else
+    `nehad.schedule.StagedSchedule`. It lives here, above both, so that nehad.schedule need not
+    import this module (no import circle)."""
+    return LayeredSchedule(cfg) if cfg.lod.levels > 1 else StagedSchedule(cfg)
+
+
+__all__ = ["LayeredSchedule", "layer_downscales", "layer_ids", "run_layers", "schedule_for"]

@@ -24,7 +24,7 @@ trainer's state) and `model_extras(trainer)` (what RUN/model.pt holds beyond it)
 
 `StagedSchedule` is the ordinary run: the coarse stage, then the fine stage. With
 `fine.iterations=0` it is a static 3DGS fit. `nehad.lod.LayeredSchedule` trains streaming layers
-on top of it. `schedule_for(cfg)` picks one from the config, so every way of building a trainer
+on top of it. `nehad.lod.schedule_for(cfg)` picks one from the config, so every way of building a trainer
 (`nehad train`, `nehad demo`, bench/quality.py, `Trainer(cfg, ...)`) trains the same thing.
 """
 
@@ -195,15 +195,5 @@ def gaussian_bounds(gaussians: GaussianParameters, padding: float,
     return np.stack([lo - pad, hi + pad]).astype(np.float32)
 
 
-def schedule_for(cfg: Config) -> Schedule:
-    """The schedule `cfg` asks for: `nehad.lod.LayeredSchedule` when lod.levels > 1, else
-    `StagedSchedule`."""
-    if cfg.lod.levels > 1:
-        from nehad.lod import LayeredSchedule
-
-        return LayeredSchedule(cfg)
-    return StagedSchedule(cfg)
-
-
 __all__ = ["Phase", "STATIC_FROZEN", "Schedule", "StagedSchedule", "gaussian_bounds",
-           "schedule_for", "start_deformation"]
+           "start_deformation"]

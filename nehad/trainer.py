@@ -32,7 +32,8 @@ from nehad.field.deformation import DeformationField
 from nehad.gaussians import GaussianParameters
 from nehad.losses import photometric_loss, psnr
 from nehad.runtime.interrupts import check as interrupt_point
-from nehad.schedule import Phase, Schedule, schedule_for
+from nehad.lod import schedule_for
+from nehad.schedule import Phase, Schedule
 from nehad.splat.rasterize import render_torch
 
 
@@ -136,7 +137,7 @@ def scene_bounds(points: np.ndarray | None) -> np.ndarray:
 
 class Trainer:
     """Trains a run directory from a dataset, following `schedule` (default: the one `cfg` asks
-    for, `nehad.schedule.schedule_for`); see `make_trainer`."""
+    for, `nehad.lod.schedule_for`); see `make_trainer`."""
 
     def __init__(self, cfg: Config, data_dir, run_dir, resume: bool = False,
                  progress: bool = True, log=print, schedule: Schedule | None = None):

@@ -28,11 +28,27 @@ def module_name(folder: str, path: Path) -> tuple[str, bool]:
     return ".".join([PACKAGES[folder], *parts]), is_package
 
 
-def imported_names(folder: str, path: Path):
+def _type_only_nodes(tree) -> set[int]:
+    """ids of the nodes inside `if TYPE_CHECKING:` blocks (imports for annotations, never run)."""
+    skip = set()
+    for node in ast.walk(tree):
+        if (isinstance(node, ast.If) and isinstance(node.test, ast.Name)
+                and node.test.id == "TYPE_CHECKING"):
+            for stmt in node.body:
+                skip.update(id(n) for n in ast.walk(stmt))
+    return skip
+
+
+def imported_names(folder: str, path: Path, type_only: bool = True):
     """(line, dotted name) of every import in the file, relative imports resolved; for
-    ``from a import b`` both ``a`` and ``a.b`` (b may be a submodule)."""
+    ``from a import b`` both ``a`` and ``a.b`` (b may be a submodule). `type_only=False` leaves
+    out the imports under `if TYPE_CHECKING:`."""
     module, is_package = module_name(folder, path)
-    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+    tree = ast.parse(path.read_text(), str(path))
+    skip = set() if type_only else _type_only_nodes(tree)
+    for node in ast.walk(tree):
+        if id(node) in skip:
+            continue
         if isinstance(node, ast.Import):
             for alias in node.names:
                 yield node.lineno, alias.name
@@ -109,3 +125,82 @@ def test_no_undefined_names_or_unused_imports():
     res = subprocess.run([ruff, "check", "--select", "F", "--no-cache", "--output-format",
                           "concise", *rooms], capture_output=True, text=True)
     assert res.returncode == 0, res.stdout + res.stderr
+
+
+def import_graph() -> dict[str, set[str]]:
+    """module -> the project modules it imports when it runs (at the top or inside functions;
+    `if TYPE_CHECKING:` imports are annotations only and left out)."""
+    modules = {}
+    for folder in PACKAGES:
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            modules[module_name(folder, path)[0]] = (folder, path)
+    graph = {}
+    for name, (folder, path) in modules.items():
+        deps = set()
+        for _, target in imported_names(folder, path, type_only=False):
+            parts = target.split(".")
+            for k in range(len(parts), 0, -1):  # the longest prefix that is a module
+                cand = ".".join(parts[:k])
+                if cand in modules:
+                    if cand != name:
+                        deps.add(cand)
+                    break
+        graph[name] = deps
+    return graph
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components with more than one module (Tarjan, iterative)."""
+    index, low, on_stack, stack, found = {}, {}, set(), [], []
+    counter = 0
+    for root in graph:
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph[root])))]
+        index[root] = low[root] = counter
+        counter += 1
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            v, children = work[-1]
+            for w in children:
+                if w not in index:
+                    index[w] = low[w] = counter
+                    counter += 1
+                    stack.append(w)
+                    on_stack.add(w)
+                    work.append((w, iter(sorted(graph[w]))))
+                    break
+                if w in on_stack:
+                    low[v] = min(low[v], index[w])
+            else:
+                work.pop()
+                if work:
+                    low[work[-1][0]] = min(low[work[-1][0]], low[v])
+                if low[v] == index[v]:
+                    comp = []
+                    while True:
+                        w = stack.pop()
+                        on_stack.discard(w)
+                        comp.append(w)
+                        if w == v:
+                            break
+                    if len(comp) > 1:
+                        found.append(sorted(comp))
+    return found
+
+
+def test_no_import_circle():
+    assert import_cycles(import_graph()) == []
+
+
+def test_the_circle_check_finds_a_lazy_circle(tmp_path, monkeypatch):
+    (tmp_path / "nehad").mkdir()
+    (tmp_path / "nehad" / "a.py").write_text("from nehad.b import f\n")
+    (tmp_path / "nehad" / "b.py").write_text("def f():\n    from nehad import a\n")
+    (tmp_path / "nehad" / "c.py").write_text(
+        "from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n    from nehad import a\n")
+    monkeypatch.setattr(__import__(__name__), "ROOT", tmp_path)
+    graph = import_graph()
+    assert import_cycles(graph) == [["nehad.a", "nehad.b"]]
+    assert graph["nehad.c"] == set()

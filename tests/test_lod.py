@@ -51,7 +51,7 @@ def trained(scene, tmp_path_factory):
     """A 3-layer run stepped by hand, with snapshots at each layer end; then its model.pt with a
     clearly non-identity field (random adapters) for the export tests."""
     from nehad.checkpoint import atomic_torch_save, load_state
-    from nehad.lod import make_trainer
+    from nehad.trainer import make_trainer
 
     run = tmp_path_factory.mktemp("lodrun") / "run"
     tr = make_trainer(_config(), scene, run, progress=False)
@@ -123,7 +123,7 @@ def test_model_pt_layers(trained):
 
 
 def test_opacity_threshold_controls_layer_size(scene, tmp_path):
-    from nehad.lod import make_trainer
+    from nehad.trainer import make_trainer
 
     def run(thr, name):
         tr = make_trainer(_config([f"lod.opacity_threshold={thr}", "lod.levels=2"]), scene,
@@ -146,7 +146,7 @@ def test_opacity_threshold_controls_layer_size(scene, tmp_path):
 def test_layer_caps(scene, tmp_path):
     """lod.base_max_gaussians caps layer 0; densify.max_gaussians caps each enhancement layer
     on its own (it counts the trainable Gaussians, not the frozen ones below)."""
-    from nehad.lod import make_trainer
+    from nehad.trainer import make_trainer
 
     free = make_trainer(_config(["lod.levels=2", "lod.opacity_threshold=0",
                                  "densify.max_gaussians=0"]), scene,
@@ -169,7 +169,7 @@ def test_layer_caps(scene, tmp_path):
 
 def test_resume_inside_an_enhancement_layer(scene, tmp_path, trained):
     from nehad.checkpoint import save_checkpoint
-    from nehad.lod import make_trainer
+    from nehad.trainer import make_trainer
 
     run = tmp_path / "r"
     tr = make_trainer(_config(), scene, run, progress=False)
@@ -196,8 +196,9 @@ def test_every_construction_follows_the_config_schedule(scene, tmp_path):
     from nehad.checkpoint import load_state
     from nehad.configtools import ConfigError
     from nehad.demo import run_demo
-    from nehad.lod import LayeredSchedule, make_trainer
-    from nehad.schedule import StagedSchedule, schedule_for
+    from nehad.lod import LayeredSchedule, schedule_for
+    from nehad.schedule import StagedSchedule
+    from nehad.trainer import make_trainer
     from nehad.trainer import Trainer
 
     assert type(schedule_for(_config(["lod.levels=1"]))) is StagedSchedule
