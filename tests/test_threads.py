@@ -45,9 +45,20 @@ def test_a_set_mkl_count_is_kept():
     assert env["OMP_NUM_THREADS"] == env["NUMBA_NUM_THREADS"] == "1"
 
 
-def test_idle_cores_is_a_share_of_the_machine():
-    idle = idle_cores(sample_seconds=0.05)
-    assert 0.0 <= idle <= (os.cpu_count() or 1) + 1e-6
+def test_idle_cores_reads_the_idle_share_between_two_samples(monkeypatch):
+    """idle_cores = cores x (idle + iowait ticks) / all ticks between two /proc/stat readings,
+    and the load average where there is no /proc/stat."""
+    from nehad.cli import threads as ct
+
+    readings = iter([(100, 400), (150, 600)])  # (idle + iowait, all) ticks: 50 of 200 idle
+    monkeypatch.setattr(ct, "_cpu_times", lambda: next(readings))
+    monkeypatch.setattr(ct.os, "cpu_count", lambda: 4)
+    assert idle_cores(sample_seconds=0.0) == pytest.approx(1.0)
+    monkeypatch.setattr(ct, "_cpu_times", lambda: None)
+    monkeypatch.setattr(ct.os, "getloadavg", lambda: (2.5, 0.0, 0.0))
+    assert idle_cores(sample_seconds=0.0) == pytest.approx(1.5)
+    monkeypatch.setattr(ct.os, "getloadavg", lambda: (9.0, 0.0, 0.0))
+    assert idle_cores(sample_seconds=0.0) == 0.0  # more load than cores: none idle
 
 
 # --- the rasterizer's thread count while frames are drawn (nehad/runtime/threads.py) ---
