@@ -38,7 +38,7 @@ def build_model(n: int, seed: int = 0, **field_options):
     from nehad.field.config import FieldConfig
     from nehad.field.deformation import DeformationField
     from nehad.gaussians import GaussianParameters
-    from nehad.trainer import NeHaDModel
+    from nehad.model import NeHaDModel
 
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)

@@ -30,7 +30,7 @@ def trace(run: Path, data: Path | None, split: str, n_frames: int) -> list[dict]
     from nehad.data.loader import load_dataset
     from nehad.evaluate import object_label_map
     from nehad.runtime.raster import render
-    from nehad.trainer import cloud_at, model_from_state
+    from nehad.model import cloud_at, model_from_state
     from nehad.viz.masks import class_names, mask_path, read_label_mask
 
     cfg0 = load_state(list_checkpoints(run)[0])["config"]

@@ -30,7 +30,7 @@ USER_ERROR_CLASSES = (
     ("nehad.data.dnerf", "DatasetError"),
     ("nehad.cli.errors", "InputError"),
     ("nehad.configtools", "ConfigError"),
-    ("nehad.trainer", "RunError"),
+    ("nehad.model", "RunError"),
     ("nehad.metrics.lpips", "LpipsWeightsMissing"),
     ("nehad.export.onnx_export", "ExportError"),
     ("nehad.viz", "VizError"),

@@ -99,7 +99,7 @@ def export_split_layers(run_dir, out_dir, *, opset: int = MIN_OPSET, fp16_field:
     (created; existing files of those names are replaced). Raises ExportError, writing nothing,
     when the run has no layers or a check fails."""
     from nehad.config import config_from_dict
-    from nehad.trainer import load_run
+    from nehad.model import load_run
 
     run = Path(run_dir)
     if not (run / "model.pt").is_file():

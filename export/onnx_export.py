@@ -313,7 +313,7 @@ def export_run(run_dir, out_path, *, opset: int = MIN_OPSET, fp16_weights: bool 
                **kw) -> ExportReport:
     """Export RUN/model.pt (see :func:`export_model`)."""
     from nehad.config import config_from_dict
-    from nehad.trainer import load_run
+    from nehad.model import load_run
 
     run = Path(run_dir)
     if not (run / "model.pt").is_file():

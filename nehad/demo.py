@@ -14,7 +14,8 @@ from nehad.data.synth import render_view, scene_objects, synthesize_scene
 from nehad.evaluate import evaluate_run
 from nehad.runtime.images import write_image
 from nehad.runtime.raster import render
-from nehad.trainer import cloud_at, load_run, make_trainer
+from nehad.model import cloud_at, load_run
+from nehad.trainer import make_trainer
 
 
 def frame_strip(run: Path, camera, times, background) -> np.ndarray:

@@ -44,7 +44,7 @@ import torch
 
 from nehad.config import config_from_dict
 from nehad.data.loader import load_dataset
-from nehad.trainer import RunError, cloud_at, load_run
+from nehad.model import RunError, cloud_at, load_run
 
 METRIC_KEYS = ("psnr", "ssim", "ms_ssim", "d_ssim", "lpips_alex", "lpips_vgg")
 TIME_BINS = 4  # PSNR per quarter of the time range

@@ -18,7 +18,7 @@ class RunScene(Scene):
 
     def __init__(self, path, lod: int | None = None):
         super().__init__(path)
-        from nehad.trainer import load_run  # torch: only for this scene kind
+        from nehad.model import load_run  # torch: only for this scene kind
 
         self.model, self.meta = load_run(self.path)
         self.default_background = tuple(float(v) for v in self.meta["background"])
@@ -57,7 +57,7 @@ class RunScene(Scene):
         return _test_cameras(self.meta)
 
     def gaussians(self, time=None):
-        from nehad.trainer import cloud_at
+        from nehad.model import cloud_at
 
         cloud = cloud_at(self.model, self.middle_time() if time is None else time,
                          self.sh_degree)

@@ -22,7 +22,7 @@ import torch
 
 from nehad.checkpoint import (append_metrics, atomic_torch_save, list_checkpoints, load_state,
                               save_checkpoint)
-from nehad.config import Config, config_from_dict
+from nehad.config import Config
 from nehad.configtools import ConfigError, diff, dump_yaml, to_dict
 from nehad.data.dnerf import DNeRFScene
 from nehad.data.loader import load_dataset
@@ -33,12 +33,9 @@ from nehad.gaussians import GaussianParameters
 from nehad.losses import photometric_loss, psnr
 from nehad.runtime.interrupts import check as interrupt_point
 from nehad.lod import schedule_for
+from nehad.model import NeHaDModel, RunError, cloud_at
 from nehad.schedule import Phase, Schedule
 from nehad.splat.rasterize import render_torch
-
-
-class RunError(RuntimeError):
-    """A run directory cannot be used as asked (e.g. resume with another config)."""
 
 
 def resolve_background(cfg: Config, scene_has_alpha: bool) -> tuple[float, float, float]:
@@ -92,38 +89,6 @@ def recomposite(image: torch.Tensor, alpha: torch.Tensor, old_bg, new_bg) -> tor
     rgb + (new - old)(1 - a) (the loader adds bg (1 - a) to premultiplied colour)."""
     delta = torch.as_tensor(np.asarray(new_bg, np.float32) - np.asarray(old_bg, np.float32))
     return image + delta * (1.0 - alpha)
-
-
-class NeHaDModel(torch.nn.Module):
-    """Canonical Gaussians + deformation field: renders the scene at any time."""
-
-    def __init__(self, gaussians: GaussianParameters, field: DeformationField):
-        super().__init__()
-        self.gaussians = gaussians
-        self.field = field
-
-    def gaussians_at(self, t, deform: bool = True):
-        """Activated (means, scales, quats, opacities (N,), sh) at time t (canonical if not
-        deform). t is a float or a one-element tensor (the ONNX export traces it as an input).
-        The opacities carry each Gaussian's life factor at t (GaussianParameters.life_factor)
-        and the means its drift (GaussianParameters.drift), deformed or not."""
-        g = self.gaussians
-        life = g.life_factor(t)
-        if not deform or t is None:
-            means, scales, quats, opacities, sh = g.activated()
-            if life is None:
-                return means, scales, quats, opacities, sh
-            return means + g.drift(t), scales, quats, opacities * life, sh
-        sh = torch.cat([g.sh_dc, g.sh_rest], 1)
-        out = self.field(g.means, g.log_scales, g.quats, t, g.mu_eq, g.t_eq,
-                         opacity_logits=g.opacity_logits, sh=sh)
-        quats = out.quats / out.quats.norm(dim=-1, keepdim=True)
-        opacities = torch.sigmoid(out.opacity_logits).reshape(g.means.shape[0])
-        means = out.means
-        if life is not None:
-            opacities = opacities * life
-            means = means + g.drift(t)
-        return means, torch.exp(out.log_scales), quats, opacities, out.sh
 
 
 def scene_bounds(points: np.ndarray | None) -> np.ndarray:
@@ -538,40 +503,3 @@ def van_der_corput(i: int) -> float:
         i >>= 1
         f *= 0.5
     return x
-
-
-def cloud_at(model: NeHaDModel, t: float | None, sh_degree: int):
-    """The activated Gaussians of a run at time t as a `GaussianCloud` (canonical if t is None),
-    for the shared rasterizer."""
-    from nehad.runtime.gaussians import GaussianCloud
-
-    with torch.no_grad():
-        params = model.gaussians_at(t, deform=t is not None)
-    means, scales, quats, opac, sh = (p.detach().cpu().numpy() for p in params)
-    return GaussianCloud(means, scales, quats, opac, sh[:, :(sh_degree + 1) ** 2])
-
-
-def load_run(run_dir) -> tuple[NeHaDModel, dict]:
-    """Load RUN/model.pt (or the latest checkpoint) as a model plus its metadata."""
-    run = Path(run_dir)
-    path = run / "model.pt"
-    if not path.exists():
-        raise RunError(f"{run}: no model.pt (training not finished?)")
-    state = load_state(path)
-    try:
-        model = model_from_state(state)
-    except (RuntimeError, KeyError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise RunError(f"{path}: its tensors do not fit its config ({first})") from None
-    return model, {k: v for k, v in state.items() if k not in ("gaussians", "field")}
-
-
-def model_from_state(state: dict) -> NeHaDModel:
-    """The model (in eval mode) of a saved state: RUN/model.pt or a checkpoint (the field's box
-    and extent are buffers of its state dict, so both kinds rebuild the same way)."""
-    cfg = config_from_dict(state["config"])
-    gaussians = GaussianParameters.empty_like_state(state["gaussians"])
-    gaussians.load_state_dict(GaussianParameters.with_defaults(state["gaussians"]))
-    field = DeformationField(cfg.field, state["field"]["aabb"], float(state["field"]["extent"]))
-    field.load_state_dict(state["field"])
-    return NeHaDModel(gaussians, field).eval()

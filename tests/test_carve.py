@@ -163,7 +163,8 @@ def test_a_training_run_carves_and_stays_consistent(tmp_path, mode):
 
     from nehad.config import build_config
     from nehad.data.synth import synthesize_scene
-    from nehad.trainer import Trainer, load_run
+    from nehad.model import load_run
+    from nehad.trainer import Trainer
 
     data = synthesize_scene(tmp_path / "scene", resolution=32, frames=12, points=0, seed=3)
     sets = [f"carve.mode={mode}", "carve.every=10", "carve.views=4", "train.init=random",
@@ -226,7 +227,7 @@ def test_drift_moves_only_mortal_gaussians():
     from nehad.field.config import FieldConfig
     from nehad.field.deformation import DeformationField
     from nehad.gaussians import GaussianParameters
-    from nehad.trainer import NeHaDModel
+    from nehad.model import NeHaDModel
 
     g = GaussianParameters.random_in_box(3, sh_degree=0)
     with torch.no_grad():

@@ -74,7 +74,7 @@ def ops_after_constant_folding(path, out):
 
 
 def torch_reference(run, t):
-    from nehad.trainer import load_run
+    from nehad.model import load_run
 
     model, meta = load_run(run)
     k = (int(meta["sh_degree"]) + 1) ** 2
@@ -207,7 +207,7 @@ def test_fp16_weights_smaller_and_exact_vs_rounded_model(runs, tmp_path):
 
 
 def test_export_refuses_and_writes_nothing(runs, tmp_path):
-    from nehad.trainer import load_run
+    from nehad.model import load_run
 
     model, meta = load_run(runs["hnn"])
     out = tmp_path / "x.onnx"
@@ -242,7 +242,7 @@ def test_carved_gaussians_life_exports_with_parity(tmp_path):
     them with a message instead of dropping the life."""
     from nehad.checkpoint import atomic_torch_save, load_state
     from nehad.export.layers import SplitBaseGraph
-    from nehad.trainer import load_run
+    from nehad.model import load_run
 
     run, _ = make_run(tmp_path, "hnn")
     state = load_state(run / "model.pt")

@@ -82,7 +82,7 @@ def test_export_parity_with_opacity_and_sh_deformation(data, tmp_path):
     pytest.importorskip("onnx")
     from nehad.export.checks import check_graph
     from nehad.export.onnx_export import parity_error
-    from nehad.trainer import load_run
+    from nehad.model import load_run
 
     run = tmp_path / "run"
     sets = ["field.deform_opacity_sh=true", "coarse.iterations=10", "fine.iterations=6",

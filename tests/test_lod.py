@@ -218,7 +218,7 @@ def test_every_construction_follows_the_config_schedule(scene, tmp_path):
 
 
 def test_export_layer_output_parity(trained, tmp_path):
-    from nehad.trainer import load_run
+    from nehad.model import load_run
 
     run = trained["export_run"]
     path = tmp_path / "m.onnx"
@@ -286,7 +286,7 @@ def test_split_manifest_and_chunks(split, trained):
 
 
 def test_split_prefixes_match_torch(split, trained):
-    from nehad.trainer import load_run
+    from nehad.model import load_run
 
     model, meta = load_run(trained["export_run"])
     sizes = trained["trainer"].layer_sizes
@@ -313,7 +313,7 @@ def test_split_fp16_field(split, trained, tmp_path):
     shrinks), the Gaussians stay float32 (chunks byte-identical), and every prefix matches the
     torch model with its field rounded to float16."""
     from nehad.export.layers import export_split_layers
-    from nehad.trainer import load_run
+    from nehad.model import load_run
 
     rep = export_split_layers(trained["export_run"], tmp_path / "half", fp16_field=True)
     man32 = json.loads((split / "manifest.json").read_text())

@@ -139,7 +139,7 @@ def _field_model(mipmap: bool, n: int = 600, seed: int = 0):
     level (no training: random weights)."""
     from nehad.field.deformation import DeformationField
     from nehad.gaussians import GaussianParameters
-    from nehad.trainer import NeHaDModel
+    from nehad.model import NeHaDModel
 
     cfg = FieldConfig(out_dim=8, resolution=(8, 8, 8, 4), multires=(1, 2), width=16,
                       hnn_hidden=16, mipmap=mipmap)

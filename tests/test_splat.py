@@ -116,7 +116,7 @@ def test_bad_inputs(tmp_path):
 
 
 def test_cli_ply_writes_splat(tiny_run, tiny_model, tmp_path):
-    from nehad.trainer import cloud_at
+    from nehad.model import cloud_at
 
     data, run = tiny_run
     model, meta = tiny_model

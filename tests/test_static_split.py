@@ -26,7 +26,8 @@ def half_still(tmp_path_factory):
     from nehad.checkpoint import atomic_torch_save, load_state
     from nehad.config import build_config
     from nehad.data.synth import synthesize_scene
-    from nehad.trainer import Trainer, load_run
+    from nehad.model import load_run
+    from nehad.trainer import Trainer
 
     root = tmp_path_factory.mktemp("static")
     data = root / "scene"

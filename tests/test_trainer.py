@@ -16,7 +16,8 @@ torch = pytest.importorskip("torch")
 from nehad.config import build_config  # noqa: E402
 from nehad.configtools import ConfigError  # noqa: E402
 from nehad.data.synth import synthesize_scene  # noqa: E402
-from nehad.trainer import RunError, Trainer  # noqa: E402
+from nehad.model import RunError  # noqa: E402
+from nehad.trainer import Trainer  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -26,7 +26,8 @@ from nehad.data.synth import orbit_camera_to_world, render_view, scene_objects  
 from nehad.data.synth import synthesize_scene  # noqa: E402
 from nehad.runtime.cameras import Camera  # noqa: E402
 from nehad.runtime.raster import render  # noqa: E402
-from nehad.trainer import Trainer, cloud_at, load_run  # noqa: E402
+from nehad.model import cloud_at, load_run  # noqa: E402
+from nehad.trainer import Trainer  # noqa: E402
 
 SIZE = 48
 #: a small field and schedule with the recipe of the presets (time curriculum, standardised

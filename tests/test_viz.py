@@ -46,7 +46,7 @@ def _cloud(means, scale=0.03, opacity=0.9, rgb=(0.5, 0.5, 0.5)) -> GaussianCloud
 def test_tracks_equal_the_deformed_means_projected(tiny_run, tiny_model):
     import torch
 
-    from nehad.trainer import cloud_at
+    from nehad.model import cloud_at
 
     data, _ = tiny_run
     model, meta = tiny_model
@@ -77,7 +77,7 @@ def test_tracks_equal_the_deformed_means_projected(tiny_run, tiny_model):
 
 def test_onnx_tracks_match_the_torch_run(tiny_run, tiny_model, tiny_onnx):
     from nehad.runtime.onnx_model import OnnxModel
-    from nehad.trainer import cloud_at
+    from nehad.model import cloud_at
 
     data, _ = tiny_run
     model, meta = tiny_model

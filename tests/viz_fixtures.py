@@ -29,7 +29,7 @@ def tiny_run(tmp_path_factory):
 @pytest.fixture(scope="session")
 def tiny_model(tiny_run):
     """(model, meta) of the tiny run, loaded once."""
-    from nehad.trainer import load_run
+    from nehad.model import load_run
 
     return load_run(tiny_run[1])
 

@@ -378,7 +378,7 @@ def score_run(run_dir, split: str = "test", data_dir=None, threshold: float = DE
     `keep_maps` frames also carry their weight map, alpha and ground truth (for pictures)."""
     from nehad.config import config_from_dict
     from nehad.data.dnerf import load_dnerf
-    from nehad.trainer import cloud_at, load_run
+    from nehad.model import cloud_at, load_run
 
     if model is None:
         model, meta = load_run(run_dir)

@@ -280,7 +280,7 @@ def build_report(run_dir, output, data_dir=None, frames: int = 4, score: bool = 
     from nehad.data.dnerf import DatasetError, load_dnerf
     from nehad.runtime.images import atomic_path
     from nehad.runtime.raster import render
-    from nehad.trainer import RunError, cloud_at, load_run
+    from nehad.model import RunError, cloud_at, load_run
 
     from .masks import (bed_status, bed_weights, dynamic_fraction, format_scores, fraction_plot,
                         render_weights, score_run, truth_image, weight_image)
