@@ -1,7 +1,6 @@
-"""Parsers of the CLI's small value syntaxes (``R,G,B``, ``WxH``) and their click types.
-
-The parse functions raise ValueError with a message that names the value; the click types turn
-that into click's usage error (``Invalid value for '--background': ...``, exit code 2).
+"""The click types of the CLI's small value syntaxes (``R,G,B``, ``WxH``: parsed by
+nehad.runtime.values, which batch files share). A parse error becomes click's usage error
+(``Invalid value for '--background': ...``, exit code 2).
 """
 
 from __future__ import annotations
@@ -10,38 +9,7 @@ import math
 
 import click
 
-#: Largest image side `--size` accepts (a typo like 80000x800 should not allocate gigabytes).
-MAX_SIDE = 32768
-
-
-def parse_background(text: str) -> tuple[float, float, float]:
-    """``"R,G,B"`` with each value in [0, 1] (e.g. ``1,1,1`` for white)."""
-    parts = [p.strip() for p in str(text).split(",")]
-    if len(parts) != 3:
-        raise ValueError(f"{text!r}: expected three comma-separated values R,G,B in [0, 1] "
-                         f"(e.g. 1,1,1 for white), got {len(parts)}")
-    values = []
-    for p in parts:
-        try:
-            v = float(p)
-        except ValueError:
-            raise ValueError(f"{text!r}: {p!r} is not a number") from None
-        if not math.isfinite(v) or not 0.0 <= v <= 1.0:
-            raise ValueError(f"{text!r}: each value must be in [0, 1], got {p}")
-        values.append(v)
-    return tuple(values)
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    """``"WxH"`` in pixels, e.g. ``800x600``."""
-    s = str(text).strip().lower()
-    parts = s.split("x")
-    if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
-        raise ValueError(f"{text!r}: expected WIDTHxHEIGHT in pixels, e.g. 800x600")
-    w, h = (int(p) for p in parts)
-    if not (1 <= w <= MAX_SIDE and 1 <= h <= MAX_SIDE):
-        raise ValueError(f"{text!r}: width and height must be in 1..{MAX_SIDE}")
-    return w, h
+from nehad.runtime.values import MAX_SIDE, parse_background, parse_size  # noqa: F401
 
 
 class _Parsed(click.ParamType):

@@ -47,6 +47,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .errors import InputProblem
+from .values import parse_background, parse_size
 
 __all__ = ["BatchError", "BatchSpec", "BatchJob", "JobResult", "load_batch", "run_batch",
            "format_summary", "VIDEO_KEYS", "IMAGE_KEYS", "TOP_KEYS"]
@@ -213,26 +214,6 @@ def _convert(key: str, value, w: _Where, base: Path):
             raise w.err(key, f"expected true or false, got {value!r}")
         return value
     raise w.err(key, "unknown key" + _suggest(key, ALL_KEYS))  # pragma: no cover
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    """``"WxH"`` in pixels (1..32768 each)."""
-    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", str(text))
-    if not m or not all(1 <= int(v) <= 32768 for v in m.groups()):
-        raise ValueError(f"{text!r}: expected WIDTHxHEIGHT in pixels (1..32768), e.g. 400x400")
-    return int(m.group(1)), int(m.group(2))
-
-
-def parse_background(text: str) -> tuple[float, float, float]:
-    """``"R,G,B"``, each in [0, 1]."""
-    parts = [p.strip() for p in str(text).split(",")]
-    try:
-        values = tuple(float(p) for p in parts)
-    except ValueError:
-        values = ()
-    if len(values) != 3 or not all(math.isfinite(v) and 0 <= v <= 1 for v in values):
-        raise ValueError(f"{text!r}: expected three values R,G,B in [0, 1]")
-    return values
 
 
 def _resolve_spec(spec: str, base: Path) -> str:
