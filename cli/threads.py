@@ -22,32 +22,20 @@ import math
 import os
 import time
 
-from nehad.runtime.threads import usable_cores
+from nehad.runtime.threads import cpu_ticks, usable_cores
 
 #: the variables the choice writes (bench/threads.py removes them for its `library` row)
 VARIABLES = ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS", "MKL_NUM_THREADS")
-
-
-def _cpu_times() -> tuple[float, float] | None:
-    """(idle, total) jiffies of all CPUs from /proc/stat, or None where there is none."""
-    try:
-        with open("/proc/stat") as f:
-            fields = [float(v) for v in f.readline().split()[1:]]
-    except (OSError, ValueError):
-        return None
-    if len(fields) < 5:
-        return None
-    return fields[3] + fields[4], sum(fields[:8])  # idle + iowait; user..steal
 
 
 def idle_cores(sample_seconds: float = 0.15) -> float:
     """How many of the machine's cores were idle over a short sample (falls back to the load
     average where /proc/stat is missing)."""
     cores = os.cpu_count() or 1
-    first = _cpu_times()
+    first = cpu_ticks()
     if first is not None:
         time.sleep(sample_seconds)
-        second = _cpu_times()
+        second = cpu_ticks()
         if second is not None and second[1] > first[1]:
             return cores * (second[0] - first[0]) / (second[1] - first[1])
     try:

@@ -30,8 +30,10 @@ SAMPLE_SECONDS = 0.2
 _CLOCK_TICKS = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 
 
-def _machine_busy_seconds() -> float | None:
-    """CPU seconds all cores spent outside idle/iowait since boot (steal included), or None."""
+def cpu_ticks() -> tuple[float, float] | None:
+    """(idle + iowait, all) clock ticks of all CPUs since boot from /proc/stat (steal counted as
+    busy), or None where there is none. The one reader of the machine's load (the CLI's thread
+    defaults use it too)."""
     try:
         with open("/proc/stat") as f:
             fields = [float(v) for v in f.readline().split()[1:9]]
@@ -39,8 +41,13 @@ def _machine_busy_seconds() -> float | None:
         return None
     if len(fields) < 8:
         return None
-    user, nice, system, _idle, _iowait, irq, softirq, steal = fields
-    return (user + nice + system + irq + softirq + steal) / _CLOCK_TICKS
+    return fields[3] + fields[4], sum(fields)
+
+
+def _machine_busy_seconds() -> float | None:
+    """CPU seconds all cores spent outside idle/iowait since boot (steal included), or None."""
+    ticks = cpu_ticks()
+    return None if ticks is None else (ticks[1] - ticks[0]) / _CLOCK_TICKS
 
 
 def _own_seconds() -> float:

@@ -51,10 +51,10 @@ def test_idle_cores_reads_the_idle_share_between_two_samples(monkeypatch):
     from nehad.cli import threads as ct
 
     readings = iter([(100, 400), (150, 600)])  # (idle + iowait, all) ticks: 50 of 200 idle
-    monkeypatch.setattr(ct, "_cpu_times", lambda: next(readings))
+    monkeypatch.setattr(ct, "cpu_ticks", lambda: next(readings))
     monkeypatch.setattr(ct.os, "cpu_count", lambda: 4)
     assert idle_cores(sample_seconds=0.0) == pytest.approx(1.0)
-    monkeypatch.setattr(ct, "_cpu_times", lambda: None)
+    monkeypatch.setattr(ct, "cpu_ticks", lambda: None)
     monkeypatch.setattr(ct.os, "getloadavg", lambda: (2.5, 0.0, 0.0))
     assert idle_cores(sample_seconds=0.0) == pytest.approx(1.5)
     monkeypatch.setattr(ct.os, "getloadavg", lambda: (9.0, 0.0, 0.0))
