@@ -93,6 +93,10 @@ class FieldConfig:
     training path of docs/design.md section 4.4) or "closed_form" (the explicit formula of docs/design.md section 4.4 used by the ONNX
     export; mathematically identical). Under `torch.inference_mode()` closed form is always used,
     because autograd cannot be re-enabled there."""
+    hexplane_kernel: str = "numba"
+    """"numba": on the CPU (float32 points and planes, no mipmapping, outside export) the
+    hex-plane lookup and its backward run as Numba passes (nehad.field.hexplane_kernel, tested
+    against grid_sample); "torch": `F.grid_sample`, the reference and the GPU path."""
     use_hnn: bool = True
     """False = "HNN off" ablation: the two scalar networks and their input gradients are replaced
     by two direct MLPs of the same hidden width/depth mapping h -> R^W, whose outputs take the
@@ -200,6 +204,8 @@ class FieldConfig:
                 why += ("; ReLU makes grad_h F piecewise constant in h, so nothing upstream of "
                         "the HNN would learn through v")
             bad("activation", why)
+        if self.hexplane_kernel not in ("numba", "torch"):
+            bad("hexplane_kernel", "must be numba or torch")
         if self.hnn_grad not in HNN_GRAD_MODES:
             bad("hnn_grad", f"must be one of {HNN_GRAD_MODES}")
         if (isinstance(self.mipmap_levels, bool) or not isinstance(self.mipmap_levels, int)

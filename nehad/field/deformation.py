@@ -89,6 +89,7 @@ class DeformationField(nn.Module):
         self.cfg = dataclasses.replace(cfg).validate()  # own copy: later edits of `cfg` don't leak
         self.hexplane = HexPlane(cfg.out_dim, cfg.resolution, cfg.multires, cfg.plane_init_low,
                                  cfg.plane_init_high, cfg.time_plane_init)
+        self.hexplane.kernel = cfg.hexplane_kernel
         self.hexplane.mipmap_levels = cfg.mipmap_levels  # used only with cfg.mipmap (docs/design.md section 8)
         self.trunk = Trunk(self.hexplane.feature_dim, cfg.width, cfg.depth)
         if cfg.decoder == "mlp":

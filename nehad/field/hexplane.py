@@ -108,6 +108,9 @@ class HexPlane(nn.Module):
         self.sample_batches = 0
         #: docs/design.md section 8 mipmapping: the most pyramid levels per scale (0 = as many as the planes allow).
         self.mipmap_levels = 0
+        #: "numba": the lookup of float32 CPU points through nehad.field.hexplane_kernel (not
+        #: under export or mipmapping); "torch": grid_sample
+        self.kernel = "torch"
 
     @property
     def feature_dim(self) -> int:
@@ -142,6 +145,12 @@ class HexPlane(nn.Module):
             return self._forward_mipmap(x, t, sigma)
         n = x.shape[0]
         u = torch.cat([x, t.expand(n, 1).to(x.dtype)], dim=1)  # (N, 4)
+        if (self.kernel == "numba" and x.device.type == "cpu" and x.dtype == torch.float32
+                and not is_capturing() and n > 0
+                and all(p.dtype == torch.float32 for p in self.parameters())):
+            from nehad.field.hexplane_kernel import hexplane_lookup
+
+            return hexplane_lookup(u, [p for scale in self.planes for p in scale], PLANE_AXES)
         b = self._num_batches(x)
         pad = (-n) % b if b > 1 else 0
         if pad:

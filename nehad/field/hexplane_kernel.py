@@ -1,0 +1,237 @@
+"""The hex-plane lookup (docs/design.md section 4.1) and its backward as Numba passes, for training
+on the CPU (issue 27; `HexPlane`'s grid_sample path is the reference and the GPU path).
+
+For a point u = (x, y, z, t') and each scale, f_c = prod_k s_k,c with s_k the bilinear sample of
+plane k (align_corners=True, border padding: the pixel coordinate is clamped to the plane, and a
+clamped coordinate passes no gradient, as grid_sample's). The planes are read channel-last
+((H, W, C) tables, one C-vector per texel), so a tap is one contiguous read.
+
+Backward, with g = dL/df of one scale:
+
+- dL/ds_k,c = g_c prod_{j != k} s_j,c (written per point, plane and channel: `_point_grads`);
+- dL/dplane_k: each corner of each point's cell gets its bilinear weight times dL/ds_k
+  (`_plane_grads`: one plane per task, so no two tasks write the same memory);
+- dL/du along the plane's two axes: sum_c dL/ds_k,c times the sample's slope in that axis
+  (the difference of the neighbouring texels), times 0.5 (res - 1) for the [-1, 1] scaling.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+
+_ONE = np.float32(1.0)
+_ZERO = np.float32(0.0)
+_HALF = np.float32(0.5)
+
+
+@numba.njit(inline="always")
+def _cell(coord, size):
+    """(index of the cell's first texel, fraction, d pixel / d coord or 0 where clamped)."""
+    p = (coord + _ONE) * (_HALF * np.float32(size - 1))
+    slope = _HALF * np.float32(size - 1)
+    if p <= _ZERO:
+        p = _ZERO
+        slope = _ZERO
+    elif p >= np.float32(size - 1):
+        p = np.float32(size - 1)
+        slope = _ZERO
+    i0 = min(int(np.floor(p)), max(size - 2, 0))
+    return i0, p - np.float32(i0), slope
+
+
+@numba.njit(fastmath=True, cache=True)
+def _forward_points(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
+                    out, start, stop):
+    samples = np.empty(channels, np.float32)
+    for n in range(start, stop):
+        for s in range(n_scales):
+            f = out[n, s * channels:(s + 1) * channels]
+            for c in range(channels):
+                f[c] = _ONE
+            for k in range(6):
+                p = s * 6 + k
+                h, w = heights[p], widths[p]
+                x0, fx, _ = _cell(u[n, axis_a[k]], w)
+                y0, fy, _ = _cell(u[n, axis_b[k]], h)
+                dx = channels if w > 1 else 0
+                dy = w * channels if h > 1 else 0
+                base = offsets[p] + (y0 * w + x0) * channels
+                t00 = tables[base:base + channels]
+                t01 = tables[base + dx:base + dx + channels]
+                t10 = tables[base + dy:base + dy + channels]
+                t11 = tables[base + dy + dx:base + dy + dx + channels]
+                for c in range(channels):
+                    top = t00[c] + fx * (t01[c] - t00[c])
+                    bottom = t10[c] + fx * (t11[c] - t10[c])
+                    samples[c] = top + fy * (bottom - top)
+                for c in range(channels):
+                    f[c] *= samples[c]
+
+
+@numba.njit(parallel=True, cache=True)
+def _forward(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels, out,
+             chunks):
+    n = u.shape[0]
+    for j in numba.prange(chunks):
+        _forward_points(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
+                        out, j * n // chunks, (j + 1) * n // chunks)
+
+
+@numba.njit(fastmath=True, cache=True)
+def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
+                       grad_out, grad_samples, grad_u, start, stop):
+    samples = np.empty((6, channels), np.float32)
+    sx = np.empty((6, channels), np.float32)  # d sample / d pixel x
+    sy = np.empty((6, channels), np.float32)
+    slopes = np.empty((6, 2), np.float32)
+    for n in range(start, stop):
+        for s in range(n_scales):
+            for k in range(6):
+                p = s * 6 + k
+                h, w = heights[p], widths[p]
+                x0, fx, slope_x = _cell(u[n, axis_a[k]], w)
+                y0, fy, slope_y = _cell(u[n, axis_b[k]], h)
+                slopes[k, 0] = slope_x
+                slopes[k, 1] = slope_y
+                dx = channels if w > 1 else 0
+                dy = w * channels if h > 1 else 0
+                base = offsets[p] + (y0 * w + x0) * channels
+                t00 = tables[base:base + channels]
+                t01 = tables[base + dx:base + dx + channels]
+                t10 = tables[base + dy:base + dy + channels]
+                t11 = tables[base + dy + dx:base + dy + dx + channels]
+                sk = samples[k]
+                xk = sx[k]
+                yk = sy[k]
+                for c in range(channels):
+                    top = t00[c] + fx * (t01[c] - t00[c])
+                    bottom = t10[c] + fx * (t11[c] - t10[c])
+                    sk[c] = top + fy * (bottom - top)
+                    xk[c] = (_ONE - fy) * (t01[c] - t00[c]) + fy * (t11[c] - t10[c])
+                    yk[c] = bottom - top
+            g = grad_out[n, s * channels:(s + 1) * channels]
+            for k in range(6):
+                gk = grad_samples[n, s * 6 + k]
+                for c in range(channels):
+                    gk[c] = g[c]
+                for j in range(6):
+                    if j != k:
+                        sj = samples[j]
+                        for c in range(channels):
+                            gk[c] *= sj[c]
+                ax = _ZERO
+                ay = _ZERO
+                xk = sx[k]
+                yk = sy[k]
+                for c in range(channels):
+                    ax += gk[c] * xk[c]
+                    ay += gk[c] * yk[c]
+                grad_u[n, axis_a[k]] += ax * slopes[k, 0]
+                grad_u[n, axis_b[k]] += ay * slopes[k, 1]
+
+
+@numba.njit(parallel=True, cache=True)
+def _point_grads(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
+                 grad_out, grad_samples, grad_u, chunks):
+    n = u.shape[0]
+    for j in numba.prange(chunks):
+        _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales,
+                           channels, grad_out, grad_samples, grad_u, j * n // chunks,
+                           (j + 1) * n // chunks)
+
+
+@numba.njit(fastmath=True, cache=True)
+def _scatter_plane(u, p, k, offsets, heights, widths, axis_a, axis_b, channels, grad_samples,
+                   grad_tables):
+    h, w = heights[p], widths[p]
+    dx = channels if w > 1 else 0
+    dy = w * channels if h > 1 else 0
+    for n in range(u.shape[0]):
+        x0, fx, _ = _cell(u[n, axis_a[k]], w)
+        y0, fy, _ = _cell(u[n, axis_b[k]], h)
+        base = offsets[p] + (y0 * w + x0) * channels
+        gk = grad_samples[n, p]
+        w00 = (_ONE - fx) * (_ONE - fy)
+        w01 = fx * (_ONE - fy)
+        w10 = (_ONE - fx) * fy
+        w11 = fx * fy
+        g00 = grad_tables[base:base + channels]
+        for c in range(channels):
+            g00[c] += w00 * gk[c]
+        g01 = grad_tables[base + dx:base + dx + channels]
+        for c in range(channels):
+            g01[c] += w01 * gk[c]
+        g10 = grad_tables[base + dy:base + dy + channels]
+        for c in range(channels):
+            g10[c] += w10 * gk[c]
+        g11 = grad_tables[base + dy + dx:base + dy + dx + channels]
+        for c in range(channels):
+            g11[c] += w11 * gk[c]
+
+
+@numba.njit(parallel=True, cache=True)
+def _plane_grads(u, offsets, heights, widths, axis_a, axis_b, channels, grad_samples,
+                 grad_tables):
+    for p in numba.prange(offsets.shape[0] - 1):
+        _scatter_plane(u, p, p % 6, offsets, heights, widths, axis_a, axis_b, channels,
+                       grad_samples, grad_tables)
+
+
+def _chunks(n: int) -> int:
+    """Point ranges of the parallel loops: many per thread, so the threads stay balanced."""
+    return max(1, min(n, 64 * numba.get_num_threads()))
+
+
+class HexPlaneLookup(torch.autograd.Function):
+    """features (N, S C) = the product over planes of bilinear samples (module docstring), for
+    u (N, 4) = (x, y, z, t') and the S x 6 planes (1, C, H, W) in HexPlane's order."""
+
+    @staticmethod
+    def forward(ctx, u, axes, *planes):
+        channels = planes[0].shape[1]
+        n_scales = len(planes) // 6
+        tables = [p.detach()[0].permute(1, 2, 0).reshape(-1) for p in planes]  # (H W C)
+        sizes = [t.numel() for t in tables]
+        offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        flat = torch.cat(tables).contiguous().numpy()
+        heights = np.array([p.shape[2] for p in planes], np.int64)
+        widths = np.array([p.shape[3] for p in planes], np.int64)
+        axis_a = np.array([a for a, _ in axes], np.int64)
+        axis_b = np.array([b for _, b in axes], np.int64)
+        un = np.ascontiguousarray(u.detach().numpy(), np.float32)
+        out = np.empty((un.shape[0], n_scales * channels), np.float32)
+        _forward(un, flat, offsets, heights, widths, axis_a, axis_b, n_scales, channels, out,
+                 _chunks(len(un)))
+        ctx.saved = (un, flat, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
+                     [tuple(p.shape) for p in planes])
+        return torch.from_numpy(out)
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        (un, flat, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
+         shapes) = ctx.saved
+        g = np.ascontiguousarray(grad_out.detach().numpy(), np.float32)
+        n = un.shape[0]
+        grad_samples = np.empty((n, n_scales * 6, channels), np.float32)
+        grad_u = np.zeros((n, 4), np.float32)
+        _point_grads(un, flat, offsets, heights, widths, axis_a, axis_b, n_scales, channels, g,
+                     grad_samples, grad_u, _chunks(n))
+        grad_tables = np.zeros_like(flat)
+        _plane_grads(un, offsets, heights, widths, axis_a, axis_b, channels, grad_samples,
+                     grad_tables)
+        plane_grads = []
+        for p, shape in enumerate(shapes):
+            _, c, h, w = shape
+            t = torch.from_numpy(grad_tables[offsets[p]:offsets[p + 1]]).reshape(h, w, c)
+            plane_grads.append(t.permute(2, 0, 1).reshape(shape).contiguous())
+        return (torch.from_numpy(grad_u), None, *plane_grads)
+
+
+def hexplane_lookup(u: torch.Tensor, planes, axes) -> torch.Tensor:
+    """`HexPlaneLookup` of points u (N, 4) and the planes (flat list, scale-major)."""
+    return HexPlaneLookup.apply(u, tuple(axes), *planes)
+
+
+__all__ = ["HexPlaneLookup", "hexplane_lookup"]
