@@ -179,6 +179,27 @@ def _plane_grads(u, offsets, heights, widths, axis_a, axis_b, channels, grad_sam
                        grad_samples, grad_tables)
 
 
+@numba.njit(parallel=True, cache=True)
+def _to_channel_last(plane, out):
+    """(C, H, W) -> (H, W, C) into `out` (flat), rows in parallel."""
+    c, h, w = plane.shape
+    for y in numba.prange(h):
+        for x in range(w):
+            base = (y * w + x) * c
+            for k in range(c):
+                out[base + k] = plane[k, y, x]
+
+
+@numba.njit(parallel=True, cache=True)
+def _to_channel_first(flat, out):
+    """(H, W, C) flat -> (C, H, W) `out`."""
+    c, h, w = out.shape
+    for k in numba.prange(c):
+        for y in range(h):
+            for x in range(w):
+                out[k, y, x] = flat[(y * w + x) * c + k]
+
+
 def _chunks(n: int) -> int:
     """Point ranges of the parallel loops: many per thread, so the threads stay balanced."""
     return max(1, min(n, 64 * numba.get_num_threads()))
@@ -192,10 +213,11 @@ class HexPlaneLookup(torch.autograd.Function):
     def forward(ctx, u, axes, *planes):
         channels = planes[0].shape[1]
         n_scales = len(planes) // 6
-        tables = [p.detach()[0].permute(1, 2, 0).reshape(-1) for p in planes]  # (H W C)
-        sizes = [t.numel() for t in tables]
+        sizes = [p.numel() for p in planes]
         offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-        flat = torch.cat(tables).contiguous().numpy()
+        flat = np.empty(int(offsets[-1]), np.float32)
+        for p, lo, hi in zip(planes, offsets[:-1], offsets[1:]):  # each plane as (H, W, C)
+            _to_channel_last(np.ascontiguousarray(p.detach()[0].numpy()), flat[lo:hi])
         heights = np.array([p.shape[2] for p in planes], np.int64)
         widths = np.array([p.shape[3] for p in planes], np.int64)
         axis_a = np.array([a for a, _ in axes], np.int64)
@@ -223,9 +245,9 @@ class HexPlaneLookup(torch.autograd.Function):
                      grad_tables)
         plane_grads = []
         for p, shape in enumerate(shapes):
-            _, c, h, w = shape
-            t = torch.from_numpy(grad_tables[offsets[p]:offsets[p + 1]]).reshape(h, w, c)
-            plane_grads.append(t.permute(2, 0, 1).reshape(shape).contiguous())
+            out = np.empty(shape[1:], np.float32)
+            _to_channel_first(grad_tables[offsets[p]:offsets[p + 1]], out)
+            plane_grads.append(torch.from_numpy(out).reshape(shape))
         return (torch.from_numpy(grad_u), None, *plane_grads)
 
 
