@@ -96,7 +96,7 @@ def object_label_map(labels, width: int, height: int) -> np.ndarray:
     a pixel is an object's when the object covers >= OBJECT_COVERAGE of its f x f block (the
     image loader's blocks: integer factor f, right/bottom remainder cropped); ties between two
     objects go to the lower id; 0 elsewhere."""
-    from nehad.data.dnerf import _area_downscale
+    from nehad.data.common import area_downscale
 
     labels = np.asarray(labels)
     h, w = labels.shape[:2]
@@ -111,7 +111,7 @@ def object_label_map(labels, width: int, height: int) -> np.ndarray:
     for i in np.unique(labels):
         if i == 0:
             continue
-        cov = _area_downscale((labels == i)[:, :, None].astype(np.float32), f)[:, :, 0]
+        cov = area_downscale((labels == i)[:, :, None].astype(np.float32), f)[:, :, 0]
         take = (cov >= OBJECT_COVERAGE) & (cov > best)  # ascending ids: a tie keeps the lower
         out[take] = int(i)
         best[take] = cov[take]

@@ -24,7 +24,7 @@ from nehad.checkpoint import (append_metrics, atomic_torch_save, list_checkpoint
                               save_checkpoint)
 from nehad.config import Config
 from nehad.configtools import ConfigError, diff, dump_yaml, to_dict
-from nehad.data.dnerf import DNeRFScene
+from nehad.data.common import DNeRFScene
 from nehad.data.loader import load_dataset
 from nehad.curriculum import eligible_frames, hold_time_planes, resolution_factor
 from nehad.densify import DensifySchedule, DensifyStrategy

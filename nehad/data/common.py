@@ -1,31 +1,262 @@
-"""Helpers shared by the HyperNeRF and DyNeRF readers and their synthetic writers (numpy only).
+"""The base every dataset reader stands on (numpy only): the loaded scene (`DNeRFScene`, one
+container for every layout), its frames, `DatasetError`, and the helpers the D-NeRF, HyperNeRF
+and DyNeRF readers and the synthetic writers share.
 
 Conventions are those of docs/design.md section 3: cameras are :class:`~nehad.runtime.cameras.Camera`
 objects (OpenCV axes, pixel (i, j) centred at (i + 0.5, j + 0.5)); images are float32 (H, W, 3) in
-[0, 1]; every problem with a file is a :class:`~nehad.data.dnerf.DatasetError` naming the file.
+[0, 1]; every problem with a file is a :class:`DatasetError` naming the file.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from nehad.data.dnerf import (DatasetError, _area_downscale, _number, _read_json,
-                               _read_ply_points)
+from nehad.runtime.cameras import Camera
 from nehad.runtime.images import atomic_write_bytes, read_image
 
-__all__ = ["read_json", "read_rgb", "area_downscale", "check_rotation", "find_point_cloud",
-           "distort_normalized", "undistort_normalized", "undistortion_maps", "remap",
-           "atomic_write_bytes", "atomic_write_json", "check_background", "check_stride"]
+__all__ = ["DatasetError", "DNeRFScene", "Frame", "read_json", "number", "read_rgb",
+           "area_downscale", "downscale_camera", "read_ply_points", "check_scene_args",
+           "check_rotation", "find_point_cloud", "distort_normalized", "undistort_normalized",
+           "undistortion_maps", "remap", "atomic_write_bytes", "atomic_write_json",
+           "check_background", "check_stride"]
+
+#: The cube D-NeRF draws its random initial points in (and the scene bounds without points).
+DNERF_INIT_BOUND = 1.3
+
+
+class DatasetError(ValueError):
+    """A dataset file is missing or holds a bad value; the message names the file and field."""
+
+
+@dataclass
+class Frame:
+    """One posed image. `camera` carries the frame's normalised time in ``camera.time``."""
+
+    camera: Camera
+    image: np.ndarray  # (H, W, 3) float32 in [0, 1], composited over the scene background
+    alpha: np.ndarray | None  # (H, W) float32 coverage, None for RGB images
+    path: Path  # the image file
+
+    @property
+    def time(self) -> float:
+        return float(self.camera.time)
+
+
+@dataclass
+class DNeRFScene:
+    """A loaded D-NeRF scene: frames per split, background, optional initial points."""
+
+    root: Path
+    frames: dict[str, list[Frame]]
+    background: tuple[float, float, float]
+    initial_points: np.ndarray | None = None  # (M, 3) float32
+    initial_colors: np.ndarray | None = None  # (M, 3) float32 in [0, 1]
+    time_range: tuple[float, float] = (0.0, 1.0)  # of the normalised times of the loaded frames
+    source_time_range: tuple[float, float] = (0.0, 1.0)  # file times that map to 0 and 1
+    points_path: Path | None = None
+    downscale: int = 1
+
+    def cameras(self, split: str = "train") -> list[Camera]:
+        return [f.camera for f in self._split(split)]
+
+    def times(self, split: str = "train") -> np.ndarray:
+        return np.array([f.time for f in self._split(split)], dtype=np.float64)
+
+    def _split(self, split: str) -> list[Frame]:
+        if split not in self.frames:
+            raise KeyError(f"split {split!r} was not loaded (loaded: {', '.join(self.frames)})")
+        return self.frames[split]
+
+    @property
+    def extent(self) -> float:
+        """Scene extent as 3DGS computes it (``getNerfppNorm``): 1.1 x the largest distance of a
+        train camera centre from the mean centre (all loaded cameras if train was not loaded).
+        Used to scale position learning rates and sigma_s (docs/design.md sections 4 and 5)."""
+        frames = self.frames.get("train") or [f for fs in self.frames.values() for f in fs]
+        if not frames:
+            return 1.0
+        centres = np.stack([f.camera.centre for f in frames])
+        radius = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max()) * 1.1
+        return radius if radius > 0 else 1.0
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned (min, max) of the initial points, else D-NeRF's [-1.3, 1.3]^3 cube."""
+        if self.initial_points is not None and len(self.initial_points):
+            return (self.initial_points.min(axis=0).astype(np.float64),
+                    self.initial_points.max(axis=0).astype(np.float64))
+        b = np.full(3, DNERF_INIT_BOUND)
+        return -b, b.copy()
+
+
+def read_json(path: Path, what: str) -> object:
+    """Parsed JSON of `path`; a missing or malformed file is a DatasetError naming it (shared by
+    every reader as `nehad.data.common.read_json`)."""
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"{path}: {what} not found")
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: malformed JSON ({exc})") from None
+
+
+def number(value, path: Path, field_name: str, positive: bool = False) -> float:
+    """A finite (optionally positive) number from a dataset file, else a DatasetError naming the
+    file and field (shared by every reader as `nehad.data.common.number`)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise DatasetError(f"{path}: field '{field_name}': expected a number, got {value!r}")
+    x = float(value)
+    if not math.isfinite(x):
+        raise DatasetError(f"{path}: field '{field_name}': expected a finite number, got {x}")
+    if positive and x <= 0:
+        raise DatasetError(f"{path}: field '{field_name}': expected a positive number, got {x}")
+    return x
+
+
+def area_downscale(img: np.ndarray, f: int) -> np.ndarray:
+    """Mean over f x f blocks; a remainder at the right/bottom edge is cropped."""
+    h, w, c = img.shape
+    h2, w2 = h // f, w // f
+    return img[: h2 * f, : w2 * f].reshape(h2, f, w2, f, c).mean(axis=(1, 3), dtype=np.float32)
+
+
+def downscale_camera(cam: Camera, f: int) -> Camera:
+    if cam.width % f == 0 and cam.height % f == 0:
+        return cam.scaled(1.0 / f)
+    # Cropping the remainder keeps the pixel grid origin, so every intrinsic divides by f.
+    return dataclasses.replace(cam, width=cam.width // f, height=cam.height // f, fx=cam.fx / f,
+                               fy=cam.fy / f, cx=cam.cx / f, cy=cam.cy / f)
+
+
+# PLY point clouds (x y z and optional colours; the 3DGS Gaussian PLY reader lives elsewhere)
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+
+
+def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Vertices of an ascii or binary PLY file: (M, 3) float32 points, (M, 3) colours in [0, 1]."""
+    data = path.read_bytes()
+    end = data.find(b"end_header")
+    if not data.startswith(b"ply") or end < 0:
+        raise DatasetError(f"{path}: not a PLY file (no 'ply' magic or no end_header)")
+    nl = data.find(b"\n", end)
+    body_start = len(data) if nl < 0 else nl + 1
+    header = data[:end].decode("ascii", errors="replace").splitlines()
+    fmt, elements = None, []  # elements: [name, count, [(prop, type or None-for-list)]]
+    for line in header[1:]:
+        parts = line.split()
+        if not parts or parts[0] in ("comment", "obj_info"):
+            continue
+        if parts[0] == "format" and len(parts) >= 2:
+            fmt = parts[1]
+        elif parts[0] == "element" and len(parts) == 3:
+            try:
+                elements.append([parts[1], int(parts[2]), []])
+            except ValueError:
+                raise DatasetError(f"{path}: header: bad element count in {line!r}") from None
+        elif parts[0] == "property" and elements:
+            if parts[1] == "list":
+                elements[-1][2].append((parts[-1], None))
+            elif len(parts) == 3 and parts[1] in _PLY_TYPES:
+                elements[-1][2].append((parts[2], _PLY_TYPES[parts[1]]))
+            else:
+                raise DatasetError(f"{path}: header: unsupported property {line!r}")
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise DatasetError(f"{path}: header: format: expected ascii or binary, got {fmt!r}")
+    names = [e[0] for e in elements]
+    if "vertex" not in names:
+        raise DatasetError(f"{path}: header: no 'element vertex'")
+    vi = names.index("vertex")
+    _, count, props = elements[vi]
+    prop_names = [p for p, _ in props]
+    for axis in ("x", "y", "z"):
+        if axis not in prop_names:
+            raise DatasetError(f"{path}: element vertex: property '{axis}' missing")
+    if any(t is None for _, t in props):
+        raise DatasetError(f"{path}: element vertex: list properties are not supported")
+    if count <= 0:
+        raise DatasetError(f"{path}: element vertex: count is {count}, expected at least one point")
+
+    if fmt == "ascii":
+        lines = data[body_start:].decode("ascii", errors="replace").splitlines()
+        skip = sum(e[1] for e in elements[:vi])
+        rows = lines[skip: skip + count]
+        if len(rows) < count:
+            raise DatasetError(f"{path}: element vertex: expected {count} rows, file has {len(rows)}")
+        try:
+            table = np.array([r.split() for r in rows], dtype=np.float64)
+        except ValueError:
+            raise DatasetError(f"{path}: element vertex: rows are not {len(props)} numbers each") from None
+        if table.ndim != 2 or table.shape[1] != len(props):
+            raise DatasetError(f"{path}: element vertex: rows are not {len(props)} numbers each")
+        cols = {p: table[:, i] for i, p in enumerate(prop_names)}
+        types = dict(props)
+    else:
+        order = "<" if fmt == "binary_little_endian" else ">"
+        offset = body_start
+        for name, n, eprops in elements[:vi]:
+            if any(t is None for _, t in eprops):
+                raise DatasetError(f"{path}: element {name}: list properties before the vertices "
+                                   f"are not supported")
+            offset += n * np.dtype([(p, order + t) for p, t in eprops]).itemsize
+        dtype = np.dtype([(p, order + t) for p, t in props])
+        if offset + count * dtype.itemsize > len(data):
+            raise DatasetError(f"{path}: element vertex: file is truncated "
+                               f"({count} vertices of {dtype.itemsize} bytes announced)")
+        rec = np.frombuffer(data, dtype=dtype, count=count, offset=offset)
+        cols = {p: rec[p] for p in prop_names}
+        types = dict(props)
+    points = np.stack([cols["x"], cols["y"], cols["z"]], axis=1).astype(np.float32)
+    if not np.isfinite(points).all():
+        raise DatasetError(f"{path}: element vertex: x/y/z hold NaN or infinite values")
+    colours = None
+    for trio in (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue")):
+        if all(c in cols for c in trio):
+            rgb = np.stack([cols[c] for c in trio], axis=1).astype(np.float64)
+            kind = np.dtype(types[trio[0]])
+            if kind.kind in "iu":
+                rgb = rgb / float(np.iinfo(kind).max)
+            colours = np.clip(rgb, 0.0, 1.0).astype(np.float32)
+            break
+    return points, colours
+
+
+# --------------------------------------------------------------------------------------------
+# the loader
+
+
+def check_scene_args(root, splits, known=None, layout: str = "") -> tuple[Path, tuple]:
+    """The arguments every reader shares: `root` must be a folder, `splits` one name or a
+    non-empty sequence of names (each in `known`, when given). Returns (Path, tuple)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise DatasetError(f"{root}: scene folder not found")
+    splits = (splits,) if isinstance(splits, str) else tuple(splits)
+    if not splits:
+        raise ValueError("splits: expected at least one split name")
+    for s in splits:
+        if known is not None and s not in known:
+            raise ValueError(f"splits: unknown split {s!r} for a {layout} scene "
+                             f"(one of {', '.join(known)})")
+    return root, splits
+
+
 
 #: |R^T R - I| (max abs) and |det R - 1| allowed in a rotation read from a dataset file.
 ROTATION_TOLERANCE = 1e-4
 
-area_downscale = _area_downscale
-read_json = _read_json
-number = _number
 
 
 def vector(value, n: int, path: Path, field: str) -> np.ndarray:
@@ -93,7 +324,7 @@ def read_points(path: Path):
         if not np.isfinite(pts).all():
             raise DatasetError(f"{path}: holds NaN or infinite values")
         return pts, None
-    pts, cols = _read_ply_points(path)
+    pts, cols = read_ply_points(path)
     return pts.astype(np.float64), cols
 
 

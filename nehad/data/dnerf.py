@@ -27,14 +27,14 @@ Bad data raises :class:`DatasetError` naming the file and the field. Numpy only,
 
 from __future__ import annotations
 
-import dataclasses
-import json
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from nehad.data.common import (DNERF_INIT_BOUND, DatasetError, DNeRFScene, Frame,  # noqa: F401
+                               area_downscale, check_background, check_scene_args,
+                               downscale_camera, number, read_json, read_ply_points)
 from nehad.runtime.cameras import Camera, CameraError
 from nehad.runtime.images import read_image
 
@@ -45,94 +45,16 @@ SPLITS = ("train", "val", "test")
 #: Initial point clouds looked for in the scene folder, in this order.
 POINT_CLOUD_NAMES = ("fused.ply", "points3d.ply", "points3D.ply")
 #: Half side of the cube D-NeRF initialises random points in (docs/design.md section 5).
-DNERF_INIT_BOUND = 1.3
 
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
-
-
-class DatasetError(ValueError):
-    """A dataset file is missing or holds a bad value; the message names the file and field."""
-
-
-@dataclass
-class Frame:
-    """One posed image. `camera` carries the frame's normalised time in ``camera.time``."""
-
-    camera: Camera
-    image: np.ndarray  # (H, W, 3) float32 in [0, 1], composited over the scene background
-    alpha: np.ndarray | None  # (H, W) float32 coverage, None for RGB images
-    path: Path  # the image file
-
-    @property
-    def time(self) -> float:
-        return float(self.camera.time)
-
-
-@dataclass
-class DNeRFScene:
-    """A loaded D-NeRF scene: frames per split, background, optional initial points."""
-
-    root: Path
-    frames: dict[str, list[Frame]]
-    background: tuple[float, float, float]
-    initial_points: np.ndarray | None = None  # (M, 3) float32
-    initial_colors: np.ndarray | None = None  # (M, 3) float32 in [0, 1]
-    time_range: tuple[float, float] = (0.0, 1.0)  # of the normalised times of the loaded frames
-    source_time_range: tuple[float, float] = (0.0, 1.0)  # file times that map to 0 and 1
-    points_path: Path | None = None
-    downscale: int = 1
-
-    def cameras(self, split: str = "train") -> list[Camera]:
-        return [f.camera for f in self._split(split)]
-
-    def times(self, split: str = "train") -> np.ndarray:
-        return np.array([f.time for f in self._split(split)], dtype=np.float64)
-
-    def _split(self, split: str) -> list[Frame]:
-        if split not in self.frames:
-            raise KeyError(f"split {split!r} was not loaded (loaded: {', '.join(self.frames)})")
-        return self.frames[split]
-
-    @property
-    def extent(self) -> float:
-        """Scene extent as 3DGS computes it (``getNerfppNorm``): 1.1 x the largest distance of a
-        train camera centre from the mean centre (all loaded cameras if train was not loaded).
-        Used to scale position learning rates and sigma_s (docs/design.md sections 4 and 5)."""
-        frames = self.frames.get("train") or [f for fs in self.frames.values() for f in fs]
-        if not frames:
-            return 1.0
-        centres = np.stack([f.camera.centre for f in frames])
-        radius = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max()) * 1.1
-        return radius if radius > 0 else 1.0
-
-    @property
-    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Axis-aligned (min, max) of the initial points, else D-NeRF's [-1.3, 1.3]^3 cube."""
-        if self.initial_points is not None and len(self.initial_points):
-            return (self.initial_points.min(axis=0).astype(np.float64),
-                    self.initial_points.max(axis=0).astype(np.float64))
-        b = np.full(3, DNERF_INIT_BOUND)
-        return -b, b.copy()
 
 
 # --------------------------------------------------------------------------------------------
 # transforms files
 
 
-def _read_json(path: Path, what: str) -> object:
-    """Parsed JSON of `path`; a missing or malformed file is a DatasetError naming it (shared by
-    every reader as `nehad.data.common.read_json`)."""
-    path = Path(path)
-    if not path.is_file():
-        raise DatasetError(f"{path}: {what} not found")
-    try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: malformed JSON ({exc})") from None
-
-
 def _read_transforms(path: Path) -> dict:
-    doc = _read_json(path, "transforms file")
+    doc = read_json(path, "transforms file")
     if not isinstance(doc, dict):
         raise DatasetError(f"{path}: expected a JSON object at the top level, got {type(doc).__name__}")
     frames = doc.get("frames")
@@ -145,23 +67,10 @@ def _read_transforms(path: Path) -> dict:
     return doc
 
 
-def _number(value, path: Path, field_name: str, positive: bool = False) -> float:
-    """A finite (optionally positive) number from a dataset file, else a DatasetError naming the
-    file and field (shared by every reader as `nehad.data.common.number`)."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise DatasetError(f"{path}: field '{field_name}': expected a number, got {value!r}")
-    x = float(value)
-    if not math.isfinite(x):
-        raise DatasetError(f"{path}: field '{field_name}': expected a finite number, got {x}")
-    if positive and x <= 0:
-        raise DatasetError(f"{path}: field '{field_name}': expected a positive number, got {x}")
-    return x
-
-
 def _frame_time(frame: dict, k: int, path: Path) -> float:
     if "time" not in frame:
         raise DatasetError(f"{path}: frames[{k}].time: missing (D-NeRF frames need a time)")
-    return _number(frame["time"], path, f"frames[{k}].time")
+    return number(frame["time"], path, f"frames[{k}].time")
 
 
 def _frame_matrix(frame: dict, k: int, path: Path) -> np.ndarray:
@@ -198,7 +107,7 @@ def _intrinsics(doc: dict, frame: dict, k: int, path: Path, width: int, height: 
     for key in ("fl_x", "fl_y", "cx", "cy", "w", "h"):
         v, name = _lookup(frame, doc, key)
         if v is not None:
-            vals[key] = _number(v, path, name.format(k=k), positive=key != "cx" and key != "cy")
+            vals[key] = number(v, path, name.format(k=k), positive=key != "cx" and key != "cy")
     for key, actual in (("w", width), ("h", height)):
         if key in vals and int(round(vals[key])) != actual:
             _, name = _lookup(frame, doc, key)
@@ -207,7 +116,7 @@ def _intrinsics(doc: dict, frame: dict, k: int, path: Path, width: int, height: 
     if "fl_x" in vals:
         fx = vals["fl_x"]
     elif "camera_angle_x" in doc:
-        angle = _number(doc["camera_angle_x"], path, "camera_angle_x", positive=True)
+        angle = number(doc["camera_angle_x"], path, "camera_angle_x", positive=True)
         if angle >= math.pi:
             raise DatasetError(f"{path}: field 'camera_angle_x': expected radians in (0, pi), got {angle}")
         fx = 0.5 * width / math.tan(0.5 * angle)
@@ -216,7 +125,7 @@ def _intrinsics(doc: dict, frame: dict, k: int, path: Path, width: int, height: 
     if "fl_y" in vals:
         fy = vals["fl_y"]
     elif "fl_x" not in vals and "camera_angle_y" in doc:
-        angle = _number(doc["camera_angle_y"], path, "camera_angle_y", positive=True)
+        angle = number(doc["camera_angle_y"], path, "camera_angle_y", positive=True)
         fy = 0.5 * height / math.tan(0.5 * angle)
     else:
         fy = fx
@@ -264,154 +173,11 @@ def _load_image(img_path: Path, background: np.ndarray, downscale: int, json_pat
         # convention, so rgb_file * a + bg (1 - a) is rgb + bg (1 - a) here.
         rgb = rgb + background.astype(np.float32) * (1.0 - alpha[:, :, None])
     if downscale > 1:
-        rgb = _area_downscale(rgb, downscale)
-        alpha = None if alpha is None else _area_downscale(alpha[:, :, None], downscale)[:, :, 0]
+        rgb = area_downscale(rgb, downscale)
+        alpha = None if alpha is None else area_downscale(alpha[:, :, None], downscale)[:, :, 0]
     rgb = np.ascontiguousarray(rgb, dtype=np.float32)
     alpha = None if alpha is None else np.ascontiguousarray(alpha, dtype=np.float32)
     return rgb, alpha, pixels.shape[1], pixels.shape[0]
-
-
-def _area_downscale(img: np.ndarray, f: int) -> np.ndarray:
-    """Mean over f x f blocks; a remainder at the right/bottom edge is cropped."""
-    h, w, c = img.shape
-    h2, w2 = h // f, w // f
-    return img[: h2 * f, : w2 * f].reshape(h2, f, w2, f, c).mean(axis=(1, 3), dtype=np.float32)
-
-
-def _downscale_camera(cam: Camera, f: int) -> Camera:
-    if cam.width % f == 0 and cam.height % f == 0:
-        return cam.scaled(1.0 / f)
-    # Cropping the remainder keeps the pixel grid origin, so every intrinsic divides by f.
-    return dataclasses.replace(cam, width=cam.width // f, height=cam.height // f, fx=cam.fx / f,
-                               fy=cam.fy / f, cx=cam.cx / f, cy=cam.cy / f)
-
-
-# --------------------------------------------------------------------------------------------
-# PLY point clouds (x y z and optional colours; the 3DGS Gaussian PLY reader lives elsewhere)
-
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}
-
-
-def _read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Vertices of an ascii or binary PLY file: (M, 3) float32 points, (M, 3) colours in [0, 1]."""
-    data = path.read_bytes()
-    end = data.find(b"end_header")
-    if not data.startswith(b"ply") or end < 0:
-        raise DatasetError(f"{path}: not a PLY file (no 'ply' magic or no end_header)")
-    nl = data.find(b"\n", end)
-    body_start = len(data) if nl < 0 else nl + 1
-    header = data[:end].decode("ascii", errors="replace").splitlines()
-    fmt, elements = None, []  # elements: [name, count, [(prop, type or None-for-list)]]
-    for line in header[1:]:
-        parts = line.split()
-        if not parts or parts[0] in ("comment", "obj_info"):
-            continue
-        if parts[0] == "format" and len(parts) >= 2:
-            fmt = parts[1]
-        elif parts[0] == "element" and len(parts) == 3:
-            try:
-                elements.append([parts[1], int(parts[2]), []])
-            except ValueError:
-                raise DatasetError(f"{path}: header: bad element count in {line!r}") from None
-        elif parts[0] == "property" and elements:
-            if parts[1] == "list":
-                elements[-1][2].append((parts[-1], None))
-            elif len(parts) == 3 and parts[1] in _PLY_TYPES:
-                elements[-1][2].append((parts[2], _PLY_TYPES[parts[1]]))
-            else:
-                raise DatasetError(f"{path}: header: unsupported property {line!r}")
-    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
-        raise DatasetError(f"{path}: header: format: expected ascii or binary, got {fmt!r}")
-    names = [e[0] for e in elements]
-    if "vertex" not in names:
-        raise DatasetError(f"{path}: header: no 'element vertex'")
-    vi = names.index("vertex")
-    _, count, props = elements[vi]
-    prop_names = [p for p, _ in props]
-    for axis in ("x", "y", "z"):
-        if axis not in prop_names:
-            raise DatasetError(f"{path}: element vertex: property '{axis}' missing")
-    if any(t is None for _, t in props):
-        raise DatasetError(f"{path}: element vertex: list properties are not supported")
-    if count <= 0:
-        raise DatasetError(f"{path}: element vertex: count is {count}, expected at least one point")
-
-    if fmt == "ascii":
-        lines = data[body_start:].decode("ascii", errors="replace").splitlines()
-        skip = sum(e[1] for e in elements[:vi])
-        rows = lines[skip: skip + count]
-        if len(rows) < count:
-            raise DatasetError(f"{path}: element vertex: expected {count} rows, file has {len(rows)}")
-        try:
-            table = np.array([r.split() for r in rows], dtype=np.float64)
-        except ValueError:
-            raise DatasetError(f"{path}: element vertex: rows are not {len(props)} numbers each") from None
-        if table.ndim != 2 or table.shape[1] != len(props):
-            raise DatasetError(f"{path}: element vertex: rows are not {len(props)} numbers each")
-        cols = {p: table[:, i] for i, p in enumerate(prop_names)}
-        types = dict(props)
-    else:
-        order = "<" if fmt == "binary_little_endian" else ">"
-        offset = body_start
-        for name, n, eprops in elements[:vi]:
-            if any(t is None for _, t in eprops):
-                raise DatasetError(f"{path}: element {name}: list properties before the vertices "
-                                   f"are not supported")
-            offset += n * np.dtype([(p, order + t) for p, t in eprops]).itemsize
-        dtype = np.dtype([(p, order + t) for p, t in props])
-        if offset + count * dtype.itemsize > len(data):
-            raise DatasetError(f"{path}: element vertex: file is truncated "
-                               f"({count} vertices of {dtype.itemsize} bytes announced)")
-        rec = np.frombuffer(data, dtype=dtype, count=count, offset=offset)
-        cols = {p: rec[p] for p in prop_names}
-        types = dict(props)
-    points = np.stack([cols["x"], cols["y"], cols["z"]], axis=1).astype(np.float32)
-    if not np.isfinite(points).all():
-        raise DatasetError(f"{path}: element vertex: x/y/z hold NaN or infinite values")
-    colours = None
-    for trio in (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue")):
-        if all(c in cols for c in trio):
-            rgb = np.stack([cols[c] for c in trio], axis=1).astype(np.float64)
-            kind = np.dtype(types[trio[0]])
-            if kind.kind in "iu":
-                rgb = rgb / float(np.iinfo(kind).max)
-            colours = np.clip(rgb, 0.0, 1.0).astype(np.float32)
-            break
-    return points, colours
-
-
-# --------------------------------------------------------------------------------------------
-# the loader
-
-
-def _check_background(background) -> np.ndarray:
-    bg = np.asarray(background, dtype=np.float64).reshape(-1)
-    if bg.size == 1:
-        bg = np.repeat(bg, 3)
-    if bg.size != 3 or not np.isfinite(bg).all():
-        raise ValueError(f"background: expected three finite numbers, got {background!r}")
-    return bg
-
-
-def check_scene_args(root, splits, known=None, layout: str = "") -> tuple[Path, tuple]:
-    """The arguments every reader shares: `root` must be a folder, `splits` one name or a
-    non-empty sequence of names (each in `known`, when given). Returns (Path, tuple)."""
-    root = Path(root)
-    if not root.is_dir():
-        raise DatasetError(f"{root}: scene folder not found")
-    splits = (splits,) if isinstance(splits, str) else tuple(splits)
-    if not splits:
-        raise ValueError("splits: expected at least one split name")
-    for s in splits:
-        if known is not None and s not in known:
-            raise ValueError(f"splits: unknown split {s!r} for a {layout} scene "
-                             f"(one of {', '.join(known)})")
-    return root, splits
 
 
 def load_dnerf(root, splits=SPLITS, background=(1.0, 1.0, 1.0), downscale: int = 1) -> DNeRFScene:
@@ -426,7 +192,7 @@ def load_dnerf(root, splits=SPLITS, background=(1.0, 1.0, 1.0), downscale: int =
     if isinstance(downscale, bool) or int(downscale) != downscale or int(downscale) < 1:
         raise ValueError(f"downscale: expected an integer >= 1, got {downscale!r}")
     downscale = int(downscale)
-    bg = _check_background(background)
+    bg = check_background(background)
 
     # Parse every requested split, plus the other standard splits present (their times take part
     # in the normalisation, so a split's times do not depend on which splits were asked for).
@@ -469,7 +235,7 @@ def load_dnerf(root, splits=SPLITS, background=(1.0, 1.0, 1.0), downscale: int =
             except (CameraError, np.linalg.LinAlgError) as exc:
                 raise DatasetError(f"{path}: frames[{k}]: invalid camera ({exc})") from None
             if downscale > 1:
-                cam = _downscale_camera(cam, downscale)
+                cam = downscale_camera(cam, downscale)
             out.append(Frame(cam, rgb, alpha, img_path))
         frames[split] = out
 
@@ -477,7 +243,7 @@ def load_dnerf(root, splits=SPLITS, background=(1.0, 1.0, 1.0), downscale: int =
     for name in POINT_CLOUD_NAMES:
         candidate = root / name
         if candidate.is_file() and candidate.name in {p.name for p in root.iterdir()}:
-            points, colours = _read_ply_points(candidate)
+            points, colours = read_ply_points(candidate)
             points_path = candidate
             break
 

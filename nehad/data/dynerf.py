@@ -51,8 +51,8 @@ import numpy as np
 
 from nehad.data.common import (check_background, check_downscale, check_rotation, check_stride,
                                find_point_cloud, read_points, read_rgb)
-from nehad.data.dnerf import (DatasetError, DNeRFScene, Frame, _area_downscale, check_scene_args,
-                              _downscale_camera)
+from nehad.data.common import (DatasetError, DNeRFScene, Frame, area_downscale, check_scene_args,
+                              downscale_camera)
 from nehad.runtime.cameras import Camera, CameraError
 
 __all__ = ["load_dynerf", "llff_to_camera_to_world", "camera_to_world_to_llff", "extract_frames",
@@ -309,9 +309,9 @@ def _load_camera(i, cam_entry, c2w, intr, poses_path, keep, times, bg, downscale
         except (CameraError, np.linalg.LinAlgError) as exc:
             raise DatasetError(f"{poses_path}: row {i} ({name}): invalid camera ({exc})") from None
         if downscale > 1:
-            rgb = _area_downscale(rgb, downscale)
-            alpha = None if alpha is None else _area_downscale(alpha[:, :, None], downscale)[:, :, 0]
-            cam = _downscale_camera(cam, downscale)
+            rgb = area_downscale(rgb, downscale)
+            alpha = None if alpha is None else area_downscale(alpha[:, :, None], downscale)[:, :, 0]
+            cam = downscale_camera(cam, downscale)
         out.append(Frame(cam, np.ascontiguousarray(rgb, np.float32),
                          None if alpha is None else np.ascontiguousarray(alpha, np.float32), path))
     return out

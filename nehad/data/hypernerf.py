@@ -54,8 +54,8 @@ import numpy as np
 from nehad.data.common import (check_background, check_downscale, check_rotation, check_stride,
                                find_point_cloud, number, read_json, read_points, read_rgb, remap,
                                undistortion_maps, vector)
-from nehad.data.dnerf import (DatasetError, DNeRFScene, Frame, _area_downscale,
-                              _downscale_camera, check_scene_args)
+from nehad.data.common import (DatasetError, DNeRFScene, Frame, area_downscale,
+                              downscale_camera, check_scene_args)
 from nehad.runtime.cameras import Camera
 
 __all__ = ["load_hypernerf", "read_hypernerf_camera", "HyperNeRFCamera", "POINT_FILES",
@@ -308,9 +308,9 @@ def load_hypernerf(root, splits=("train", "test"), background=(0.0, 0.0, 0.0),
                 rgb = remap(rgb, *maps[key])
                 alpha = None if alpha is None else remap(alpha, *maps[key])
             if extra > 1:
-                rgb = _area_downscale(rgb, extra)
-                alpha = None if alpha is None else _area_downscale(alpha[:, :, None], extra)[:, :, 0]
-                cam = _downscale_camera(cam, extra)
+                rgb = area_downscale(rgb, extra)
+                alpha = None if alpha is None else area_downscale(alpha[:, :, None], extra)[:, :, 0]
+                cam = downscale_camera(cam, extra)
             rgb = np.ascontiguousarray(rgb, np.float32)
             alpha = None if alpha is None else np.ascontiguousarray(alpha, np.float32)
             loaded_by_index[i] = (cam, rgb, alpha, img)
