@@ -54,6 +54,13 @@ def test_trains_and_evaluates_with_the_test_preset(fmt, data, tmp_path):
     print(f"{fmt}: test PSNR {res['mean']['psnr']:.2f} dB on {res['frames']} frames")
     assert res["frames"] == {"hypernerf": 2, "dynerf": 6}[fmt]
     assert 12.0 < res["mean"]["psnr"] < 60.0
+    # the report reads the scene with the training loader: test renders for any layout (it
+    # read D-NeRF only, and skipped them here)
+    from nehad.viz.report import build_report
+
+    rep = build_report(run, tmp_path / "report.html", data_dir=data / fmt, frames=1,
+                       score=False)
+    assert "renders" not in rep["skipped"], rep["skipped"]
 
 
 def _randomise(run, seed=3):

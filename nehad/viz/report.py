@@ -277,7 +277,8 @@ def build_report(run_dir, output, data_dir=None, frames: int = 4, score: bool = 
     "sections", "skipped": {section: reason}}."""
     from nehad import __version__
     from nehad.config import config_from_dict
-    from nehad.data.dnerf import DatasetError, load_dnerf
+    from nehad.data.common import DatasetError
+    from nehad.data.loader import load_dataset
     from nehad.runtime.images import atomic_path
     from nehad.runtime.raster import render
     from nehad.model import RunError, cloud_at, load_run
@@ -354,8 +355,11 @@ def build_report(run_dir, output, data_dir=None, frames: int = 4, score: bool = 
         from .masks import default_data_dir
 
         data = default_data_dir(meta, data_dir)
-        scene = load_dnerf(data, splits=("test",), background=bg, downscale=cfg.data.downscale)
-        test_frames = scene.frames["test"]
+        # the same loader, split and frame stride as `nehad eval` (any dataset layout)
+        split = cfg.data.eval_split
+        scene = load_dataset(data, splits=(split,), background=bg, downscale=cfg.data.downscale,
+                             frame_stride=cfg.data.frame_stride)
+        test_frames = scene.frames[split]
         first_cam = test_frames[0].camera if test_frames else None
     except expected as e:
         skipped["renders"] = str(e)
