@@ -43,9 +43,10 @@ def _cell(coord, size):
 
 @numba.njit(fastmath=True, cache=True)
 def _forward_points(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
-                    out, start, stop):
+                    out, order, start, stop):
     samples = np.empty(channels, np.float32)
-    for n in range(start, stop):
+    for i in range(start, stop):
+        n = order[i]
         for s in range(n_scales):
             f = out[n, s * channels:(s + 1) * channels]
             for c in range(channels):
@@ -72,21 +73,22 @@ def _forward_points(u, tables, offsets, heights, widths, axis_a, axis_b, n_scale
 
 @numba.njit(parallel=True, cache=True)
 def _forward(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels, out,
-             chunks):
+             order, chunks):
     n = u.shape[0]
     for j in numba.prange(chunks):
         _forward_points(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
-                        out, j * n // chunks, (j + 1) * n // chunks)
+                        out, order, j * n // chunks, (j + 1) * n // chunks)
 
 
 @numba.njit(fastmath=True, cache=True)
 def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
-                       grad_out, grad_samples, grad_u, start, stop):
+                       grad_out, grad_samples, grad_u, order, start, stop):
     samples = np.empty((6, channels), np.float32)
     sx = np.empty((6, channels), np.float32)  # d sample / d pixel x
     sy = np.empty((6, channels), np.float32)
     slopes = np.empty((6, 2), np.float32)
-    for n in range(start, stop):
+    for i in range(start, stop):
+        n = order[i]
         for s in range(n_scales):
             for k in range(6):
                 p = s * 6 + k
@@ -134,21 +136,22 @@ def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_sc
 
 @numba.njit(parallel=True, cache=True)
 def _point_grads(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
-                 grad_out, grad_samples, grad_u, chunks):
+                 grad_out, grad_samples, grad_u, order, chunks):
     n = u.shape[0]
     for j in numba.prange(chunks):
         _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales,
-                           channels, grad_out, grad_samples, grad_u, j * n // chunks,
+                           channels, grad_out, grad_samples, grad_u, order, j * n // chunks,
                            (j + 1) * n // chunks)
 
 
 @numba.njit(fastmath=True, cache=True)
 def _scatter_plane(u, p, k, offsets, heights, widths, axis_a, axis_b, channels, grad_samples,
-                   grad_tables):
+                   grad_tables, order):
     h, w = heights[p], widths[p]
     dx = channels if w > 1 else 0
     dy = w * channels if h > 1 else 0
-    for n in range(u.shape[0]):
+    for i in range(u.shape[0]):
+        n = order[i]
         x0, fx, _ = _cell(u[n, axis_a[k]], w)
         y0, fy, _ = _cell(u[n, axis_b[k]], h)
         base = offsets[p] + (y0 * w + x0) * channels
@@ -173,10 +176,10 @@ def _scatter_plane(u, p, k, offsets, heights, widths, axis_a, axis_b, channels, 
 
 @numba.njit(parallel=True, cache=True)
 def _plane_grads(u, offsets, heights, widths, axis_a, axis_b, channels, grad_samples,
-                 grad_tables):
+                 grad_tables, order):
     for p in numba.prange(offsets.shape[0] - 1):
         _scatter_plane(u, p, p % 6, offsets, heights, widths, axis_a, axis_b, channels,
-                       grad_samples, grad_tables)
+                       grad_samples, grad_tables, order)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -198,6 +201,14 @@ def _to_channel_first(flat, out):
         for y in range(h):
             for x in range(w):
                 out[k, y, x] = flat[(y * w + x) * c + k]
+
+
+def _spatial_order(u: np.ndarray, cells: int = 32) -> np.ndarray:
+    """The points in the order of a coarse grid over [-1, 1]^3 (x-major cells of 2 / `cells`):
+    neighbouring points read neighbouring texels, so the table reads hit the cache (in the
+    Gaussians' own order every tap was a cache miss)."""
+    q = np.clip(((u[:, :3] + 1.0) * (0.5 * cells)).astype(np.int64), 0, cells - 1)
+    return np.argsort((q[:, 0] * cells + q[:, 1]) * cells + q[:, 2], kind="stable")
 
 
 def _chunks(n: int) -> int:
@@ -224,25 +235,26 @@ class HexPlaneLookup(torch.autograd.Function):
         axis_b = np.array([b for _, b in axes], np.int64)
         un = np.ascontiguousarray(u.detach().numpy(), np.float32)
         out = np.empty((un.shape[0], n_scales * channels), np.float32)
+        order = _spatial_order(un)
         _forward(un, flat, offsets, heights, widths, axis_a, axis_b, n_scales, channels, out,
-                 _chunks(len(un)))
+                 order, _chunks(len(un)))
         ctx.saved = (un, flat, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
-                     [tuple(p.shape) for p in planes])
+                     [tuple(p.shape) for p in planes], order)
         return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, grad_out):
         (un, flat, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
-         shapes) = ctx.saved
+         shapes, order) = ctx.saved
         g = np.ascontiguousarray(grad_out.detach().numpy(), np.float32)
         n = un.shape[0]
         grad_samples = np.empty((n, n_scales * 6, channels), np.float32)
         grad_u = np.zeros((n, 4), np.float32)
         _point_grads(un, flat, offsets, heights, widths, axis_a, axis_b, n_scales, channels, g,
-                     grad_samples, grad_u, _chunks(n))
+                     grad_samples, grad_u, order, _chunks(n))
         grad_tables = np.zeros_like(flat)
         _plane_grads(un, offsets, heights, widths, axis_a, axis_b, channels, grad_samples,
-                     grad_tables)
+                     grad_tables, order)
         plane_grads = []
         for p, shape in enumerate(shapes):
             out = np.empty(shape[1:], np.float32)
