@@ -13,12 +13,12 @@ from nehad.cli.main import main
 from nehad.runtime.batch import BatchError, load_batch
 from nehad.runtime.images import read_image
 from nehad.runtime.video import probe_video
-from video_model import tiny_model
+from video_model import build_tiny_export
 
 
 @pytest.fixture(scope="module")
 def model(tmp_path_factory):
-    return tiny_model(tmp_path_factory)
+    return build_tiny_export(tmp_path_factory)
 
 
 def write(tmp_path, text: str):

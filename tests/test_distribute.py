@@ -30,14 +30,14 @@ from nehad.runtime.distribute import (
 from nehad.runtime.images import read_image
 from nehad.runtime.video import VideoJob, plan_video, probe_video, run_video
 from torch_blocker import blocked_torch_env
-from video_model import tiny_model
+from video_model import build_tiny_export
 
 N = 24
 
 
 @pytest.fixture(scope="module")
 def model(tmp_path_factory):
-    return tiny_model(tmp_path_factory)  # made once per session
+    return build_tiny_export(tmp_path_factory)  # made once per session
 
 
 @pytest.fixture(scope="module")
@@ -159,7 +159,7 @@ def cluster(tmp_path_factory):
         with Client(address, timeout=60) as c:
             c.wait_for_workers(2, timeout=60)
             # warm both workers up (model, Numba kernels), so that both draw frames at once
-            onnx, _ = tiny_model(tmp_path_factory)
+            onnx, _ = build_tiny_export(tmp_path_factory)
             (root / "warm").mkdir()
             c.run(render_frame_task, task(onnx, root / "warm", 0))
         yield address, workers

@@ -35,7 +35,7 @@ from nehad.runtime.images import atomic_path
 
 import stacks
 from torch_blocker import blocked_torch_env
-from video_model import tiny_model
+from video_model import build_tiny_export
 
 pytestmark = pytest.mark.slow
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
@@ -44,7 +44,7 @@ ENV = {**os.environ, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
 @pytest.fixture(scope="module")
 def model(tmp_path_factory):
     """(model.onnx, scene, run): the shared tiny exported model and its training run."""
-    onnx_path, scene = tiny_model(tmp_path_factory)
+    onnx_path, scene = build_tiny_export(tmp_path_factory)
     return onnx_path, scene, onnx_path.parent / "run"
 
 

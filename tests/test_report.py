@@ -17,7 +17,6 @@ from click.testing import CliRunner
 
 from nehad.cli.main import main
 
-pytest_plugins = ["viz_fixtures"]
 
 SECTIONS = ["summary", "curves", "metrics", "renders", "trajectories", "masks", "config"]
 

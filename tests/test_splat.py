@@ -13,7 +13,6 @@ from nehad.runtime.gaussians import SH_C0, GaussianCloud
 from nehad.runtime.splat import (ROW_BYTES, SplatError, read_splat, splat_bytes, splat_order,
                                  write_splat)
 
-pytest_plugins = ["viz_fixtures"]
 
 
 def _random_cloud(n=500, seed=0, degree=1) -> GaussianCloud:
@@ -115,11 +114,11 @@ def test_bad_inputs(tmp_path):
         read_splat(tmp_path / "none.splat")
 
 
-def test_cli_ply_writes_splat(tiny_run, tiny_model, tmp_path):
+def test_cli_ply_writes_splat(tiny_run, tiny_run_model, tmp_path):
     from nehad.model import cloud_at
 
     data, run = tiny_run
-    model, meta = tiny_model
+    model, meta = tiny_run_model
     runner = CliRunner()
     res = runner.invoke(main, ["ply", str(run), "--time", "0.25", "-o", str(tmp_path / "f.splat")])
     assert res.exit_code == 0, res.output

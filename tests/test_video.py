@@ -30,14 +30,14 @@ from nehad.runtime.video import (
     run_video,
 )
 from torch_blocker import blocked_torch_env
-from video_model import tiny_model
+from video_model import build_tiny_export
 
 av = pytest.importorskip("av")
 
 
 @pytest.fixture(scope="module")
 def model(tmp_path_factory):
-    return tiny_model(tmp_path_factory)
+    return build_tiny_export(tmp_path_factory)
 
 
 def test_video_reads_back_with_pyav(model, tmp_path):

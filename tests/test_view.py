@@ -19,7 +19,7 @@ from browser import Browser, find_chromium
 from nehad.cli.main import main
 from nehad.runtime.cameras import save_view
 from nehad.runtime.images import read_image
-from video_model import tiny_model
+from video_model import build_tiny_export
 
 viser = pytest.importorskip("viser")
 needs_browser = pytest.mark.skipif(find_chromium() is None,
@@ -37,7 +37,7 @@ def model(tmp_path_factory):
     from nehad.checkpoint import atomic_torch_save, load_state
     from nehad.export.onnx_export import export_run
 
-    onnx, scene = tiny_model(tmp_path_factory)
+    onnx, scene = build_tiny_export(tmp_path_factory)
     state = load_state(onnx.parent / "run" / "model.pt")
     gen = torch.Generator().manual_seed(3)
     for name, p in state["field"].items():

@@ -18,7 +18,6 @@ from nehad.viz.masks import (auc_from_histograms, frame_counts, render_weights, 
 from nehad.viz.plots import encode_png, line_plot, nice_ticks
 from nehad.viz.trajectories import (Tracks, compute_tracks, draw_tracks, select_gaussians,
                                     track_times, write_video)
-pytest_plugins = ["viz_fixtures"]
 MUJOCO = Path(__file__).resolve().parents[2] / "shared" / "data" / "mujoco"
 
 
@@ -43,13 +42,13 @@ def _cloud(means, scale=0.03, opacity=0.9, rgb=(0.5, 0.5, 0.5)) -> GaussianCloud
 # trajectories
 
 
-def test_tracks_equal_the_deformed_means_projected(tiny_run, tiny_model):
+def test_tracks_equal_the_deformed_means_projected(tiny_run, tiny_run_model):
     import torch
 
     from nehad.model import cloud_at
 
     data, _ = tiny_run
-    model, meta = tiny_model
+    model, meta = tiny_run_model
     cam = load_view(f"{data}/transforms_test.json:0").with_size(80, 60)
     times = track_times((0.0, 1.0), 6)
     tracks = compute_tracks(lambda t: cloud_at(model, t, meta["sh_degree"]), cam, times,
@@ -75,12 +74,12 @@ def test_tracks_equal_the_deformed_means_projected(tiny_run, tiny_model):
     np.testing.assert_array_equal(again.ids, tracks.ids)
 
 
-def test_onnx_tracks_match_the_torch_run(tiny_run, tiny_model, tiny_onnx):
+def test_onnx_tracks_match_the_torch_run(tiny_run, tiny_run_model, tiny_onnx):
     from nehad.runtime.onnx_model import OnnxModel
     from nehad.model import cloud_at
 
     data, _ = tiny_run
-    model, meta = tiny_model
+    model, meta = tiny_run_model
     cam = load_view(f"{data}/transforms_test.json:0")
     times = track_times((0.0, 1.0), 5)
     a = compute_tracks(OnnxModel(tiny_onnx).gaussians, cam, times, count=50)
@@ -150,12 +149,12 @@ def test_write_video_h264_yuv420p_odd_size(tmp_path):
 # BED masks
 
 
-def test_bed_weights_equal_one_minus_m_pos_of_the_field(tiny_model):
+def test_bed_weights_equal_one_minus_m_pos_of_the_field(tiny_run_model):
     import torch
 
     from nehad.viz.masks import bed_weights
 
-    model, _ = tiny_model
+    model, _ = tiny_run_model
     g = model.gaussians
     sh = torch.cat([g.sh_dc, g.sh_rest], 1)
     for t in (0.0, 0.3, 0.5, 1.0):
@@ -166,11 +165,11 @@ def test_bed_weights_equal_one_minus_m_pos_of_the_field(tiny_model):
         np.testing.assert_allclose(bed_weights(model, t), want, rtol=0, atol=1e-6)
 
 
-def test_bed_weights_match_the_formula_and_fraction(tiny_model):
+def test_bed_weights_match_the_formula_and_fraction(tiny_run_model):
     """An independent float64 evaluation of docs/design.md section 4.7 from the stored parameters."""
     from nehad.viz.masks import bed_weights, dynamic_fraction
 
-    model, _ = tiny_model
+    model, _ = tiny_run_model
     c = model.field.cfg
     g = model.gaussians
     mu, mu_eq = g.means.detach().double().numpy(), g.mu_eq.detach().double().numpy()
@@ -191,13 +190,13 @@ def test_bed_weights_match_the_formula_and_fraction(tiny_model):
     assert w.min() >= -1e-6 and w.max() <= 1 - c.gamma + 1e-6
 
 
-def test_runs_without_bed_are_refused(tiny_model):
+def test_runs_without_bed_are_refused(tiny_run_model):
     import dataclasses
     from types import SimpleNamespace
 
     from nehad.viz.masks import bed_status, bed_weights
 
-    model, _ = tiny_model
+    model, _ = tiny_run_model
     assert bed_status(model) is None
     for change, word in (({"bed_position": False}, "bed_position=false"),
                          ({"decoder": "mlp"}, "4DGS baseline")):

@@ -1,6 +1,6 @@
 """A tiny exported model shared by the video, distribution and batch tests (issue 5).
 
-`tiny_model(tmp_path_factory)` trains a `--preset test` run on a 32 px synthetic scene and exports
+`build_tiny_export(tmp_path_factory)` trains a `--preset test` run on a 32 px synthetic scene and exports
 it, once per pytest session (the files live in the session's base temp folder, so every test
 module that asks gets the same model). Needs torch and onnx: the tests that use it skip without.
 """
@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 
-def tiny_model(tmp_path_factory) -> tuple[Path, Path]:
+def build_tiny_export(tmp_path_factory) -> tuple[Path, Path]:
     """(model.onnx, scene folder): 2000 Gaussians, SH degree 1, default camera 32x32."""
     root = tmp_path_factory.getbasetemp() / "nehad-video-model"
     model, scene = root / "model.onnx", root / "scene"

@@ -1,14 +1,16 @@
-"""A tiny trained run shared by the visualisation tests (issue 8): `nehad synth` at 32 px with 8
-frames, trained with the `test` preset (seconds). Imported by test_viz.py, test_report.py and
-test_splat.py; session-scoped, so it is trained once per pytest run."""
+"""Fixtures shared by the test modules (pytest finds them here).
+
+- `tiny_run`: a tiny trained run (`nehad synth` at 32 px with 8 frames, `test` preset, seconds),
+  session-scoped, so it is trained once per pytest run; `tiny_run_model` its loaded (model, meta);
+  `tiny_onnx` its export.
+
+The exported model of the video, batch and distribution tests is built by
+`video_model.build_tiny_export` (a plain function: some tests call it inside helpers).
+"""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
-
-MUJOCO = Path(__file__).resolve().parents[2] / "shared" / "data" / "mujoco"
 
 
 @pytest.fixture(scope="session")
@@ -27,7 +29,7 @@ def tiny_run(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def tiny_model(tiny_run):
+def tiny_run_model(tiny_run):
     """(model, meta) of the tiny run, loaded once."""
     from nehad.model import load_run
 
