@@ -5,8 +5,9 @@ Stages, each small and testable on its own (the gsplat layout):
   2. `bin_gaussians` (binning.py): screen-space Gaussians -> depth-sorted per-tile lists.
   3. `rasterize` / `rasterize_backward` (here, kernels in kernels.py): tile lists -> images, and
      image gradients -> gradients of the screen-space inputs.
-`render` chains the three for the torch-free runtime; training calls 2 and 3 through
-`nehad.splat.rasterize` with a torch projection in front.
+`render` chains the three for the torch-free runtime; training calls all three through
+`nehad.splat.rasterize` (the same Numba projection and its hand-written backward, wrapped for
+autograd).
 """
 
 from __future__ import annotations
