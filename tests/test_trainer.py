@@ -88,6 +88,7 @@ def _train_cli(data, run, *extra, wait=True):
     return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 
 
+@pytest.mark.slow  # three CLI trainings
 def test_resume_after_sigkill_reproduces_the_uninterrupted_run(tmp_path, tiny_scene):
     full = _train_cli(tiny_scene, tmp_path / "full")
     assert full.returncode == 0, full.stderr
@@ -112,6 +113,7 @@ def test_resume_after_sigkill_reproduces_the_uninterrupted_run(tmp_path, tiny_sc
             assert torch.equal(a[part][key], b[part][key]), (part, key)
 
 
+@pytest.mark.slow  # two CLI trainings
 def test_resume_with_another_config_is_refused(tmp_path, tiny_scene):
     first = _train_cli(tiny_scene, tmp_path / "r", "--set", "fine.iterations=5")
     assert first.returncode == 0, first.stderr

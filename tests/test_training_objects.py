@@ -11,6 +11,7 @@ from __future__ import annotations
 import pytest
 
 torch = pytest.importorskip("torch")
+pytestmark = pytest.mark.slow  # trains a stress scene (about 20 s)
 
 from nehad.config import build_config  # noqa: E402
 from nehad.data.synth_stress import synthesize_stress_scene  # noqa: E402
