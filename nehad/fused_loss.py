@@ -33,6 +33,30 @@ _C2 = np.float32(0.03 ** 2)
 _TWO = np.float32(2.0)
 
 
+@numba.njit(inline="always")
+def _add_scaled(dst, a, src):
+    """dst += a src (one array written per loop: LLVM vectorises a loop only when its run-time
+    alias checks stay few)."""
+    for i in range(dst.shape[0]):
+        dst[i] += a * src[i]
+
+
+@numba.njit(inline="always")
+def _add_scaled_product(dst, a, src1, src2):
+    """dst += a src1 src2."""
+    for i in range(dst.shape[0]):
+        dst[i] += a * src1[i] * src2[i]
+
+
+@numba.njit(inline="always")
+def _horizontal(padded, taps, out):
+    """out = the horizontal taps over `padded` (a row with len(taps) // 2 zeros at each end)."""
+    for i in range(out.shape[0]):
+        out[i] = 0.0
+    for t in range(taps.shape[0]):
+        _add_scaled(out, taps[t], padded[t:t + out.shape[0]])
+
+
 @numba.njit(fastmath=True, cache=True)
 def _ssim_row(x, y, taps, coef_a, coef_b, coef_c, row):
     """Row `row` of the first pass (see `_ssim_rows`); returns its sums of s and |x - y|."""
@@ -69,38 +93,16 @@ def _ssim_row(x, y, taps, coef_a, coef_b, coef_c, row):
             wt = taps[t]
             xr = x[c, src]
             yr = y[c, src]
-            # one array written per loop: LLVM vectorises a loop only when its run-time
-            # alias checks stay few
-            for i in range(w):
-                bx_in[i] += wt * xr[i]
-            for i in range(w):
-                by_in[i] += wt * yr[i]
-            for i in range(w):
-                bxx_in[i] += wt * xr[i] * xr[i]
-            for i in range(w):
-                byy_in[i] += wt * yr[i] * yr[i]
-            for i in range(w):
-                bxy_in[i] += wt * xr[i] * yr[i]
-        for i in range(w):
-            mx[i] = 0.0
-            my[i] = 0.0
-            exx[i] = 0.0
-            eyy[i] = 0.0
-            exy[i] = 0.0
-        for t in range(k):  # horizontal taps (the pads are zero)
-            wt = taps[t]
-            bx_t, by_t, bxx_t = bx[t:t + w], by[t:t + w], bxx[t:t + w]
-            byy_t, bxy_t = byy[t:t + w], bxy[t:t + w]
-            for i in range(w):
-                mx[i] += wt * bx_t[i]
-            for i in range(w):
-                my[i] += wt * by_t[i]
-            for i in range(w):
-                exx[i] += wt * bxx_t[i]
-            for i in range(w):
-                eyy[i] += wt * byy_t[i]
-            for i in range(w):
-                exy[i] += wt * bxy_t[i]
+            _add_scaled(bx_in, wt, xr)
+            _add_scaled(by_in, wt, yr)
+            _add_scaled_product(bxx_in, wt, xr, xr)
+            _add_scaled_product(byy_in, wt, yr, yr)
+            _add_scaled_product(bxy_in, wt, xr, yr)
+        _horizontal(bx, taps, mx)  # the pads stay zero
+        _horizontal(by, taps, my)
+        _horizontal(bxx, taps, exx)
+        _horizontal(byy, taps, eyy)
+        _horizontal(bxy, taps, exy)
         xr = x[c, row]
         yr = y[c, row]
         for i in range(w):
@@ -154,28 +156,12 @@ def _ssim_grad_row(x, y, coef_a, coef_b, coef_c, taps, w_ssim, w_l1, grad, row):
             if src < 0 or src >= h:
                 continue
             wt = taps[t]
-            ar = coef_a[c, src]
-            br = coef_b[c, src]
-            cr = coef_c[c, src]
-            for i in range(w):
-                ba_in[i] += wt * ar[i]
-            for i in range(w):
-                bb_in[i] += wt * br[i]
-            for i in range(w):
-                bc_in[i] += wt * cr[i]
-        for i in range(w):
-            ga[i] = 0.0
-            gb[i] = 0.0
-            gc[i] = 0.0
-        for t in range(k):
-            wt = taps[t]
-            ba_t, bb_t, bc_t = ba[t:t + w], bb[t:t + w], bc[t:t + w]
-            for i in range(w):
-                ga[i] += wt * ba_t[i]
-            for i in range(w):
-                gb[i] += wt * bb_t[i]
-            for i in range(w):
-                gc[i] += wt * bc_t[i]
+            _add_scaled(ba_in, wt, coef_a[c, src])
+            _add_scaled(bb_in, wt, coef_b[c, src])
+            _add_scaled(bc_in, wt, coef_c[c, src])
+        _horizontal(ba, taps, ga)
+        _horizontal(bb, taps, gb)
+        _horizontal(bc, taps, gc)
         xr = x[c, row]
         yr = y[c, row]
         gr = grad[c, row]
