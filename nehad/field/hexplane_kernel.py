@@ -41,6 +41,18 @@ def _cell(coord, size):
     return i0, p - np.float32(i0), slope
 
 
+@numba.njit(inline="always")
+def _corners(u, n, p, k, offsets, heights, widths, axis_a, axis_b, channels):
+    """Where point n reads plane p (plane k of its scale): the table offset of its cell's first
+    texel, the offsets of the right and lower neighbours, the fractions and d pixel / d coord."""
+    h, w = heights[p], widths[p]
+    x0, fx, slope_x = _cell(u[n, axis_a[k]], w)
+    y0, fy, slope_y = _cell(u[n, axis_b[k]], h)
+    dx = channels if w > 1 else 0
+    dy = w * channels if h > 1 else 0
+    return offsets[p] + (y0 * w + x0) * channels, dx, dy, fx, fy, slope_x, slope_y
+
+
 @numba.njit(fastmath=True, cache=True)
 def _forward_points(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
                     out, order, start, stop):
@@ -52,13 +64,8 @@ def _forward_points(u, tables, offsets, heights, widths, axis_a, axis_b, n_scale
             for c in range(channels):
                 f[c] = _ONE
             for k in range(6):
-                p = s * 6 + k
-                h, w = heights[p], widths[p]
-                x0, fx, _ = _cell(u[n, axis_a[k]], w)
-                y0, fy, _ = _cell(u[n, axis_b[k]], h)
-                dx = channels if w > 1 else 0
-                dy = w * channels if h > 1 else 0
-                base = offsets[p] + (y0 * w + x0) * channels
+                base, dx, dy, fx, fy, _, _ = _corners(u, n, s * 6 + k, k, offsets, heights,
+                                                      widths, axis_a, axis_b, channels)
                 t00 = tables[base:base + channels]
                 t01 = tables[base + dx:base + dx + channels]
                 t10 = tables[base + dy:base + dy + channels]
@@ -91,15 +98,10 @@ def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_sc
         n = order[i]
         for s in range(n_scales):
             for k in range(6):
-                p = s * 6 + k
-                h, w = heights[p], widths[p]
-                x0, fx, slope_x = _cell(u[n, axis_a[k]], w)
-                y0, fy, slope_y = _cell(u[n, axis_b[k]], h)
+                base, dx, dy, fx, fy, slope_x, slope_y = _corners(
+                    u, n, s * 6 + k, k, offsets, heights, widths, axis_a, axis_b, channels)
                 slopes[k, 0] = slope_x
                 slopes[k, 1] = slope_y
-                dx = channels if w > 1 else 0
-                dy = w * channels if h > 1 else 0
-                base = offsets[p] + (y0 * w + x0) * channels
                 t00 = tables[base:base + channels]
                 t01 = tables[base + dx:base + dx + channels]
                 t10 = tables[base + dy:base + dy + channels]
@@ -147,14 +149,10 @@ def _point_grads(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, 
 @numba.njit(fastmath=True, cache=True)
 def _scatter_plane(u, p, k, offsets, heights, widths, axis_a, axis_b, channels, grad_samples,
                    grad_tables, order):
-    h, w = heights[p], widths[p]
-    dx = channels if w > 1 else 0
-    dy = w * channels if h > 1 else 0
     for i in range(u.shape[0]):
         n = order[i]
-        x0, fx, _ = _cell(u[n, axis_a[k]], w)
-        y0, fy, _ = _cell(u[n, axis_b[k]], h)
-        base = offsets[p] + (y0 * w + x0) * channels
+        base, dx, dy, fx, fy, _, _ = _corners(u, n, p, k, offsets, heights, widths, axis_a,
+                                              axis_b, channels)
         gk = grad_samples[n, p]
         w00 = (_ONE - fx) * (_ONE - fy)
         w01 = fx * (_ONE - fy)
