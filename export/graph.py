@@ -69,12 +69,16 @@ class ExportGraph(nn.Module):
         inverse = torch.empty_like(order)
         inverse[order] = torch.arange(len(order))
         self.register_buffer("inverse", inverse)
-        for name, value in zip(OUTPUT_NAMES, static.frozen):
+        for name, value in zip(OUTPUT_NAMES[:4], static.frozen[:4]):
             self.register_buffer(f"frozen_{name}", torch.as_tensor(value, dtype=torch.float32))
-        # SH the field does not deform pass through whole (no gather)
+        # SH the field does not deform pass through whole (no gather); deformed SH are split too
         self.sh_passes = not model.field.cfg.deform_opacity_sh
-        self.register_buffer("sh_all", torch.cat([g.sh_dc, g.sh_rest], 1)[:, :self.k].detach()
-                             .clone())
+        if self.sh_passes:
+            self.register_buffer("sh_all", torch.cat([g.sh_dc, g.sh_rest], 1)[:, :self.k]
+                                 .detach().clone())
+        else:
+            self.register_buffer("frozen_sh", torch.as_tensor(static.frozen[4],
+                                                              dtype=torch.float32))
         part = copy.copy(model)
         part._modules = dict(model._modules)
         part._modules["gaussians"] = GaussianParameters(
