@@ -81,6 +81,7 @@ def main() -> None:
     import torch
 
     from nehad.export.onnx_export import export_model
+    from nehad.model import RunInfo
 
     times = np.random.default_rng(0).uniform(0, 1, 64)
     print(f"onnxruntime {ort.__version__}, torch {torch.__version__}")
@@ -88,7 +89,7 @@ def main() -> None:
           f"{'file MB':>8} {'export s':>8} {'load s':>6} {'parity':>8}")
     for n in (int(s) for s in args.sizes.split(",")):
         model = build_model(n)
-        meta = {"sh_degree": 3, "time_range": (0.0, 1.0), "background": (1.0, 1.0, 1.0)}
+        meta = RunInfo(sh_degree=3, time_range=(0.0, 1.0), background=(1.0, 1.0, 1.0))
         with tempfile.TemporaryDirectory() as tmp:
             path = Path(tmp) / "model.onnx"
             t0 = time.perf_counter()

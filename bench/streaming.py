@@ -46,9 +46,11 @@ def _test_frames(run: Path, split: str = "test"):
     cfg = yaml.safe_load((run / "config.yaml").read_text())
     from nehad.checkpoint import load_state
 
-    meta = load_state(run / "model.pt")
-    bg = tuple(float(v) for v in meta["background"])
-    scene = load_dataset(meta["data_dir"], splits=(split,), background=bg,
+    from nehad.model import RunInfo
+
+    info = RunInfo.from_state(load_state(run / "model.pt"))
+    bg = info.background
+    scene = load_dataset(info.data_dir, splits=(split,), background=bg,
                          downscale=cfg["data"]["downscale"],
                          frame_stride=cfg["data"].get("frame_stride", 1))
     return scene.frames[split], bg

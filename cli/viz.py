@@ -289,7 +289,7 @@ def masks(run, view, time_, output, plot, n_times, threshold, score, split, data
 
             with _bar(None, f"score {split}") as bar:
                 result = score_run(run, split, data_dir, threshold, ids, synth_scene, max_frames,
-                                   model=source.model, meta=source.meta,
+                                   model=source.model, run_info=source.info,
                                    progress=lambda: bar.update(1))
             if json_out is not None:
                 import json

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from nehad.model import RunInfo
 from nehad.export.checks import MIN_OPSET
 from nehad.export.deform_graph import FastDeform
 from nehad.export.graph import LAYER_OUTPUT, OUTPUT_NAMES, closed_form_copy
@@ -98,25 +99,23 @@ def export_split_layers(run_dir, out_dir, *, opset: int = MIN_OPSET, fp16_field:
     """Write base.onnx, layer_1.bin, ... and manifest.json for the layered RUN into `out_dir`
     (created; existing files of those names are replaced). Raises ExportError, writing nothing,
     when the run has no layers or a check fails."""
-    from nehad.config import config_from_dict
     from nehad.model import load_run
 
     run = Path(run_dir)
     if not (run / "model.pt").is_file():
         raise ExportError(f"{run}: not a finished training run (no model.pt)")
-    model, meta = load_run(run)
-    if meta.get("layer") is None:
+    model, info = load_run(run)
+    if info.layer is None:
         raise ExportError(f"{run}: the run has no streaming layers (train it with --lod-levels L)")
-    cfg = config_from_dict(meta["config"]) if "config" in meta else None
-    return export_split_model(model, meta, out_dir, cfg=cfg, opset=opset, fp16_field=fp16_field,
+    return export_split_model(model, info, out_dir, cfg=info.config, opset=opset, fp16_field=fp16_field,
                               times=times, tol=tol)
 
 
-def export_split_model(model, meta: dict, out_dir, *, cfg=None, opset: int = MIN_OPSET,
+def export_split_model(model, info: RunInfo, out_dir, *, cfg=None, opset: int = MIN_OPSET,
                        fp16_field: bool = False, times=PARITY_TIMES,
                        tol: float = PARITY_TOL) -> SplitReport:
-    """`export_split_layers` for a loaded model and its run metadata (`meta["layer"]`: the [N]
-    layer of each Gaussian, nondecreasing).
+    """`export_split_layers` for a loaded model and what its run records (`info.layer`:
+    the [N] layer of each Gaussian, nondecreasing).
 
     `fp16_field`: store the deformation field's weights (hex-plane and networks) as float16 in
     base.onnx, halving the part of the first download that does not shrink with the layers; the
@@ -133,14 +132,14 @@ def export_split_model(model, meta: dict, out_dir, *, cfg=None, opset: int = MIN
     if not out_dir.parent.is_dir():
         raise ExportError(f"--split-layers {out_dir}: parent folder {out_dir.parent} does not exist")
     n = len(model.gaussians)
-    layer = run_layers_of(meta, n)
+    layer = run_layers_of(info, n)
     if layer is None:
         raise ExportError("the model has no streaming layers (train it with --lod-levels L)")
     if np.any(np.diff(layer) < 0):
         raise ExportError("the model's streaming layers are not stored in order (layer 0 "
                           "first, then 1, ...); a run trained with --lod-levels stores them so")
     sizes = np.bincount(layer, minlength=int(layer.max()) + 1).tolist()
-    sh_degree = int(meta.get("sh_degree", model.gaussians.sh_degree))
+    sh_degree = info.degree_for(model)
     k = (sh_degree + 1) ** 2
     work = closed_form_copy(model)
     if fp16_field:
@@ -182,7 +181,7 @@ def export_split_model(model, meta: dict, out_dir, *, cfg=None, opset: int = MIN
              "sh": (k, 3), "mu_eq": (3,), "t_eq": (1,)}
     _empty_initializers(proto, {**{EXTRA_PREFIX + nm: (tails[nm], np.float32)
                                    for nm in CHUNK_ARRAYS}, EXTRA_LAYER: ((), np.int32)})
-    md = build_metadata(model, {**meta}, sh_degree, cfg)
+    md = build_metadata(model, info, sh_degree, cfg)
     md["num_gaussians"] = str(sizes[0])
     md["fp16_weights"] = "field" if fp16_field else "0"
     md["lod_layers"] = json.dumps(sizes)
@@ -230,7 +229,7 @@ def export_split_model(model, meta: dict, out_dir, *, cfg=None, opset: int = MIN
         entries.append({"layer": j, "file": name, "bytes": len(blob), "sha256": sha256_of(blob),
                         "gaussians": int(sizes[j]), "cumulative_bytes": cum_b,
                         "cumulative_gaussians": cum_n})
-    lod = meta.get("lod") or {}
+    lod = info.lod
     manifest = {
         "format": MANIFEST_FORMAT, "base": BASE_FILE, "sh_degree": sh_degree,
         "time_range": json.loads(md["time_range"]), "background": json.loads(md["background"]),

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from nehad.model import RunInfo
 from nehad.export.checks import FORMAT, MIN_OPSET, check_graph
 from nehad.export.graph import OUTPUT_NAMES, ExportGraph, closed_form_copy, reference_outputs
 from nehad.runtime.images import atomic_write_bytes
@@ -64,9 +65,8 @@ def parity_error(got: np.ndarray, ref: np.ndarray) -> float:
     return float(np.max(np.abs(got - ref) / np.maximum(1.0, np.abs(ref))))
 
 
-def _default_camera(meta: dict):
+def _default_camera(data_dir: str | None):
     """cam.json dict of the first test (else val, train) camera of the run's dataset, or None."""
-    data_dir = meta.get("data_dir")
     if not data_dir:
         return None
     from nehad.runtime.cameras import camera_to_dict, load_view
@@ -82,19 +82,19 @@ def _default_camera(meta: dict):
     return None
 
 
-def build_metadata(model, meta: dict, sh_degree: int, cfg=None) -> dict[str, str]:
+def build_metadata(model, info: RunInfo, sh_degree: int, cfg=None) -> dict[str, str]:
     from nehad import __version__
 
-    aabb = meta.get("aabb", model.field.aabb)
+    aabb = model.field.aabb if info.aabb is None else info.aabb
     aabb = np.asarray(aabb.detach().cpu().numpy() if torch.is_tensor(aabb) else aabb, np.float64)
     md = {
         "format": FORMAT,
         "sh_degree": str(int(sh_degree)),
         "num_gaussians": str(len(model.gaussians)),
-        "time_range": json.dumps([float(v) for v in meta.get("time_range", (0.0, 1.0))]),
-        "background": json.dumps([float(v) for v in meta.get("background", (0.0, 0.0, 0.0))]),
+        "time_range": json.dumps([float(v) for v in info.time_range]),
+        "background": json.dumps([float(v) for v in info.background]),
         "aabb": json.dumps(aabb.reshape(2, 3).tolist()),
-        "extent": repr(float(meta.get("extent", float(model.field.extent)))),
+        "extent": repr(float(model.field.extent if info.extent is None else info.extent)),
         "decoder": str(model.field.cfg.decoder),
         "nehad_version": __version__,
     }
@@ -102,7 +102,7 @@ def build_metadata(model, meta: dict, sh_degree: int, cfg=None) -> dict[str, str
         from nehad.configtools import config_hash
 
         md["config_hash"] = config_hash(cfg)
-    cam = _default_camera(meta)
+    cam = _default_camera(info.data_dir)
     if cam is not None:
         md["default_camera"] = json.dumps(cam)
     return md
@@ -207,23 +207,24 @@ def _seal_and_open(proto, md: dict[str, str], doc: str):
     return ops, data, ort.InferenceSession(data, opts, providers=["CPUExecutionProvider"])
 
 
-def run_layers_of(meta: dict, n: int):
+def run_layers_of(info: RunInfo, n: int):
     """The [n] layer of each Gaussian when the run was trained with LOD layers (docs/design.md section 8), else
     None (then the file has no `layer` output)."""
-    if meta.get("layer") is None:
+    if info.layer is None:
         return None
     from nehad.lod import run_layers
 
     try:
-        return run_layers(meta, n)
+        return run_layers(info, n)
     except ValueError as e:
         raise ExportError(str(e)) from None
 
 
-def export_model(model, meta: dict, out_path, *, opset: int = MIN_OPSET, fp16_weights: bool = False,
+def export_model(model, info: RunInfo, out_path, *, opset: int = MIN_OPSET, fp16_weights: bool = False,
                  cfg=None, sh_degree: int | None = None, times=PARITY_TIMES,
                  tol: float = PARITY_TOL, static: bool = True) -> ExportReport:
-    """Export `model` (a NeHaDModel) with run metadata `meta` (as returned by load_run) to
+    """Export `model` (a NeHaDModel) with what its run records
+    (`info`, as returned by load_run) to
     `out_path`. Raises ExportError (nothing written) when a check fails. `static`: Gaussians that
     do not move are written pre-deformed and skip the field (nehad.export.static_split); the
     parity check holds the graph to the model with those rows frozen, and the report's
@@ -240,11 +241,11 @@ def export_model(model, meta: dict, out_path, *, opset: int = MIN_OPSET, fp16_we
 
     remove_stale_temps(out_path.parent, out_path.name)  # what a killed export left (issue 15)
     if sh_degree is None:
-        sh_degree = int(meta.get("sh_degree", model.gaussians.sh_degree))
+        sh_degree = info.degree_for(model)
     work = closed_form_copy(model)
     if fp16_weights:
         round_to_fp16(work.parameters())
-    layer = run_layers_of(meta, len(model.gaussians))
+    layer = run_layers_of(info, len(model.gaussians))
     split = None
     if static:
         from nehad.export.static_split import find_static
@@ -267,7 +268,7 @@ def export_model(model, meta: dict, out_path, *, opset: int = MIN_OPSET, fp16_we
     _name_outputs(proto, names_out)
     if fp16_weights:
         _to_fp16_initializers(proto)
-    md = build_metadata(model, meta, sh_degree, cfg)
+    md = build_metadata(model, info, sh_degree, cfg)
     md["fp16_weights"] = "1" if fp16_weights else "0"
     if split is not None and split.num_static:
         md["static_gaussians"] = str(split.num_static)
@@ -312,15 +313,14 @@ def export_model(model, meta: dict, out_path, *, opset: int = MIN_OPSET, fp16_we
 def export_run(run_dir, out_path, *, opset: int = MIN_OPSET, fp16_weights: bool = False,
                **kw) -> ExportReport:
     """Export RUN/model.pt (see :func:`export_model`)."""
-    from nehad.config import config_from_dict
     from nehad.model import load_run
 
     run = Path(run_dir)
     if not (run / "model.pt").is_file():
         raise ExportError(f"{run}: not a finished training run (no model.pt)")
-    model, meta = load_run(run)
-    cfg = config_from_dict(meta["config"]) if "config" in meta else None
-    return export_model(model, meta, out_path, opset=opset, fp16_weights=fp16_weights, cfg=cfg,
+    model, info = load_run(run)
+    return export_model(model, info, out_path, opset=opset, fp16_weights=fp16_weights,
+                        cfg=info.config,
                         **kw)
 
 

@@ -20,8 +20,8 @@ from nehad.trainer import make_trainer
 
 def frame_strip(run: Path, camera, times, background) -> np.ndarray:
     """Renders of one camera at several times, side by side."""
-    model, meta = load_run(run)
-    degree = int(meta["sh_degree"])
+    model, info = load_run(run)
+    degree = info.degree_for(model)
     tiles = [render(cloud_at(model, float(t), degree), camera, background).rgb for t in times]
     return np.concatenate(tiles, axis=1)
 

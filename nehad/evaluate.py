@@ -42,7 +42,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from nehad.config import config_from_dict
 from nehad.data.loader import load_dataset
 from nehad.model import RunError, cloud_at, load_run
 
@@ -260,12 +259,12 @@ def evaluate_run(run_dir, split: str = "test", data_dir=None, lpips: bool = True
     from nehad.runtime.raster import render
 
     run = Path(run_dir)
-    model, meta = load_run(run)
-    cfg = config_from_dict(meta["config"])
-    data = Path(data_dir) if data_dir is not None else Path(meta.get("data_dir", ""))
+    model, info = load_run(run)
+    cfg = info.config
+    data = Path(data_dir) if data_dir is not None else Path(info.data_dir or "")
     if not data.is_dir():
         raise RunError(f"{run}: dataset folder {data} not found; pass --data DIR")
-    background = tuple(float(v) for v in meta["background"])
+    background = info.background
     scene = load_dataset(data, splits=(split,), background=background,
                          downscale=cfg.data.downscale, frame_stride=cfg.data.frame_stride)
     frames = scene.frames[split]
@@ -274,7 +273,7 @@ def evaluate_run(run_dir, split: str = "test", data_dir=None, lpips: bool = True
     masks = _object_masks(data, split, frames)
     out_dir = run / f"eval_{split}"
     out_dir.mkdir(exist_ok=True)
-    degree = int(meta["sh_degree"])
+    degree = info.degree_for(model)
 
     # warm-up: JIT and caches, not timed
     render(cloud_at(model, frames[0].camera.time, degree), frames[0].camera, background)
@@ -298,7 +297,7 @@ def evaluate_run(run_dir, split: str = "test", data_dir=None, lpips: bool = True
         if write_renders:
             write_image(out_dir / f"r_{i:03d}.png", rgb)
     h, w = frames[0].image.shape[:2]
-    time_range = meta.get("time_range") or [0.0, 1.0]
+    time_range = list(info.time_range)
     result = {
         "run": str(run), "split": split, "frames": len(per_frame), "resolution": [w, h],
         "gaussians": len(model.gaussians), **summarize(per_frame, time_range),

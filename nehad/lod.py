@@ -41,6 +41,7 @@ from nehad.schedule import Phase, Schedule, StagedSchedule
 from nehad.splat.projection import quat_to_rotmat
 
 if TYPE_CHECKING:
+    from nehad.model import RunInfo
     from nehad.trainer import Trainer, Views
 
 
@@ -243,12 +244,11 @@ class LayeredSchedule:
         self._snapshot = self._take_snapshot(trainer)
 
 
-def run_layers(meta: dict, n: int) -> np.ndarray:
+def run_layers(info: RunInfo, n: int) -> np.ndarray:
     """[n] int32 layer of each Gaussian of a loaded run (all 0 for a run without layers)."""
-    layer = meta.get("layer")
-    if layer is None:
+    if info.layer is None:
         return np.zeros(n, np.int32)
-    arr = np.asarray(layer.cpu().numpy() if torch.is_tensor(layer) else layer, np.int32)
+    arr = np.asarray(info.layer, np.int32)
     if arr.shape != (n,):
         raise ValueError(f"model.pt: 'layer' has shape {arr.shape}, expected ({n},)")
     return arr

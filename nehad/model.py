@@ -1,12 +1,17 @@
 """The model of a run, apart from its training: canonical Gaussians plus the deformation field
 (`NeHaDModel`), the one way a model is rebuilt from a saved state (`load_run`,
-`model_from_state`) and its Gaussians at a time for the shared rasterizer (`cloud_at`).
-Evaluation, inspection and export import this module, not the trainer."""
+`model_from_state`), what a run records beside its tensors (`RunInfo`) and its Gaussians at a
+time for the shared rasterizer (`cloud_at`). Evaluation, inspection and export import this
+module, not the trainer."""
 
 from __future__ import annotations
 
+import dataclasses
+from dataclasses import dataclass, field as dataclass_field
+from functools import cached_property
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from nehad.checkpoint import load_state
@@ -62,8 +67,63 @@ def cloud_at(model: NeHaDModel, t: float | None, sh_degree: int):
     return GaussianCloud(means, scales, quats, opac, sh[:, :(sh_degree + 1) ** 2])
 
 
-def load_run(run_dir) -> tuple[NeHaDModel, dict]:
-    """Load RUN/model.pt (or the latest checkpoint) as a model plus its metadata."""
+@dataclass(frozen=True)
+class RunInfo:
+    """What RUN/model.pt records beside the model's tensors (written by
+    `nehad.trainer.Trainer.model_state`); every reader of a run takes it from here. A model built
+    by hand (tests, benchmarks) gives what it knows; the rest keeps the defaults below."""
+
+    sh_degree: int | None = None
+    """The SH degree the run renders with (None: the model's full degree)."""
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    time_range: tuple[float, float] = (0.0, 1.0)
+    config_dict: dict | None = None
+    """The run's configuration as saved (`config` gives it as a Config)."""
+    data_dir: str | None = None
+    """The dataset the run was trained on (absolute path), if recorded."""
+    steps: int | None = None
+    extent: float | None = None
+    aabb: np.ndarray | None = None
+    """(2, 3) hex-plane box at the end of training."""
+    layer: np.ndarray | None = None
+    """(N,) int32 streaming layer of each Gaussian (None: trained without layers)."""
+    lod: dict = dataclass_field(default_factory=dict)
+    """The layered schedule's record (`nehad.lod.LayeredSchedule.model_extras`)."""
+
+    @classmethod
+    def from_state(cls, state: dict) -> "RunInfo":
+        """From a saved RUN/model.pt state (its entries other than the tensors)."""
+        def array(key, dtype):
+            v = state.get(key)
+            if v is None:
+                return None
+            return np.asarray(v.cpu().numpy() if torch.is_tensor(v) else v, dtype)
+
+        return cls(
+            sh_degree=None if state.get("sh_degree") is None else int(state["sh_degree"]),
+            background=tuple(float(v) for v in state.get("background", (0.0, 0.0, 0.0))),
+            time_range=tuple(float(v) for v in (state.get("time_range") or (0.0, 1.0))),
+            config_dict=state.get("config"), data_dir=state.get("data_dir"),
+            steps=None if state.get("steps") is None else int(state["steps"]),
+            extent=None if state.get("extent") is None else float(state["extent"]),
+            aabb=array("aabb", np.float64), layer=array("layer", np.int32),
+            lod=dict(state.get("lod") or {}))
+
+    @cached_property
+    def config(self):
+        """The run's configuration as a `nehad.config.Config` (None if not recorded)."""
+        return None if self.config_dict is None else config_from_dict(self.config_dict)
+
+    def degree_for(self, model: "NeHaDModel") -> int:
+        """The SH degree to render `model` with: the recorded one, else the model's own."""
+        return model.gaussians.sh_degree if self.sh_degree is None else int(self.sh_degree)
+
+    def replace(self, **changes) -> "RunInfo":
+        return dataclasses.replace(self, **changes)
+
+
+def load_run(run_dir) -> tuple[NeHaDModel, RunInfo]:
+    """Load RUN/model.pt as a model plus what the run records beside it (`RunInfo`)."""
     run = Path(run_dir)
     path = run / "model.pt"
     if not path.exists():
@@ -74,7 +134,7 @@ def load_run(run_dir) -> tuple[NeHaDModel, dict]:
     except (RuntimeError, KeyError) as exc:
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise RunError(f"{path}: its tensors do not fit its config ({first})") from None
-    return model, {k: v for k, v in state.items() if k not in ("gaussians", "field")}
+    return model, RunInfo.from_state(state)
 
 
 def model_from_state(state: dict) -> NeHaDModel:
@@ -88,4 +148,4 @@ def model_from_state(state: dict) -> NeHaDModel:
     return NeHaDModel(gaussians, field).eval()
 
 
-__all__ = ["NeHaDModel", "RunError", "cloud_at", "load_run", "model_from_state"]
+__all__ = ["NeHaDModel", "RunError", "RunInfo", "cloud_at", "load_run", "model_from_state"]

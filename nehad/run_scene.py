@@ -20,10 +20,10 @@ class RunScene(Scene):
         super().__init__(path)
         from nehad.model import load_run  # torch: only for this scene kind
 
-        self.model, self.meta = load_run(self.path)
-        self.default_background = tuple(float(v) for v in self.meta["background"])
-        self.time_range = tuple(float(v) for v in self.meta["time_range"])
-        self.sh_degree = int(self.meta["sh_degree"])
+        self.model, self.info = load_run(self.path)
+        self.default_background = self.info.background
+        self.time_range = self.info.time_range
+        self.sh_degree = self.info.degree_for(self.model)
         self.lod = lod
         self._keep = None
         total = len(self.model.gaussians)
@@ -40,13 +40,13 @@ class RunScene(Scene):
             import numpy as np
 
             self.aabb = np.stack([means.min(0), means.max(0)])
-        first = _test_cameras(self.meta, ":0")  # one frame: no work for the whole split here
+        first = _test_cameras(self.info.data_dir, ":0")  # one frame: no work for the whole split here
         self.default_camera = first[0] if first else None
 
     def _layers(self):
         from nehad.lod import run_layers
 
-        return run_layers(self.meta, len(self.model.gaussians))
+        return run_layers(self.info, len(self.model.gaussians))
 
     @property
     def num_layers(self) -> int:
@@ -54,7 +54,7 @@ class RunScene(Scene):
         return int(layers.max()) + 1 if len(layers) else 1
 
     def cameras(self) -> list:
-        return _test_cameras(self.meta)
+        return _test_cameras(self.info.data_dir)
 
     def gaussians(self, time=None):
         from nehad.model import cloud_at
@@ -80,10 +80,10 @@ class RunScene(Scene):
         return file_sha256(self.path / "model.pt")
 
 
-def _test_cameras(meta: dict, frame: str = "") -> list:
+def _test_cameras(data_dir: str | None, frame: str = "") -> list:
     """The cameras of the run's dataset's test split, or of its frame `frame` (":0"); [] when
     the dataset is gone or unreadable."""
-    test = Path(meta.get("data_dir", "")) / "transforms_test.json"
+    test = Path(data_dir or "") / "transforms_test.json"
     if not test.is_file():
         return []
     from nehad.runtime.cameras import CameraError, load_view

@@ -190,8 +190,10 @@ def test_missing_object_is_flagged(tmp_path, monkeypatch):
     run.mkdir()
     (run / "model.pt").write_bytes(b"")  # the CLI checks that the file exists
     cfg = build_config("test", None, ["data.downscale=2"])
-    meta = {"config": dataclasses.asdict(cfg), "background": [1.0, 1.0, 1.0], "sh_degree": 0,
-            "time_range": [0.0, 1.0], "data_dir": str(data)}
+    from nehad.model import RunInfo
+
+    meta = RunInfo(config_dict=dataclasses.asdict(cfg), background=(1.0, 1.0, 1.0), sh_degree=0,
+                   time_range=(0.0, 1.0), data_dir=str(data))
     truth = {f.camera.time: f for f in load_dnerf(data, ("test",), downscale=2).frames["test"]}
 
     def fake_render(t, camera, background):

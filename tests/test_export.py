@@ -77,7 +77,7 @@ def torch_reference(run, t):
     from nehad.model import load_run
 
     model, meta = load_run(run)
-    k = (int(meta["sh_degree"]) + 1) ** 2
+    k = (meta.sh_degree + 1) ** 2
     with torch.no_grad():
         out = [o.numpy() for o in model.gaussians_at(t)]
     out[4] = out[4][:, :k]

@@ -106,7 +106,7 @@ def test_export_parity_with_opacity_and_sh_deformation(data, tmp_path):
     onnx.checker.check_model(proto, full_check=True)
     check_graph(proto)
     model, meta = load_run(run)
-    k = (int(meta["sh_degree"]) + 1) ** 2
+    k = (meta.sh_degree + 1) ** 2
     assert k == 4
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     worst = {n: 0.0 for n in ("means", "scales", "quats", "opacities", "sh")}

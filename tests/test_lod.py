@@ -227,7 +227,7 @@ def test_export_layer_output_parity(trained, tmp_path):
     assert [o.name for o in proto.graph.output] == list(OUTPUTS) + ["layer"]
     md = {p.key: p.value for p in proto.metadata_props}
     model, meta = load_run(run)
-    assert json.loads(md["lod_layers"]) == meta["lod"]["layer_sizes"]
+    assert json.loads(md["lod_layers"]) == meta.lod["layer_sizes"]
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     worst = 0.0
     for t in (0.0, 0.4, 1.0):
@@ -237,7 +237,7 @@ def test_export_layer_output_parity(trained, tmp_path):
         ref[4] = ref[4][:, :got[4].shape[1]]
         for a, b in zip(got[:5], ref):
             worst = max(worst, parity_error(a, b))
-        assert got[5].dtype == np.int32 and np.array_equal(got[5], meta["layer"].numpy())
+        assert got[5].dtype == np.int32 and np.array_equal(got[5], meta.layer)
     print(f"layered export parity {worst:.3g} (report {rep.parity})")
     assert worst <= 1e-5
     m0 = sess.run(["means"], {"time": np.array([0.0], np.float32)})[0]
@@ -303,7 +303,7 @@ def test_split_prefixes_match_torch(split, trained):
             for name, b in zip(OUTPUTS, ref):
                 assert out[name].shape == b.shape
                 worst = max(worst, parity_error(out[name], b))
-            assert np.array_equal(out["layer"], meta["layer"].numpy()[:n])
+            assert np.array_equal(out["layer"], meta.layer[:n])
     print(f"split layers parity vs torch prefixes {worst:.3g}")
     assert worst <= 1e-5
 

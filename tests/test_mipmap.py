@@ -139,7 +139,7 @@ def _field_model(mipmap: bool, n: int = 600, seed: int = 0):
     level (no training: random weights)."""
     from nehad.field.deformation import DeformationField
     from nehad.gaussians import GaussianParameters
-    from nehad.model import NeHaDModel
+    from nehad.model import NeHaDModel, RunInfo
 
     cfg = FieldConfig(out_dim=8, resolution=(8, 8, 8, 4), multires=(1, 2), width=16,
                       hnn_hidden=16, mipmap=mipmap)
@@ -159,8 +159,8 @@ def _field_model(mipmap: bool, n: int = 600, seed: int = 0):
                 p.copy_(torch.randn(p.shape, generator=gen) * 0.3)
             elif name.startswith("hexplane."):
                 p.add_(torch.randn(p.shape, generator=gen) * 0.5)
-    meta = {"time_range": [0.0, 1.0], "background": [1.0, 1.0, 1.0], "sh_degree": 1,
-            "aabb": field.aabb.clone(), "extent": 2.6}
+    meta = RunInfo(time_range=(0.0, 1.0), background=(1.0, 1.0, 1.0), sh_degree=1,
+                   aabb=field.aabb.numpy().astype(np.float64), extent=2.6)
     return NeHaDModel(g, field).eval(), meta
 
 
@@ -236,7 +236,7 @@ def test_mipmap_split_layers_parity(tmp_path):
     from nehad.runtime.layers import LayeredModel
 
     model, meta = _field_model(True, n=500, seed=2)
-    meta = {**meta, "layer": torch.tensor([0] * 150 + [1] * 200 + [2] * 150, dtype=torch.int32)}
+    meta = meta.replace(layer=np.array([0] * 150 + [1] * 200 + [2] * 150, np.int32))
     rep = export_split_model(model, meta, tmp_path / "layers")
     assert max(rep.parity.values()) <= 1e-5
     for k, n in ((0, 150), (1, 350), (2, 500)):
@@ -257,7 +257,7 @@ def test_split_export_rejects_layers_out_of_order(tmp_path):
     from nehad.export.onnx_export import ExportError
 
     model, meta = _field_model(False, n=60, seed=3)
-    meta = {**meta, "layer": torch.tensor([0] * 20 + [2] * 20 + [1] * 20, dtype=torch.int32)}
+    meta = meta.replace(layer=np.array([0] * 20 + [2] * 20 + [1] * 20, np.int32))
     with pytest.raises(ExportError, match="not stored in order"):
         export_split_model(model, meta, tmp_path / "layers")
     assert not (tmp_path / "layers").exists()

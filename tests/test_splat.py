@@ -123,7 +123,7 @@ def test_cli_ply_writes_splat(tiny_run, tiny_run_model, tmp_path):
     res = runner.invoke(main, ["ply", str(run), "--time", "0.25", "-o", str(tmp_path / "f.splat")])
     assert res.exit_code == 0, res.output
     back = read_splat(tmp_path / "f.splat")
-    want = cloud_at(model, 0.25, meta["sh_degree"])
+    want = cloud_at(model, 0.25, meta.sh_degree)
     np.testing.assert_allclose(back.means, want.means[splat_order(want)], rtol=0, atol=1e-6)
     res = runner.invoke(main, ["ply", str(run), "--frames", "3", "--format", "splat", "-o",
                                str(tmp_path / "seq")])

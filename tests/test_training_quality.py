@@ -61,7 +61,7 @@ def _masked_psnr(img, ref, mask) -> float:
 @pytest.mark.parametrize("t", [0.0, 0.1, 0.9, 1.0])
 def test_the_moving_sphere_is_drawn_where_it_is(trained, t):
     model, meta = trained
-    degree = int(meta["sh_degree"])
+    degree = meta.sh_degree
     focal = 0.5 * SIZE / math.tan(0.5 * math.radians(45.0))
     mover = _index("spheres", "mover")
     gains = []

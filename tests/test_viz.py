@@ -51,7 +51,7 @@ def test_tracks_equal_the_deformed_means_projected(tiny_run, tiny_run_model):
     model, meta = tiny_run_model
     cam = load_view(f"{data}/transforms_test.json:0").with_size(80, 60)
     times = track_times((0.0, 1.0), 6)
-    tracks = compute_tracks(lambda t: cloud_at(model, t, meta["sh_degree"]), cam, times,
+    tracks = compute_tracks(lambda t: cloud_at(model, t, meta.sh_degree), cam, times,
                             count=40, seed=3)
     assert len(tracks) == 40 and tracks.world.shape == (6, 40, 3)
     assert np.all(np.diff(tracks.ids) > 0)
@@ -69,7 +69,7 @@ def test_tracks_equal_the_deformed_means_projected(tiny_run, tiny_run_model):
     np.testing.assert_allclose(tracks.path_length, steps, rtol=1e-9)
     assert tracks.path_length.min() > 0  # the fine stage moved them
     # the same seed gives the same sample; another seed another one
-    again = compute_tracks(lambda t: cloud_at(model, t, meta["sh_degree"]), cam, times,
+    again = compute_tracks(lambda t: cloud_at(model, t, meta.sh_degree), cam, times,
                            count=40, seed=3)
     np.testing.assert_array_equal(again.ids, tracks.ids)
 
@@ -83,7 +83,7 @@ def test_onnx_tracks_match_the_torch_run(tiny_run, tiny_run_model, tiny_onnx):
     cam = load_view(f"{data}/transforms_test.json:0")
     times = track_times((0.0, 1.0), 5)
     a = compute_tracks(OnnxModel(tiny_onnx).gaussians, cam, times, count=50)
-    b = compute_tracks(lambda t: cloud_at(model, t, meta["sh_degree"]), cam, times, ids=a.ids)
+    b = compute_tracks(lambda t: cloud_at(model, t, meta.sh_degree), cam, times, ids=a.ids)
     np.testing.assert_allclose(a.world, b.world, rtol=0, atol=1e-5)
 
 

@@ -33,6 +33,7 @@ import json
 import math
 from collections import defaultdict
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -40,6 +41,9 @@ from nehad.runtime.gaussians import SH_C0, GaussianCloud
 
 from . import VizError
 from .plots import colorbar, line_plot, weight_colors
+
+if TYPE_CHECKING:
+    from nehad.model import RunInfo
 
 DEFAULT_THRESHOLD = 0.5
 ALPHA_MIN = 0.5  # a pixel counts as covered (rendered or in the ground truth) above this
@@ -360,8 +364,8 @@ def summarize(counts: list[dict]) -> dict:
             "static_pixels": tot["static_pixels"], "predicted_pixels": tot["predicted_pixels"]}
 
 
-def default_data_dir(meta: dict, data_dir=None) -> Path:
-    data = Path(data_dir) if data_dir is not None else Path(meta.get("data_dir", ""))
+def default_data_dir(info: RunInfo, data_dir=None) -> Path:
+    data = Path(data_dir) if data_dir is not None else Path(info.data_dir or "")
     if not data.is_dir():
         raise VizError(f"dataset folder {data} not found; pass --data DIR")
     return data
@@ -369,25 +373,24 @@ def default_data_dir(meta: dict, data_dir=None) -> Path:
 
 def score_run(run_dir, split: str = "test", data_dir=None, threshold: float = DEFAULT_THRESHOLD,
               moving_ids=None, synth_scene: str | None = None, max_frames: int = 0,
-              model=None, meta=None, keep_maps: int = 0, progress=None) -> dict:
+              model=None, run_info=None, keep_maps: int = 0, progress=None) -> dict:
     """Score the run's BED split against the moving objects on every frame of `split`.
 
     Ground truth: the dataset's label masks when it has them (`moving_ids` overrides the
     detected moving objects), else a `nehad synth` scene (given or recognised). Returns
     {"summary": {...}, "per_frame": [...], "ground_truth": str, "moving": ..., ...}; the first
     `keep_maps` frames also carry their weight map, alpha and ground truth (for pictures)."""
-    from nehad.config import config_from_dict
     from nehad.data.dnerf import load_dnerf
     from nehad.model import cloud_at, load_run
 
     if model is None:
-        model, meta = load_run(run_dir)
+        model, run_info = load_run(run_dir)
     why = bed_status(model)
     if why is not None:
         raise VizError(f"{run_dir}: this run has no BED position mask: {why}")
-    cfg = config_from_dict(meta["config"])
-    data = default_data_dir(meta, data_dir)
-    scene = load_dnerf(data, splits=(split,), background=tuple(meta["background"]),
+    cfg = run_info.config
+    data = default_data_dir(run_info, data_dir)
+    scene = load_dnerf(data, splits=(split,), background=run_info.background,
                        downscale=cfg.data.downscale)
     frames = scene.frames[split]
     if max_frames > 0:
@@ -431,7 +434,7 @@ def score_run(run_dir, split: str = "test", data_dir=None, threshold: float = DE
         def truth(frame):
             return synth_ground_truth(name, frame.camera, flags)
 
-    degree = int(meta["sh_degree"])
+    degree = run_info.degree_for(model)
     counts, per_frame, maps = [], [], []
     for i, frame in enumerate(frames):
         t = float(frame.camera.time)

@@ -276,7 +276,6 @@ def build_report(run_dir, output, data_dir=None, frames: int = 4, score: bool = 
     """Write the report of `run_dir` to `output` (atomically). Returns {"bytes", "images",
     "sections", "skipped": {section: reason}}."""
     from nehad import __version__
-    from nehad.config import config_from_dict
     from nehad.data.common import DatasetError
     from nehad.data.loader import load_dataset
     from nehad.runtime.images import atomic_path
@@ -295,11 +294,11 @@ def build_report(run_dir, output, data_dir=None, frames: int = 4, score: bool = 
     cfg_path = run / "config.yaml"
     cfg_file_text = read_text(cfg_path, "config file", "the run's YAML config", VizError) \
         if cfg_path.is_file() else None
-    model, meta = load_run(run)
-    cfg = config_from_dict(meta["config"])
-    degree = int(meta["sh_degree"])
-    bg = tuple(float(v) for v in meta["background"])
-    lo, hi = (float(v) for v in meta["time_range"])
+    model, info = load_run(run)
+    cfg = info.config
+    degree = info.degree_for(model)
+    bg = info.background
+    lo, hi = info.time_range
     n_gauss = len(model.gaussians)
     sections: list[tuple[str, str, str]] = []  # (id, title, html)
     skipped: dict[str, str] = {}
@@ -316,9 +315,9 @@ def build_report(run_dir, output, data_dir=None, frames: int = 4, score: bool = 
     # -- summary
     last = records[-1] if records else {}
     evals = _eval_results(run)
-    rows = [["run", str(run.resolve())], ["dataset", meta.get("data_dir", "?")],
+    rows = [["run", str(run.resolve())], ["dataset", info.data_dir or "?"],
             ["preset", cfg.preset], ["decoder", cfg.field.decoder],
-            ["steps", f"{meta.get('steps', '?')} ({cfg.coarse.iterations} coarse + "
+            ["steps", f"{'?' if info.steps is None else info.steps} ({cfg.coarse.iterations} coarse + "
                       f"{cfg.fine.iterations} fine)"],
             ["Gaussians", str(n_gauss)], ["SH degree", str(degree)],
             ["time range", f"[{lo:g}, {hi:g}]"], ["background", ",".join(f"{v:g}" for v in bg)]]
@@ -354,7 +353,7 @@ def build_report(run_dir, output, data_dir=None, frames: int = 4, score: bool = 
     try:
         from .masks import default_data_dir
 
-        data = default_data_dir(meta, data_dir)
+        data = default_data_dir(info, data_dir)
         # the same loader, split and frame stride as `nehad eval` (any dataset layout)
         split = cfg.data.eval_split
         scene = load_dataset(data, splits=(split,), background=bg, downscale=cfg.data.downscale,
@@ -437,7 +436,7 @@ def build_report(run_dir, output, data_dir=None, frames: int = 4, score: bool = 
         if score and test_frames:
             say("report: scoring the split against the moving objects")
             try:
-                res = score_run(run, "test", data_dir, model=model, meta=meta, keep_maps=2)
+                res = score_run(run, "test", data_dir, model=model, run_info=info, keep_maps=2)
                 s = res["summary"]
                 parts.append(table(
                     ["IoU", "precision", "recall", "AUC", "mean w (moving)", "mean w (static fg)",
@@ -468,7 +467,7 @@ def build_report(run_dir, output, data_dir=None, frames: int = 4, score: bool = 
 
     # -- config
     cfg_text = cfg_file_text if cfg_file_text is not None else \
-        json.dumps(meta["config"], indent=1)
+        json.dumps(info.config_dict, indent=1)
     sections.append(("config", "Config", f"<details open><summary>{_e(cfg_path.name)}</summary>"
                                          f"<pre>{_e(cfg_text)}</pre></details>"))
 
