@@ -66,14 +66,14 @@ def scene_path(name: str, stress_root: Path | None = None) -> tuple[Path, list[s
 def train_and_eval(data: Path, run: Path, preset: str, sets: list[str]) -> dict:
     from nehad.config import build_config
     from nehad.evaluate import evaluate_run
-    from nehad.trainer import make_trainer
+    from nehad.trainer import Trainer
 
     done = run / "model.pt"
     minutes = None
     if not done.exists():
         cfg = build_config(preset, None, sets)
         t0 = time.perf_counter()
-        make_trainer(cfg, data, run, resume=(run / "config.yaml").exists(), progress=True).train()
+        Trainer(cfg, data, run, resume=(run / "config.yaml").exists(), progress=True).train()
         minutes = (time.perf_counter() - t0) / 60
         (run / "train_minutes.txt").write_text(f"{minutes:.2f}\n")
     elif (run / "train_minutes.txt").exists():

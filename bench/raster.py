@@ -191,7 +191,7 @@ def bench_static_fit(steps: int) -> str:
     from nehad.config import build_config
     from nehad.data.synth import synthesize_scene
     from nehad.evaluate import evaluate_run
-    from nehad.trainer import make_trainer
+    from nehad.trainer import Trainer
 
     with tempfile.TemporaryDirectory() as tmp:
         data = synthesize_scene(Path(tmp) / "scene", resolution=128, frames=60, fixed_time=0.5,
@@ -199,7 +199,7 @@ def bench_static_fit(steps: int) -> str:
         cfg = build_config("cpu", None, [f"coarse.iterations={steps}", "fine.iterations=0",
                                          "data.downscale=1", "data.resolution_schedule=[]",
                                          "train.sh_degree=1", "train.init_max_points=0"])
-        tr = make_trainer(cfg, data, Path(tmp) / "run", progress=False, log=None)
+        tr = Trainer(cfg, data, Path(tmp) / "run", progress=False, log=None)
         summary = tr.train()
         result = evaluate_run(Path(tmp) / "run", "test", data, lpips=False,
                               write_renders=False, progress=False)

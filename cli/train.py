@@ -53,13 +53,13 @@ def train(data, run, preset, config_file, overrides, resume, lod_levels, quiet):
             if resume and not (run / "config.yaml").is_file():
                 raise InputError(f"{run}: no run to resume (no {run}/config.yaml); leave out "
                                  f"--resume to start one")
-            from nehad.trainer import make_trainer
+            from nehad.trainer import Trainer
             from nehad.runtime.lock import output_lock
 
             # one process per run folder; the dataset is read (and checked) before the run
             # folder is created, so a bad dataset leaves nothing behind
             with output_lock(run, "nehad train"):
-                trainer = make_trainer(cfg, data, run, resume=resume, progress=not quiet)
+                trainer = Trainer(cfg, data, run, resume=resume, progress=not quiet)
                 if resume:
                     from nehad.checkpoint import remove_stale_run_temps
 

@@ -38,6 +38,32 @@ class CheckpointError(ValueError):
     """A checkpoint or model.pt that cannot be used (the message names the file)."""
 
 
+class RunError(RuntimeError):
+    """A run directory cannot be used as asked (e.g. resume with another config)."""
+
+
+def prepare_run_dir(run: Path, cfg, resume: bool) -> None:
+    """Make `run` ready for training with `cfg`: a new folder gets its config.yaml (atomically);
+    an existing run is refused unless `resume`, and then only with the same config."""
+    from nehad.configtools import diff, dump_yaml, load_yaml, to_dict
+
+    cfg_path = run / "config.yaml"
+    if cfg_path.exists():
+        saved = load_yaml(cfg_path)  # a damaged config.yaml: one error naming it (issue 26)
+        if not resume:
+            raise RunError(f"{run}: already holds a run; pass --resume to continue it "
+                           f"or choose another output folder")
+        changes = diff(saved, to_dict(cfg))
+        if changes:
+            raise RunError(f"{run}: --resume with a different config than the run's "
+                           f"({'; '.join(changes[:6])}); use the same preset/--set values "
+                           f"or another output folder")
+    run.mkdir(parents=True, exist_ok=True)
+    if not cfg_path.exists():
+        from nehad.runtime.images import atomic_write_bytes
+        atomic_write_bytes(cfg_path, dump_yaml(cfg).encode())
+
+
 def atomic_torch_save(obj, path) -> Path:
     path = Path(path)
     try:

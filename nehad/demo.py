@@ -15,7 +15,7 @@ from nehad.evaluate import evaluate_run
 from nehad.runtime.images import write_image
 from nehad.runtime.raster import render
 from nehad.model import cloud_at, load_run
-from nehad.trainer import make_trainer
+from nehad.trainer import Trainer
 
 
 def frame_strip(run: Path, camera, times, background) -> np.ndarray:
@@ -47,7 +47,7 @@ def run_demo(out: Path, resolution: int = 128, frames: int = 60, preset: str = "
     run = out / "run"
     log(f"2/4 training ({preset} preset) into {run}")
     cfg = build_config(preset, None, overrides)
-    summary = make_trainer(cfg, data, run, resume=(run / "config.yaml").exists(),
+    summary = Trainer(cfg, data, run, resume=(run / "config.yaml").exists(),
                            progress=progress).train()
     log("3/4 evaluating on the test views")
     result = evaluate_run(run, "test", data, lpips=True, progress=progress)

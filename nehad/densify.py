@@ -99,8 +99,28 @@ class DensifySchedule:
                 and it % self.prune_large_every == 0)
 
 
+def spawn_children(params: GaussianParameters, rows, n_children: int,
+                   generator: torch.Generator | None) -> dict:
+    """`n_children` copies of each Gaussian in `rows` (a mask or a slice), every parameter
+    inherited (so children keep mu_eq and t_eq, docs/design.md section 4.7), their positions drawn
+    from the parent's Gaussian: mu + R (s * z), z ~ N(0, I). The caller sets their scales (a 3DGS
+    split, `nehad.lod`'s layer seeding)."""
+    scales = torch.exp(params.log_scales[rows]).detach().repeat(n_children, 1)
+    rot = quat_to_rotmat(params.quats[rows].detach()).repeat(n_children, 1, 1)
+    noise = torch.randn(scales.shape, generator=generator) * scales
+    out = {}
+    for name in params.NAMES:
+        value = getattr(params, name)[rows].detach()
+        out[name] = value.repeat(n_children, *([1] * (value.dim() - 1))).clone()
+    out["means"] = out["means"] + (rot @ noise[..., None])[..., 0]
+    return out
+
+
 @dataclass
 class DensifyState:
+    """Per-Gaussian statistics the strategy accumulates between densification steps; the trainer
+    owns it (checkpointed) and passes it to every hook."""
+
     grad_accum: torch.Tensor  # (N,) summed view-space gradient norms
     visible_count: torch.Tensor  # (N,) views in which each Gaussian was visible
     max_radii: torch.Tensor  # (N,) largest screen radius seen
@@ -109,134 +129,148 @@ class DensifyState:
     def zeros(cls, n: int) -> "DensifyState":
         return cls(torch.zeros(n), torch.zeros(n), torch.zeros(n))
 
-    def kept(self, mask: torch.Tensor, added: int = 0) -> "DensifyState":
-        """The statistics of the Gaussians `mask` keeps, then `added` new ones at zero (the
+    def reset(self, n: int) -> None:
+        """Start afresh for `n` Gaussians."""
+        self.grad_accum, self.visible_count, self.max_radii = (torch.zeros(n) for _ in range(3))
+
+    def keep(self, mask: torch.Tensor, added: int = 0) -> None:
+        """Keep the statistics of the Gaussians `mask` keeps, then `added` new ones at zero (the
         order `keep_gaussians` then `append_gaussians` leaves them in)."""
         def grow(v):
             return torch.cat([v[mask], torch.zeros(added)])
 
-        return DensifyState(grow(self.grad_accum), grow(self.visible_count),
-                            grow(self.max_radii))
-
-
-class DensifyStrategy:
-    """3DGS densification; `iteration` is counted from the start of the current stage."""
-
-    def __init__(self, cfg: DensifyConfig, extent: float,
-                 schedule: DensifySchedule | None = None):
-        self.cfg = cfg
-        self.extent = float(extent)
-        self.schedule = schedule or DensifySchedule(0, 0, cfg.interval, 0, 0)
-        self.state = DensifyState.zeros(0)
-        #: The first `frozen` Gaussians are never cloned, split, pruned or opacity-reset: the
-        #: frozen lower layers of layered training (docs/design.md section 8, nehad.lod). New ones go after them.
-        self.frozen = 0
-
-    def reset(self, n: int) -> None:
-        self.state = DensifyState.zeros(n)
+        self.grad_accum, self.visible_count, self.max_radii = (
+            grow(self.grad_accum), grow(self.visible_count), grow(self.max_radii))
 
     def state_dict(self) -> dict:
-        s = self.state
-        return {"grad_accum": s.grad_accum, "visible_count": s.visible_count,
-                "max_radii": s.max_radii}
+        return {"grad_accum": self.grad_accum, "visible_count": self.visible_count,
+                "max_radii": self.max_radii}
 
-    def load_state_dict(self, d: dict) -> None:
-        self.state = DensifyState(d["grad_accum"], d["visible_count"], d["max_radii"])
+    @classmethod
+    def from_state_dict(cls, d: dict) -> "DensifyState":
+        return cls(d["grad_accum"], d["visible_count"], d["max_radii"])
+
+
+@dataclass(frozen=True)
+class ViewStats:
+    """What one rendered view of a step tells the strategy (after backward)."""
+
+    means2d_grad: torch.Tensor | None  # (N, 2) gradient of the projected means
+    radii: torch.Tensor  # (N,) screen radii (0: not visible)
+    width: int
+    height: int
+
+
+@dataclass(frozen=True)
+class DensifyStrategy:
+    """3DGS adaptive density control (see the module doc), in gsplat's manner: this object owns
+    when it acts within a stage (`timing`) and what it does (`step_post_backward`); the state is
+    the trainer's and comes in as an argument, as do the frozen Gaussians of layered training
+    (`frozen`: the first `frozen` are never cloned, split, pruned or opacity-reset; new ones go
+    after them) and the cap of the current layer."""
+
+    cfg: DensifyConfig
+    extent: float
+
+    def timing(self, stage, length: int) -> DensifySchedule:
+        """When densification runs in a stage (a StageConfig) of `length` iterations."""
+        return DensifySchedule.for_stage(stage, length, self.cfg.interval)
 
     @torch.no_grad()
-    def record_view(self, means2d_grad: torch.Tensor, radii: torch.Tensor, width: int,
-                    height: int) -> None:
-        """Accumulate one rendered view's statistics (call after backward)."""
-        s = self.state
-        if s.grad_accum.shape[0] != radii.shape[0]:
-            self.reset(radii.shape[0])
-            s = self.state
-        visible = radii > 0
-        if means2d_grad is None or not visible.any():
-            return
-        s.grad_accum[visible] += viewspace_grad_norm(means2d_grad[visible], width, height)
-        s.visible_count[visible] += 1
-        s.max_radii[visible] = torch.maximum(s.max_radii[visible], radii[visible].float())
-
-    @torch.no_grad()
-    def step_post_backward(self, params: GaussianParameters, optimizer, iteration: int,
+    def step_post_backward(self, params: GaussianParameters, optimizer,
+                           state: DensifyState, iteration: int, timing: DensifySchedule,
+                           views: list[ViewStats], *, frozen: int = 0,
+                           max_gaussians: int | None = None,
                            generator: torch.Generator | None = None) -> dict:
-        """Densify / prune / reset as `self.schedule` says; returns what it did."""
+        """After iteration `iteration` (1-based, within the stage): record the step's views,
+        then densify / prune / reset as `timing` says; returns what it did."""
+        for view in views:
+            self._record_view(state, view)
+        cap = self.cfg.max_gaussians if max_gaussians is None else int(max_gaussians)
         did = {}
-        if self.schedule.densifies(iteration):
-            did.update(self._densify_and_prune(params, optimizer, iteration, generator))
-        if self.schedule.resets(iteration):
-            self._reset_opacity(params, optimizer)
+        if timing.densifies(iteration):
+            did.update(self._densify_and_prune(params, optimizer, state, iteration, timing,
+                                               frozen, cap, generator))
+        if timing.resets(iteration):
+            self._reset_opacity(params, optimizer, frozen)
             did["opacity_reset"] = True
         return did
 
-    def _densify_and_prune(self, params, optimizer, iteration, generator) -> dict:
-        cfg = self.cfg
-        s = self.state
-        n = len(params)
-        if s.grad_accum.shape[0] != n:
-            self.reset(n)
-            return {}
-        grads = s.grad_accum / s.visible_count.clamp_min(1)
-        grads[:self.frozen] = -1.0  # frozen layers never densify (below any threshold)
-        max_scale = torch.exp(params.log_scales).max(dim=1).values
-        hot = grads >= cfg.grad_threshold
-        if cfg.max_gaussians > 0:
-            # the cap counts the trainable Gaussians: in a layered run, those of this layer
-            room = max(cfg.max_gaussians - (n - self.frozen), 0)
+    @staticmethod
+    def _record_view(state: DensifyState, view: ViewStats) -> None:
+        if state.grad_accum.shape[0] != view.radii.shape[0]:
+            state.reset(view.radii.shape[0])
+        visible = view.radii > 0
+        if view.means2d_grad is None or not visible.any():
+            return
+        state.grad_accum[visible] += viewspace_grad_norm(view.means2d_grad[visible], view.width,
+                                                         view.height)
+        state.visible_count[visible] += 1
+        state.max_radii[visible] = torch.maximum(state.max_radii[visible],
+                                                 view.radii[visible].float())
+
+    def _hot(self, state: DensifyState, n: int, frozen: int, cap: int) -> torch.Tensor:
+        """Gaussians whose mean view-space gradient reaches the threshold, the hottest ones
+        within the cap (which counts the trainable Gaussians: in a layered run, this layer's)."""
+        grads = state.grad_accum / state.visible_count.clamp_min(1)
+        grads[:frozen] = -1.0  # frozen layers never densify (below any threshold)
+        hot = grads >= self.cfg.grad_threshold
+        if cap > 0:
+            room = max(cap - (n - frozen), 0)
             if int(hot.sum()) > room:
-                # keep the hottest ones within the cap (a split adds one net Gaussian, a clone one)
+                # a split adds one net Gaussian, a clone one
                 order = torch.argsort(grads, descending=True)
                 hot = torch.zeros_like(hot)
                 hot[order[:room]] = True
-                hot &= grads >= cfg.grad_threshold
-        small = max_scale <= cfg.percent_dense * self.extent
-        clone = hot & small
-        split = hot & ~small
-        n_clone, n_split = int(clone.sum()), int(split.sum())
+                hot &= grads >= self.cfg.grad_threshold
+        return hot
 
+    def _densify_and_prune(self, params, optimizer, state, iteration, timing, frozen, cap,
+                           generator) -> dict:
+        n = len(params)
+        if state.grad_accum.shape[0] != n:
+            state.reset(n)
+            return {}
+        hot = self._hot(state, n, frozen, cap)
+        max_scale = torch.exp(params.log_scales).max(dim=1).values
+        small = max_scale <= self.cfg.percent_dense * self.extent
+        clone, split = hot & small, hot & ~small
+        n_clone, n_split = int(clone.sum()), int(split.sum())
         new = {name: getattr(params, name)[clone].detach().clone() for name in params.NAMES}
         if n_split:
-            new_split = self._split_children(params, split, generator)
-            new = {k: torch.cat([new[k], new_split[k]], 0) for k in new}
+            children = spawn_children(params, split, 2, generator)
+            children["log_scales"] = torch.log(
+                torch.exp(params.log_scales[split]).detach().repeat(2, 1) / (0.8 * 2))
+            new = {k: torch.cat([new[k], children[k]], 0) for k in new}
         if new["means"].shape[0]:
             append_gaussians(params, optimizer, new)
-        # prune: split parents, transparent ones, and (after prune_interval) oversized ones
+        prune = self._to_prune(params, state, n, split, iteration, timing, frozen)
+        n_prune = int(prune.sum())
+        if n_prune:
+            keep_gaussians(params, optimizer, ~prune)
+        state.reset(len(params))
+        return {"cloned": n_clone, "split": n_split, "pruned": n_prune, "gaussians": len(params)}
+
+    def _to_prune(self, params, state, n, split, iteration, timing, frozen) -> torch.Tensor:
+        """Split parents, transparent Gaussians, and (after the first opacity reset, every
+        prune_large_every) oversized ones; never the frozen ones."""
+        cfg = self.cfg
         total = len(params)
         prune = torch.zeros(total, dtype=torch.bool)
         prune[:n][split] = True
         prune |= torch.sigmoid(params.opacity_logits).detach() < cfg.min_opacity
-        if self.schedule.prunes_large(iteration):
-            radii = torch.cat([s.max_radii, torch.zeros(total - n)])
+        if timing.prunes_large(iteration):
+            radii = torch.cat([state.max_radii, torch.zeros(total - n)])
             big_screen = radii > cfg.max_screen_size
             big_world = torch.exp(params.log_scales).detach().max(dim=1).values > 0.1 * self.extent
             prune |= big_screen | big_world
-        prune[:self.frozen] = False
-        n_prune = int(prune.sum())
-        if n_prune:
-            keep_gaussians(params, optimizer, ~prune)
-        self.reset(len(params))
-        return {"cloned": n_clone, "split": n_split, "pruned": n_prune, "gaussians": len(params)}
+        prune[:frozen] = False
+        return prune
 
     @staticmethod
-    def _split_children(params, mask, generator, n_children: int = 2) -> dict:
-        """Two children per parent, positions sampled from the parent's Gaussian, scales / 1.6."""
-        scales = torch.exp(params.log_scales[mask]).detach()
-        rot = quat_to_rotmat(params.quats[mask].detach())
-        scales_rep = scales.repeat(n_children, 1)
-        noise = torch.randn(scales_rep.shape, generator=generator) * scales_rep
-        offsets = (rot.repeat(n_children, 1, 1) @ noise[..., None])[..., 0]
-        out = {}
-        for name in params.NAMES:
-            out[name] = getattr(params, name)[mask].detach().repeat(
-                n_children, *([1] * (getattr(params, name).dim() - 1)))
-        out["means"] = out["means"] + offsets
-        out["log_scales"] = torch.log(scales_rep / (0.8 * n_children))
-        return out
-
-    def _reset_opacity(self, params, optimizer) -> None:
+    def _reset_opacity(params, optimizer, frozen: int) -> None:
         capped = torch.minimum(params.opacity_logits.detach(),
                                torch.logit(torch.tensor(0.01)))
-        capped[:self.frozen] = params.opacity_logits.detach()[:self.frozen]
+        capped[:frozen] = params.opacity_logits.detach()[:frozen]
         _replace_parameter(params, optimizer, "opacity_logits", capped,
                            lambda v: torch.zeros_like(v))

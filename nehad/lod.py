@@ -14,7 +14,7 @@ when lod.levels = L > 1:
   equilibrium (mu_eq, t_eq) inherited, as densified children inherit them. Only the new layer
   trains: the Gaussians of earlier layers get no gradient (zeroed before each Adam step, and
   restored bit-exactly after it), are never densified, pruned or opacity-reset
-  (`DensifyStrategy.frozen`). The deformation field is shared by all layers; it trains in layer
+  (`LayeredSchedule.densify_limits`). The deformation field is shared by all layers; it trains in layer
   0 and stays fixed in later layers unless `lod.train_field` (fixed keeps every prefix of layers
   rendering exactly as it did when it was trained).
 * At the end of every layer its Gaussians with opacity < `lod.opacity_threshold` are dropped: the
@@ -28,7 +28,6 @@ and downscales). Checkpoints hold the per-layer counts, so a run resumes inside 
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from typing import TYPE_CHECKING
 
@@ -36,9 +35,8 @@ import numpy as np
 import torch
 
 from nehad.curriculum import TimeWindow
-from nehad.densify import append_gaussians, keep_gaussians
+from nehad.densify import append_gaussians, keep_gaussians, spawn_children
 from nehad.schedule import Phase, Schedule, StagedSchedule
-from nehad.splat.projection import quat_to_rotmat
 
 if TYPE_CHECKING:
     from nehad.model import RunInfo
@@ -132,8 +130,6 @@ class LayeredSchedule:
         """Restore the finished layers of a resumed run and freeze them."""
         saved = (state or {}).get("lod") or {}
         self.layer_sizes = [int(v) for v in saved.get("layer_sizes", [])]
-        trainer.strategy.frozen = sum(self.layer_sizes)
-        self._apply_layer_cap(trainer, self.layer_of(trainer.step))
         self._snapshot = self._take_snapshot(trainer)
 
     def lod_state(self) -> dict:
@@ -152,25 +148,31 @@ class LayeredSchedule:
         return {"layer": torch.from_numpy(layer_ids(sizes)),
                 "lod": {**self.lod_state(), "layer_sizes": sizes}}
 
-    def _apply_layer_cap(self, trainer: Trainer, layer: int) -> None:
-        """Densification cap of `layer`: `lod.base_max_gaussians` for layer 0 when set, else
-        `densify.max_gaussians` (which counts only the trainable Gaussians, i.e. this layer's)."""
+    @property
+    def frozen(self) -> int:
+        """The Gaussians of the finished layers (stored first)."""
+        return sum(self.layer_sizes)
+
+    def densify_limits(self, phase: Phase) -> tuple[int, int]:
+        """The finished layers stay as they are; the cap of the layer: `lod.base_max_gaussians`
+        for layer 0 when set, else `densify.max_gaussians` (which counts only the trainable
+        Gaussians, i.e. this layer's)."""
         base_cap = int(self.cfg.lod.base_max_gaussians)
-        if layer == 0 and base_cap > 0:
-            trainer.strategy.cfg = dataclasses.replace(self.cfg.densify, max_gaussians=base_cap)
-        else:
-            trainer.strategy.cfg = self.cfg.densify
+        cap = base_cap if phase.layer == 0 and base_cap > 0 else self.cfg.densify.max_gaussians
+        return self.frozen, cap
+
+    def ends_stage(self, steps_done: int) -> bool:
+        return steps_done in (self.cfg.coarse.iterations, self.total_steps)
 
     # -- freezing -----------------------------------------------------------------------------
-    @staticmethod
-    def _take_snapshot(trainer: Trainer) -> dict:
-        f = trainer.strategy.frozen
+    def _take_snapshot(self, trainer: Trainer) -> dict:
+        f = self.frozen
         g = trainer.model.gaussians
         return {name: getattr(g, name).detach()[:f].clone() for name in g.NAMES}
 
     def before_update(self, trainer: Trainer) -> None:
         """The frozen layers get no gradient."""
-        f = trainer.strategy.frozen
+        f = self.frozen
         if f:
             names = set(trainer.model.gaussians.NAMES)
             for group in trainer.optimizer.param_groups:
@@ -180,13 +182,15 @@ class LayeredSchedule:
                         p.grad[:f] = 0.0
 
     @torch.no_grad()
-    def after_update(self, trainer: Trainer) -> None:
-        """The frozen layers are restored bit-exactly (Adam's momentum would still move them)."""
-        f = trainer.strategy.frozen
+    def after_update(self, trainer: Trainer, phase: Phase, window: TimeWindow) -> None:
+        """The frozen layers are restored bit-exactly (Adam's momentum would still move them);
+        then the staged schedule's rule (the time curriculum's held rows)."""
+        f = self.frozen
         if f:
             g = trainer.model.gaussians
             for name in g.NAMES:
                 getattr(g, name)[:f] = self._snapshot[name]
+        self.base.after_update(trainer, phase, window)
 
     # -- layer boundaries ---------------------------------------------------------------------
     def begin(self, trainer: Trainer, phase: Phase) -> None:
@@ -206,19 +210,14 @@ class LayeredSchedule:
     def _spawn_layer(self, trainer: Trainer, layer: int) -> None:
         """Seed layer `layer`: one child per frozen Gaussian (see the module doc)."""
         g = trainer.model.gaussians
-        f = trainer.strategy.frozen
+        f = self.frozen
         gen = torch.Generator().manual_seed(int(self.cfg.train.seed) * 1_000_003 + 7919 * layer)
-        scales = torch.exp(g.log_scales[:f])
-        offsets = (quat_to_rotmat(g.quats[:f]) @ (torch.randn(scales.shape, generator=gen)
-                                                  * scales)[..., None])[..., 0]
-        new = {name: getattr(g, name)[:f].detach().clone() for name in g.NAMES}
-        new["means"] = new["means"] + offsets
+        new = spawn_children(g, slice(0, f), 1, gen)
         new["log_scales"] = new["log_scales"] - math.log(2.0)
         p = float(self.cfg.lod.spawn_opacity)
         new["opacity_logits"] = torch.full_like(new["opacity_logits"], math.log(p / (1.0 - p)))
         append_gaussians(g, trainer.optimizer, new)
-        trainer.strategy.reset(len(g))
-        self._apply_layer_cap(trainer, layer)
+        trainer.densify_state.reset(len(g))
         trainer.log_event(f"layer {layer}: {f} frozen Gaussians, {f} spawned, images at 1/"
                           f"{self.downscales[layer]}")
 
@@ -226,7 +225,7 @@ class LayeredSchedule:
     def _finish_layer(self, trainer: Trainer, layer: int) -> None:
         """Drop the layer's Gaussians below the opacity threshold; freeze the rest."""
         g = trainer.model.gaussians
-        f = trainer.strategy.frozen
+        f = self.frozen
         keep = torch.ones(len(g), dtype=torch.bool)
         opacity = torch.sigmoid(g.opacity_logits[f:].reshape(-1))
         keep[f:] = opacity >= self.cfg.lod.opacity_threshold
@@ -239,8 +238,7 @@ class LayeredSchedule:
         if not bool(keep.all()):
             keep_gaussians(g, trainer.optimizer, keep)
         self.layer_sizes.append(len(g) - f)
-        trainer.strategy.frozen = len(g)
-        trainer.strategy.reset(len(g))
+        trainer.densify_state.reset(len(g))
         self._snapshot = self._take_snapshot(trainer)
 
 

@@ -14,14 +14,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from nehad.checkpoint import load_state
+from nehad.checkpoint import RunError, load_state
 from nehad.config import config_from_dict
 from nehad.field.deformation import DeformationField
 from nehad.gaussians import GaussianParameters
-
-
-class RunError(RuntimeError):
-    """A run directory cannot be used as asked (e.g. resume with another config)."""
 
 
 class NeHaDModel(torch.nn.Module):

@@ -3,7 +3,7 @@ docs/streaming.md).
 
 `nehad.trainer.Trainer` is one loop. Everything that depends on where a step falls in the run is
 answered by the schedule object it holds, as `nehad.densify.DensifyStrategy` answers when to
-clone, split and prune (gsplat's layout: a strategy object beside a small loop). Per step the
+clone, split and prune (gsplat's layout: strategy objects beside a small loop). Per step the
 trainer asks:
 
 * `phase(step)`: the stage ("coarse": static Gaussians; "fine": the deformation field on), the
@@ -14,9 +14,13 @@ trainer asks:
 * `time_window(trainer, phase)`: the times the step may draw frames from (the time curriculum,
   `nehad.curriculum`);
 * `frozen_groups(phase)`: the optimizer groups that do not learn in the phase;
+* `densify_limits(phase)`: (the number of leading Gaussians densification must leave alone, the
+  Gaussian cap), which the trainer passes to the densification strategy;
 * `begin(trainer, phase)`: what happens at the first step of a stage or layer;
-* `before_update(trainer)` / `after_update(trainer)`: around Adam's step (frozen layers);
+* `before_update(trainer)` / `after_update(trainer, phase, window)`: around Adam's step (frozen
+  layers; the time curriculum's held hex-plane rows);
 * `end(trainer, phase, step, record)`: after the step (a layer's end);
+* `ends_stage(steps_done)`: whether a checkpoint is due because a stage just ended;
 
 and, for the run as a whole, `total_steps`, `layer_sizes`, `attach(trainer, state)` (after the
 model is built or loaded from a checkpoint), `state_dict()` (what a checkpoint holds beyond the
@@ -36,7 +40,7 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 import torch
 
-from nehad.curriculum import TimeWindow, widen_to_frames, window_at
+from nehad.curriculum import TimeWindow, hold_time_planes, widen_to_frames, window_at
 
 if TYPE_CHECKING:
     from nehad.config import Config, StageConfig
@@ -82,13 +86,17 @@ class Schedule(Protocol):
 
     def frozen_groups(self, phase: Phase) -> frozenset[str]: ...
 
+    def densify_limits(self, phase: Phase) -> tuple[int, int]: ...
+
+    def ends_stage(self, steps_done: int) -> bool: ...
+
     def attach(self, trainer: Trainer, state: dict | None) -> None: ...
 
     def begin(self, trainer: Trainer, phase: Phase) -> None: ...
 
     def before_update(self, trainer: Trainer) -> None: ...
 
-    def after_update(self, trainer: Trainer) -> None: ...
+    def after_update(self, trainer: Trainer, phase: Phase, window: TimeWindow) -> None: ...
 
     def end(self, trainer: Trainer, phase: Phase, step: int, record: dict) -> None: ...
 
@@ -137,6 +145,12 @@ class StagedSchedule:
     def frozen_groups(self, phase: Phase) -> frozenset[str]:
         return STATIC_FROZEN if phase.stage == "coarse" else frozenset()
 
+    def densify_limits(self, phase: Phase) -> tuple[int, int]:
+        return 0, self.cfg.densify.max_gaussians
+
+    def ends_stage(self, steps_done: int) -> bool:
+        return steps_done in (self.cfg.coarse.iterations, self.total_steps)
+
     def attach(self, trainer: Trainer, state: dict | None) -> None:
         pass
 
@@ -147,8 +161,13 @@ class StagedSchedule:
     def before_update(self, trainer: Trainer) -> None:
         pass
 
-    def after_update(self, trainer: Trainer) -> None:
-        pass
+    def after_update(self, trainer: Trainer, phase: Phase, window: TimeWindow) -> None:
+        """The time curriculum: while the window is narrower than the time range, the
+        space-time hex-plane rows outside it stay at its edge rows (nehad.curriculum)."""
+        if phase.deforms and self.cfg.train.hold_time_planes:
+            lo, hi = trainer.scene.time_range
+            if not (window.lo <= lo and window.hi >= hi):
+                hold_time_planes(trainer.model.field.hexplane, window)
 
     def end(self, trainer: Trainer, phase: Phase, step: int, record: dict) -> None:
         pass
@@ -176,7 +195,7 @@ def start_deformation(trainer: Trainer) -> None:
     if cfg.standardize_trunk and len(g) > 1:
         trainer.model.field.standardize_trunk(g.means.detach(), cfg.canonical_time,
                                               g.log_scales.detach(), g.quats.detach())
-    trainer.strategy.reset(len(g))
+    trainer.densify_state.reset(len(g))
 
 
 def gaussian_bounds(gaussians: GaussianParameters, padding: float,

@@ -176,7 +176,7 @@ def test_a_training_run_carves_and_stays_consistent(tmp_path, mode):
     passes = [r for r in log if "carved" in r]
     assert passes and sum(r["carved"] for r in passes) > 0
     assert all(r["gaussians"] <= 900 for r in log)
-    assert len(trainer.strategy.state.grad_accum) in (0, len(trainer.model.gaussians))
+    assert len(trainer.densify_state.grad_accum) in (0, len(trainer.model.gaussians))
     model, _ = load_run(tmp_path / "run")
     assert len(model.gaussians) == len(trainer.model.gaussians)
 
@@ -261,7 +261,7 @@ def test_state_saved_before_life_rate_loads_immortal():
 
 def test_van_der_corput_passes_cover_the_window_evenly():
     """The fine stage's carving times: any first n passes leave no gap wider than 2 / n."""
-    from nehad.trainer import van_der_corput
+    from nehad.carve_pass import van_der_corput
 
     for n in (4, 7, 16, 33):
         pts = np.sort([0.0, 1.0] + [van_der_corput(i) for i in range(1, n + 1)])

@@ -51,10 +51,10 @@ def trained(scene, tmp_path_factory):
     """A 3-layer run stepped by hand, with snapshots at each layer end; then its model.pt with a
     clearly non-identity field (random adapters) for the export tests."""
     from nehad.checkpoint import atomic_torch_save, load_state
-    from nehad.trainer import make_trainer
+    from nehad.trainer import Trainer
 
     run = tmp_path_factory.mktemp("lodrun") / "run"
-    tr = make_trainer(_config(), scene, run, progress=False)
+    tr = Trainer(_config(), scene, run, progress=False)
     snaps, fields, records = {}, {}, []
     while tr.step < tr.total_steps:
         records.append(tr.train_step(tr.step))
@@ -108,7 +108,7 @@ def test_lower_layers_frozen_and_field_shared(trained):
     # every kept Gaussian of every layer is at or above the opacity threshold
     opac = torch.sigmoid(g.opacity_logits.detach())
     assert float(opac.min()) >= 0.02
-    assert tr.strategy.frozen == len(g) == sum(sizes)
+    assert tr.schedule.frozen == len(g) == sum(sizes)
 
 
 def test_model_pt_layers(trained):
@@ -123,10 +123,10 @@ def test_model_pt_layers(trained):
 
 
 def test_opacity_threshold_controls_layer_size(scene, tmp_path):
-    from nehad.trainer import make_trainer
+    from nehad.trainer import Trainer
 
     def run(thr, name):
-        tr = make_trainer(_config([f"lod.opacity_threshold={thr}", "lod.levels=2"]), scene,
+        tr = Trainer(_config([f"lod.opacity_threshold={thr}", "lod.levels=2"]), scene,
                           tmp_path / name, progress=False, log=None)
         tr.train()
         return tr
@@ -146,9 +146,9 @@ def test_opacity_threshold_controls_layer_size(scene, tmp_path):
 def test_layer_caps(scene, tmp_path):
     """lod.base_max_gaussians caps layer 0; densify.max_gaussians caps each enhancement layer
     on its own (it counts the trainable Gaussians, not the frozen ones below)."""
-    from nehad.trainer import make_trainer
+    from nehad.trainer import Trainer
 
-    free = make_trainer(_config(["lod.levels=2", "lod.opacity_threshold=0",
+    free = Trainer(_config(["lod.levels=2", "lod.opacity_threshold=0",
                                  "densify.max_gaussians=0"]), scene,
                         tmp_path / "free", progress=False, log=None)
     free.train()
@@ -156,7 +156,7 @@ def test_layer_caps(scene, tmp_path):
     base_cap = n0 - 40
     layer_cap = n0 + 5  # below what layer 1 grows to, above the n0 children it starts with
     assert n1 > layer_cap, free.layer_sizes
-    capped = make_trainer(_config(["lod.levels=2", "lod.opacity_threshold=0",
+    capped = Trainer(_config(["lod.levels=2", "lod.opacity_threshold=0",
                                    f"lod.base_max_gaussians={base_cap}",
                                    f"densify.max_gaussians={layer_cap}"]), scene,
                           tmp_path / "capped", progress=False, log=None)
@@ -169,18 +169,18 @@ def test_layer_caps(scene, tmp_path):
 
 def test_resume_inside_an_enhancement_layer(scene, tmp_path, trained):
     from nehad.checkpoint import save_checkpoint
-    from nehad.trainer import make_trainer
+    from nehad.trainer import Trainer
 
     run = tmp_path / "r"
-    tr = make_trainer(_config(), scene, run, progress=False)
+    tr = Trainer(_config(), scene, run, progress=False)
     while tr.step < 30:  # 6 steps into layer 1
         tr.train_step(tr.step)
         tr.step += 1
     save_checkpoint(run, tr.step, tr.checkpoint_state(), 2)
     del tr
-    resumed = make_trainer(_config(), scene, run, resume=True, progress=False)
+    resumed = Trainer(_config(), scene, run, resume=True, progress=False)
     assert resumed.step == 30 and resumed.layer_sizes == trained["trainer"].layer_sizes[:1]
-    assert resumed.strategy.frozen == resumed.layer_sizes[0]
+    assert resumed.schedule.frozen == resumed.layer_sizes[0]
     resumed.train()
     ref = trained["trainer"].model.gaussians
     got = resumed.model.gaussians
@@ -190,15 +190,13 @@ def test_resume_inside_an_enhancement_layer(scene, tmp_path, trained):
 
 
 def test_every_construction_follows_the_config_schedule(scene, tmp_path):
-    """The schedule follows from the config wherever the trainer is built: `Trainer(cfg)`,
-    `make_trainer` (`nehad train`, bench/quality.py) and `nehad demo` all train the layers
-    lod.levels asks for."""
+    """The schedule follows from the config wherever the trainer is built: `Trainer(cfg)`
+    (`nehad train`, bench/quality.py) and `nehad demo` train the layers lod.levels asks for."""
     from nehad.checkpoint import load_state
     from nehad.configtools import ConfigError
     from nehad.demo import run_demo
     from nehad.lod import LayeredSchedule, schedule_for
     from nehad.schedule import StagedSchedule
-    from nehad.trainer import make_trainer
     from nehad.trainer import Trainer
 
     assert type(schedule_for(_config(["lod.levels=1"]))) is StagedSchedule
@@ -207,7 +205,7 @@ def test_every_construction_follows_the_config_schedule(scene, tmp_path):
     assert isinstance(tr.schedule, LayeredSchedule) and tr.total_steps == 36
     # enhancement layers without steps: refused before anything is written
     with pytest.raises(ConfigError, match="lod.iterations"):
-        make_trainer(_config(["lod.iterations=0", "fine.iterations=0"]), scene, tmp_path / "no")
+        Trainer(_config(["lod.iterations=0", "fine.iterations=0"]), scene, tmp_path / "no")
     assert not (tmp_path / "no").exists()
     out = run_demo(tmp_path / "demo", resolution=24, frames=8, preset="test",
                    overrides=["lod.levels=2", "coarse.iterations=6", "fine.iterations=6",

@@ -126,7 +126,7 @@ def test_resume_with_another_config_is_refused(tmp_path, tiny_scene):
 
 def test_random_background_recomposites_the_target_exactly(tmp_path, tiny_scene, monkeypatch):
     from nehad.data.dnerf import load_dnerf
-    from nehad.trainer import recomposite
+    from nehad.views import recomposite
 
     # the same RGBA frame loaded over white and over black: recompositing one gives the other
     white = load_dnerf(tiny_scene, splits=("train",), background=(1, 1, 1)).frames["train"][0]
@@ -158,13 +158,13 @@ def test_coarse_stage_alone_is_a_static_fit_reaching_25_db_on_held_out_views(tmp
     from nehad.data.dnerf import load_dnerf
     from nehad.losses import psnr
     from nehad.splat.rasterize import render_torch
-    from nehad.trainer import make_trainer
+    from nehad.trainer import Trainer
 
     data = synthesize_scene(tmp_path / "scene", resolution=64, frames=40, fixed_time=0.5, seed=3)
     test = load_dnerf(data, splits=("test",), background=(1.0, 1.0, 1.0)).frames["test"]
     cfg = build_config("test", None, ["coarse.iterations=600", "fine.iterations=0",
                                       "train.sh_degree=0"])
-    tr = make_trainer(cfg, data, tmp_path / "run", progress=False, log=None)
+    tr = Trainer(cfg, data, tmp_path / "run", progress=False, log=None)
 
     def held_out() -> float:
         with torch.no_grad():

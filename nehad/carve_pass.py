@@ -1,0 +1,152 @@
+"""Residual carving inside training (docs/training.md, "Objects that are never created"): when a
+pass runs, which views it looks at, and how its Gaussians join the model. The geometry (which
+pixels are unexplained, where their rays agree) is `nehad.carve`'s.
+
+`ResidualCarving` is a strategy beside `nehad.densify.DensifyStrategy`: the trainer builds it
+once from the config and calls `step_post_update` after densification, passing in the model,
+the optimizer, the densification state and where the step falls; it never reads the trainer."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from nehad.curriculum import TimeWindow, eligible_frames
+from nehad.densify import DensifySchedule, DensifyState, append_gaussians, keep_gaussians
+
+
+def van_der_corput(i: int) -> float:
+    """The i-th point (i >= 1) of the base-2 van der Corput sequence in [0, 1): 0.5, 0.25,
+    0.75, 0.125, ...; any run of consecutive points spreads evenly over [0, 1)."""
+    x, f = 0.0, 0.5
+    while i > 0:
+        x += f * (i & 1)
+        i >>= 1
+        f *= 0.5
+    return x
+
+
+@dataclass(frozen=True)
+class ResidualCarving:
+    """Carving passes every `cfg.every` iterations of a stage's densification window (a
+    CarveConfig, nehad.config). `box`: the scene box rays are sampled in; `free_offset`: how far
+    from its equilibrium a carved Gaussian is put with `cfg.hold` false (the BED position mask
+    then at its floor: `free_offset_of`)."""
+
+    cfg: object  # CarveConfig
+    seed: int
+    canonical_time: float
+    max_gaussians: int
+    box: np.ndarray
+    background: tuple
+    free_offset: float
+
+    def due(self, deforms: bool, layer: int, it: int, timing: DensifySchedule) -> bool:
+        """Whether a pass runs after iteration `it` (1-based) of a stage: inside the
+        densification window, never while opacities recover from a reset, never in streaming
+        layers above the base."""
+        c = self.cfg
+        return not (c.every <= 0 or c.max_new <= 0 or layer > 0
+                    or (not deforms and not c.static_stage)
+                    or not timing.start <= it < timing.stop or it % c.every
+                    or timing.recovering(it))
+
+    def step_post_update(self, model, optimizer, state: DensifyState, *, deforms: bool,
+                         layer: int, it: int, step: int, window: TimeWindow, views,
+                         degree: int, timing: DensifySchedule) -> dict:
+        """One pass when due (see `due`): the views nearest to one time (the canonical time in
+        the static stage; in the deforming stage the frame time nearest to the next point of a
+        van der Corput sequence over the window, so that passes cover the time range evenly),
+        each rendered at its own time; returns what it did."""
+        if not self.due(deforms, layer, it, timing):
+            return {}
+        rng = np.random.default_rng([self.seed, step, 7])
+        t_c, nearest = self._pass_views(deforms, it, window, views)
+        pts, cols, widths, n_bad = self._find_points(model, deforms, nearest, views, degree, rng)
+        cap = self.max_gaussians
+        most = min(self.cfg.max_new, cap) if cap > 0 else self.cfg.max_new  # never overfills
+        if len(pts) > most:
+            pick = rng.choice(len(pts), most, replace=False)
+            pts, cols, widths = pts[pick], cols[pick], widths[pick]
+        out = {"carve_time": round(t_c, 4), "carve_unexplained": n_bad, "carved": len(pts)}
+        if len(pts):
+            out.update(self._add(model.gaussians, optimizer, state, pts, cols, widths, t_c,
+                                 deforms, views))
+        return out
+
+    def _pass_views(self, deforms: bool, it: int, window: TimeWindow, views):
+        """(the pass's time, the indices of the views nearest to it)."""
+        c = self.cfg
+        pool = eligible_frames(views.times, window)
+        times = np.asarray(views.times, np.float64)
+        if deforms:  # the passes' times spread evenly over the window (van der Corput)
+            at = window.lo + (window.hi - window.lo) * van_der_corput(it // c.every)
+            t_c = float(times[pool[np.argmin(np.abs(times[pool] - at))]])
+        else:
+            t_c = float(self.canonical_time)
+        count = c.seed_views if c.mode == "rays" else c.views
+        return t_c, pool[np.argsort(np.abs(times[pool] - t_c), kind="stable")[:count]]
+
+    def _find_points(self, model, deforms: bool, nearest, views, degree: int, rng):
+        """Points, colours and widths where the views disagree with the model
+        (`nehad.carve.seed_rays` or `carve_points`), and the number of unexplained pixels."""
+        from nehad.carve import carve_points, seed_rays
+        from nehad.model import cloud_at
+        from nehad.runtime.raster import render
+
+        c = self.cfg
+        times = np.asarray(views.times, np.float64)
+        cams, targets, alphas, drawn = [], [], [], []
+        canonical = None if deforms else cloud_at(model, None, degree)
+        for k in nearest:
+            cloud = canonical if canonical is not None else cloud_at(model, times[k], degree)
+            cams.append(views.cameras[k])
+            drawn.append(render(cloud, views.cameras[k], self.background))
+            targets.append(views.images[k].numpy())
+            a = views.alphas[k]
+            alphas.append(None if a is None else a.numpy()[:, :, 0])
+        if c.mode == "rays":
+            return seed_rays(cams, targets, alphas, [d.rgb for d in drawn], self.box,
+                             residual=c.residual, stride=c.stride,
+                             depth_samples=c.depth_samples, rng=rng)
+        return carve_points(
+            cams, targets, alphas, [d.rgb for d in drawn], self.box, times[nearest],
+            render_alphas=[d.alpha for d in drawn], render_depths=[d.depth for d in drawn],
+            residual=c.residual, stride=c.stride, depth_samples=c.depth_samples,
+            min_views=c.min_views, agree=c.agree, colour_tol=c.colour_tol, motion=c.motion,
+            rng=rng)
+
+    def _add(self, g, optimizer, state: DensifyState, pts, cols, widths, t_c: float,
+             deforms: bool, views) -> dict:
+        """Append the carved Gaussians; at the cap the least opaque ones make room first (they
+        are relocated, nehad.carve)."""
+        from nehad.carve import new_gaussians
+
+        out = {}
+        cap = self.max_gaussians
+        over = len(g) + len(pts) - cap if cap > 0 else 0
+        keep = torch.ones(len(g), dtype=torch.bool)
+        if over > 0:
+            keep[torch.argsort(g.opacity_logits.detach().reshape(-1))[:min(over, len(g))]] = False
+            keep_gaussians(g, optimizer, keep)
+            out["relocated"] = int((~keep).sum())
+        times = np.asarray(views.times, np.float64)
+        spacing = float(np.median(np.diff(np.unique(times)))) if len(np.unique(times)) > 1 else 0.0
+        life = self.cfg.life * spacing if deforms else 0.0
+        append_gaussians(g, optimizer,
+                         new_gaussians(pts, cols, widths, t_c, g, self.cfg.opacity, life,
+                                       0.0 if self.cfg.hold else self.free_offset))
+        if state.grad_accum.shape[0] == len(keep):  # statistics follow
+            state.keep(keep, len(pts))
+        return out
+
+
+def free_offset_of(field_cfg, extent: float) -> float:
+    """A distance from a Gaussian to its equilibrium at which the BED position mask is at its
+    floor gamma to float32 precision (dd = 12 sigma_s: exp(-72) ~ 1e-31)."""
+    return 12.0 * field_cfg.sigma_s_fraction * float(extent)
+
+
+__all__ = ["ResidualCarving", "free_offset_of", "van_der_corput"]
