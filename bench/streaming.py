@@ -29,8 +29,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
+    from nehad.metrics.image import psnr_of_mse
+
     mse = float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
-    return float(10 * np.log10(1.0 / max(mse, 1e-30)))
+    return psnr_of_mse(max(mse, 1e-30))
 
 
 def _box(img: np.ndarray, f: int) -> np.ndarray:

@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 from nehad.data.loader import load_dataset
+from nehad.metrics.image import psnr_of_mse
 from nehad.model import RunError, cloud_at, load_run
 
 METRIC_KEYS = ("psnr", "ssim", "ms_ssim", "d_ssim", "lpips_alex", "lpips_vgg")
@@ -138,8 +139,7 @@ def object_errors(label_map, rgb, truth, background) -> dict[int, tuple[int, flo
 
 def pooled_psnr(sse: float, pixels: int) -> float:
     """PSNR of a summed squared error over `pixels` pixels (capped at PSNR_CAP)."""
-    mse = sse / pixels
-    return float(min(-10.0 * np.log10(mse), PSNR_CAP)) if mse > 0 else PSNR_CAP
+    return min(psnr_of_mse(sse / pixels), PSNR_CAP)
 
 
 def _object_score(pixels: int, sse: float, bsse: float, min_pixels: int) -> dict:

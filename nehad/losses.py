@@ -79,6 +79,8 @@ def photometric_loss(img: torch.Tensor, ref: torch.Tensor, ssim_weight: float = 
 
 
 def psnr(img: torch.Tensor, ref: torch.Tensor) -> float:
-    """20 log10(1 / sqrt(MSE)) on [0, 1] images (docs/design.md section 9)."""
-    mse = torch.mean((img.detach().clamp(0, 1) - ref) ** 2).item()
-    return float("inf") if mse == 0 else -10.0 * torch.log10(torch.tensor(mse)).item()
+    """PSNR of a render (clamped to [0, 1]) against its target during training
+    (`nehad.metrics.image.psnr_of_mse`)."""
+    from nehad.metrics.image import psnr_of_mse
+
+    return psnr_of_mse(torch.mean((img.detach().clamp(0, 1) - ref) ** 2).item())

@@ -63,13 +63,20 @@ def _pair(img, ref, dtype=torch.float64):
     return a, b
 
 
+def psnr_of_mse(mse):
+    """PSNR in dB of the mean squared error of [0, 1] images: 20 log10(1 / sqrt(MSE)) =
+    -10 log10(MSE); inf for a zero error. The project's one PSNR formula (a float, or an array
+    elementwise); every other PSNR computes an MSE and calls this."""
+    with np.errstate(divide="ignore"):
+        out = -10.0 * np.log10(np.asarray(mse, np.float64))
+    return float(out) if np.ndim(out) == 0 else out
+
+
 def psnr(img, ref) -> float:
-    """PSNR in dB of [0, 1] images: 20 log10(1 / sqrt(MSE)); mean over a batch; inf if identical."""
+    """PSNR in dB of [0, 1] images (`psnr_of_mse`); mean over a batch; inf if identical."""
     a, b = _pair(img, ref)
     mse = ((a - b) ** 2).flatten(1).mean(1)
-    with np.errstate(divide="ignore"):
-        vals = -10.0 * np.log10(mse.numpy())
-    return float(np.mean(vals))
+    return float(np.mean(psnr_of_mse(mse.numpy())))
 
 
 def ssim(img, ref) -> float:

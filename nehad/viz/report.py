@@ -253,8 +253,9 @@ def objects_section(result: dict) -> str:
 
 
 def _psnr(a, b) -> float:
-    mse = float(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
-    return float("inf") if mse == 0 else -10.0 * math.log10(mse)
+    from nehad.metrics.image import psnr_of_mse
+
+    return psnr_of_mse(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2))
 
 
 def _error_map(render, gt) -> np.ndarray:
