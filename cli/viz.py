@@ -15,8 +15,6 @@ import click
 from .errors import InputError, user_errors
 from .params import BACKGROUND, FINITE, FiniteFloat, SIZE
 
-STILL_SUFFIXES = (".png", ".jpg", ".jpeg")
-
 
 def _check_out(path: Path, option: str, suffixes, what: str) -> None:
     if path.suffix.lower() not in suffixes:
@@ -117,6 +115,8 @@ def trajectories(scene, view, output, video, count, n_times, select, color_by, b
         if video:
             _check_out(output, "-o", (".mp4",), "with --video the output")
         else:
+            from nehad.runtime.suffixes import STILL_SUFFIXES
+
             _check_out(output, "-o", STILL_SUFFIXES, "the image")
         from nehad.runtime.memory import check_plan_memory
         from nehad.runtime.outputs import check_outputs
@@ -230,6 +230,8 @@ def masks(run, view, time_, output, plot, n_times, threshold, score, split, data
         if not run.is_dir():
             raise InputError(f"{run}: not a training run folder")
         if output is not None:
+            from nehad.runtime.suffixes import STILL_SUFFIXES
+
             _check_out(output, "-o", STILL_SUFFIXES, "the image")
         if plot is not None:
             _check_out(plot, "--plot", (".png",), "the plot")

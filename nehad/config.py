@@ -237,12 +237,27 @@ class Config:
     lod: LodConfig = dc_field(default_factory=LodConfig)
 
     def validate(self) -> "Config":
+        self._validate_field()
+        self._validate_stages()
+        self._validate_choices()
+        self._validate_resolution_schedule()
+        self._validate_counts()
+        self._validate_carve()
+        self._validate_lod()
+        self._check_ranges()
+        return self
+
+    def _validate_field(self) -> None:
+        """The field's own checks, its messages prefixed with ``field.``."""
         try:
             self.field.validate()
         except ConfigError:
             raise
         except ValueError as e:
             raise ConfigError(f"field.{e}") from None
+
+    def _validate_stages(self) -> None:
+        """Iterations, batch sizes and the stage fractions of the coarse and fine stages."""
         for name in ("coarse", "fine"):
             stage = getattr(self, name)
             if stage.iterations < 0:
@@ -258,12 +273,18 @@ class Config:
                 raise ConfigError(f"{name}.densify_from: must not exceed {name}.densify_until")
             if not 0.0 < stage.time_window <= 1.0:
                 raise ConfigError(f"{name}.time_window: must lie in (0, 1] (1 = every frame)")
+
+    def _validate_choices(self) -> None:
+        """The canonical time and the named choices (loss kernel, carve mode)."""
         if not 0.0 <= self.train.canonical_time <= 1.0:
             raise ConfigError("train.canonical_time: must lie in [0, 1]")
         if self.loss.kernel not in ("numba", "torch"):
             raise ConfigError(f"loss.kernel: {self.loss.kernel!r}; expected numba or torch")
         if self.carve.mode not in ("vote", "rays"):
             raise ConfigError(f"carve.mode: must be 'vote' or 'rays', got {self.carve.mode!r}")
+
+    def _validate_resolution_schedule(self) -> None:
+        """Increasing fractions in [0, 1), factors >= 1."""
         last = -1.0
         for k, entry in enumerate(self.data.resolution_schedule):
             frac, factor = entry
@@ -273,6 +294,9 @@ class Config:
             if factor < 1:
                 raise ConfigError(f"data.resolution_schedule[{k}]: the factor must be >= 1")
             last = frac
+
+    def _validate_counts(self) -> None:
+        """Sizes, strides and intervals of the data, stages, training and densification."""
         if self.data.warmup_min_size < 0:
             raise ConfigError("data.warmup_min_size: must be >= 0 (0 = no limit)")
         for name in ("coarse", "fine"):
@@ -286,6 +310,9 @@ class Config:
             raise ConfigError("train.sh_degree: must be in 0..3")
         if self.densify.interval < 1:
             raise ConfigError("densify.interval: must be >= 1")
+
+    def _validate_carve(self) -> None:
+        """The carving counts and thresholds."""
         c = self.carve
         if c.every < 0 or c.views < 2 or c.stride < 1 or c.depth_samples < 1 or c.min_views < 1 \
                 or c.max_new < 0:
@@ -294,6 +321,9 @@ class Config:
         if not (0.0 < c.residual < 1.0 and 0.0 < c.agree <= 1.0 and 0.0 < c.colour_tol <= 1.0
                 and 0.0 < c.opacity < 1.0):
             raise ConfigError("carve: residual, opacity in (0, 1); agree, colour_tol in (0, 1]")
+
+    def _validate_lod(self) -> None:
+        """The level-of-detail settings."""
         if not 1 <= self.lod.levels <= 6:
             raise ConfigError("lod.levels: must be in 1..6")
         if self.lod.iterations < 0:
@@ -304,8 +334,6 @@ class Config:
             raise ConfigError("lod.base_max_gaussians: must be >= 0 (0 = densify.max_gaussians)")
         if not 0.0 < self.lod.spawn_opacity < 1.0:
             raise ConfigError("lod.spawn_opacity: must lie in (0, 1)")
-        self._check_ranges()
-        return self
 
     #: (key, low, high): every other number a user sets, with the range it must lie in (None:
     #: unbounded on that side). Floats are finite already (configtools refuses nan and inf).

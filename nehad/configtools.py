@@ -30,73 +30,104 @@ def to_dict(cfg) -> dict:
     return conv(cfg)
 
 
+def _is_union(origin) -> bool:
+    """Whether a type's origin is a Union (``Optional[X]``, ``X | None``)."""
+    return origin is typing.Union or (origin is not None
+                                      and str(origin) == "<class 'types.UnionType'>")
+
+
+def _coerce_union(value: Any, args: tuple, where: str):
+    """`value` as the first member type of the union that accepts it (None when allowed)."""
+    if value is None and type(None) in args:
+        return None
+    errors = []
+    for a in args:
+        if a is type(None):
+            continue
+        try:
+            return _coerce(value, a, where)
+        except ConfigError as e:
+            errors.append(str(e))
+    raise ConfigError(errors[0] if errors else f"{where}: invalid value {value!r}")
+
+
+def _coerce_sequence(value: Any, origin, args: tuple, where: str):
+    """`value` (a list, or a comma-separated string) as a tuple or list of its element types."""
+    if isinstance(value, str):
+        value = [v for v in value.replace("(", "").replace(")", "").replace("[", "")
+                 .replace("]", "").split(",") if v.strip() != ""]
+    if not isinstance(value, (list, tuple)):
+        raise ConfigError(f"{where}: expected a list, got {value!r}")
+    if origin is tuple and args and args[-1] is not Ellipsis:
+        if len(value) != len(args):
+            raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
+        return tuple(_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
+    inner = args[0] if args else Any
+    out = [_coerce(v, inner, f"{where}[{i}]") for i, v in enumerate(value)]
+    return tuple(out) if origin is tuple else out
+
+
+def _coerce_bool(value: Any, where: str) -> bool:
+    """A bool, or a string such as true/yes/on/1 or false/no/off/0."""
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, str) and value.lower() in ("true", "yes", "on", "1", "false", "no", "off", "0"):
+        return value.lower() in ("true", "yes", "on", "1")
+    raise ConfigError(f"{where}: expected true/false, got {value!r}")
+
+
+def _coerce_int(value: Any, where: str) -> int:
+    """An int, or a number or string holding a whole number (not a bool)."""
+    if isinstance(value, bool):
+        raise ConfigError(f"{where}: expected an integer, got {value!r}")
+    if isinstance(value, int):
+        return value
+    try:
+        f = float(value)
+    except (TypeError, ValueError, OverflowError):
+        raise ConfigError(f"{where}: expected an integer, got {value!r}") from None
+    if not math.isfinite(f) or not f.is_integer():
+        raise ConfigError(f"{where}: expected an integer, got {value!r}")
+    return int(f)
+
+
+def _coerce_float(value: Any, where: str) -> float:
+    """A finite float from a number or a string (not a bool)."""
+    if isinstance(value, bool):
+        raise ConfigError(f"{where}: expected a number, got {value!r}")
+    try:
+        f = float(value)
+    except (TypeError, ValueError, OverflowError):
+        raise ConfigError(f"{where}: expected a number, got {value!r}") from None
+    if not math.isfinite(f):
+        # nan/inf pass every range check (comparisons with nan are false) and train to NaN
+        raise ConfigError(f"{where}: expected a finite number, got {value!r}")
+    return f
+
+
 def _coerce(value: Any, tp, where: str):
     origin = typing.get_origin(tp)
     args = typing.get_args(tp)
     if tp is Any:
         return value
-    if origin is typing.Union or (origin is not None and str(origin) == "<class 'types.UnionType'>"):
-        if value is None and type(None) in args:
-            return None
-        errors = []
-        for a in args:
-            if a is type(None):
-                continue
-            try:
-                return _coerce(value, a, where)
-            except ConfigError as e:
-                errors.append(str(e))
-        raise ConfigError(errors[0] if errors else f"{where}: invalid value {value!r}")
+    if _is_union(origin):
+        return _coerce_union(value, args, where)
     if origin is typing.Literal:
         if value not in args:
             raise ConfigError(f"{where}: expected one of {list(args)}, got {value!r}")
         return value
     if origin in (tuple, list):
-        if isinstance(value, str):
-            value = [v for v in value.replace("(", "").replace(")", "").replace("[", "")
-                     .replace("]", "").split(",") if v.strip() != ""]
-        if not isinstance(value, (list, tuple)):
-            raise ConfigError(f"{where}: expected a list, got {value!r}")
-        if origin is tuple and args and args[-1] is not Ellipsis:
-            if len(value) != len(args):
-                raise ConfigError(f"{where}: expected {len(args)} values, got {len(value)}")
-            return tuple(_coerce(v, a, f"{where}[{i}]") for i, (v, a) in enumerate(zip(value, args)))
-        inner = args[0] if args else Any
-        out = [_coerce(v, inner, f"{where}[{i}]") for i, v in enumerate(value)]
-        return tuple(out) if origin is tuple else out
+        return _coerce_sequence(value, origin, args, where)
     if dataclasses.is_dataclass(tp):
         if not isinstance(value, dict):
             raise ConfigError(f"{where}: expected a mapping, got {value!r}")
         return from_dict(tp, value, where)
     if tp is bool:
-        if isinstance(value, bool):
-            return value
-        if isinstance(value, str) and value.lower() in ("true", "yes", "on", "1", "false", "no", "off", "0"):
-            return value.lower() in ("true", "yes", "on", "1")
-        raise ConfigError(f"{where}: expected true/false, got {value!r}")
+        return _coerce_bool(value, where)
     if tp is int:
-        if isinstance(value, bool):
-            raise ConfigError(f"{where}: expected an integer, got {value!r}")
-        if isinstance(value, int):
-            return value
-        try:
-            f = float(value)
-        except (TypeError, ValueError, OverflowError):
-            raise ConfigError(f"{where}: expected an integer, got {value!r}") from None
-        if not math.isfinite(f) or not f.is_integer():
-            raise ConfigError(f"{where}: expected an integer, got {value!r}")
-        return int(f)
+        return _coerce_int(value, where)
     if tp is float:
-        if isinstance(value, bool):
-            raise ConfigError(f"{where}: expected a number, got {value!r}")
-        try:
-            f = float(value)
-        except (TypeError, ValueError, OverflowError):
-            raise ConfigError(f"{where}: expected a number, got {value!r}") from None
-        if not math.isfinite(f):
-            # nan/inf pass every range check (comparisons with nan are false) and train to NaN
-            raise ConfigError(f"{where}: expected a finite number, got {value!r}")
-        return f
+        return _coerce_float(value, where)
     if tp is str:
         if not isinstance(value, str):
             raise ConfigError(f"{where}: expected a string, got {value!r}")

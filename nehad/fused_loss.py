@@ -57,6 +57,56 @@ def _horizontal(padded, taps, out):
         _add_scaled(out, taps[t], padded[t:t + out.shape[0]])
 
 
+@numba.njit(inline="always")
+def _vertical_moments(x, y, taps, c, row, bx_in, by_in, bxx_in, byy_in, bxy_in):
+    """The vertical taps of the five moments x, y, x^2, y^2, xy of channel `c` around row `row`
+    into the inner parts of the padded row buffers (zeroed first; rows outside the image add
+    nothing)."""
+    h, w = x.shape[1], x.shape[2]
+    k = taps.shape[0]
+    r = k // 2
+    for i in range(w):
+        bx_in[i] = 0.0
+        by_in[i] = 0.0
+        bxx_in[i] = 0.0
+        byy_in[i] = 0.0
+        bxy_in[i] = 0.0
+    for t in range(k):
+        src = row + t - r
+        if src < 0 or src >= h:
+            continue
+        wt = taps[t]
+        xr = x[c, src]
+        yr = y[c, src]
+        _add_scaled(bx_in, wt, xr)
+        _add_scaled(by_in, wt, yr)
+        _add_scaled_product(bxx_in, wt, xr, xr)
+        _add_scaled_product(byy_in, wt, yr, yr)
+        _add_scaled_product(bxy_in, wt, xr, yr)
+
+
+@numba.njit(inline="always")
+def _ssim_coefficients(mx, my, exx, eyy, exy, xr, yr, a_row, b_row, c_row, s_sum, l1_sum):
+    """s and A, B, C (written to `a_row`, `b_row`, `c_row`) at every pixel of one row of one
+    channel from its blurred moments; returns `s_sum` and `l1_sum` with the row's s and
+    |x - y| added."""
+    for i in range(mx.shape[0]):
+        ux = mx[i]
+        uy = my[i]
+        n1 = _TWO * ux * uy + _C1
+        n2 = _TWO * (exy[i] - ux * uy) + _C2
+        d1 = ux * ux + uy * uy + _C1
+        d2 = (exx[i] - ux * ux) + (eyy[i] - uy * uy) + _C2
+        inv = np.float32(1.0) / (d1 * d2)
+        s = n1 * n2 * inv
+        s_sum += s
+        a_row[i] = _TWO * (uy * (n2 - n1) - s * ux * (d2 - d1)) * inv
+        b_row[i] = -s / d2
+        c_row[i] = _TWO * n1 * inv
+        l1_sum += abs(xr[i] - yr[i])
+    return s_sum, l1_sum
+
+
 @numba.njit(fastmath=True, cache=True)
 def _ssim_row(x, y, taps, coef_a, coef_b, coef_c, row):
     """Row `row` of the first pass (see `_ssim_rows`); returns its sums of s and |x - y|."""
@@ -80,45 +130,15 @@ def _ssim_row(x, y, taps, coef_a, coef_b, coef_c, row):
     s_sum = 0.0
     l1_sum = 0.0
     for c in range(nc):
-        for i in range(w):
-            bx_in[i] = 0.0
-            by_in[i] = 0.0
-            bxx_in[i] = 0.0
-            byy_in[i] = 0.0
-            bxy_in[i] = 0.0
-        for t in range(k):  # vertical taps into the padded row buffers
-            src = row + t - r
-            if src < 0 or src >= h:
-                continue
-            wt = taps[t]
-            xr = x[c, src]
-            yr = y[c, src]
-            _add_scaled(bx_in, wt, xr)
-            _add_scaled(by_in, wt, yr)
-            _add_scaled_product(bxx_in, wt, xr, xr)
-            _add_scaled_product(byy_in, wt, yr, yr)
-            _add_scaled_product(bxy_in, wt, xr, yr)
+        _vertical_moments(x, y, taps, c, row, bx_in, by_in, bxx_in, byy_in, bxy_in)
         _horizontal(bx, taps, mx)  # the pads stay zero
         _horizontal(by, taps, my)
         _horizontal(bxx, taps, exx)
         _horizontal(byy, taps, eyy)
         _horizontal(bxy, taps, exy)
-        xr = x[c, row]
-        yr = y[c, row]
-        for i in range(w):
-            ux = mx[i]
-            uy = my[i]
-            n1 = _TWO * ux * uy + _C1
-            n2 = _TWO * (exy[i] - ux * uy) + _C2
-            d1 = ux * ux + uy * uy + _C1
-            d2 = (exx[i] - ux * ux) + (eyy[i] - uy * uy) + _C2
-            inv = np.float32(1.0) / (d1 * d2)
-            s = n1 * n2 * inv
-            s_sum += s
-            coef_a[c, row, i] = _TWO * (uy * (n2 - n1) - s * ux * (d2 - d1)) * inv
-            coef_b[c, row, i] = -s / d2
-            coef_c[c, row, i] = _TWO * n1 * inv
-            l1_sum += abs(xr[i] - yr[i])
+        s_sum, l1_sum = _ssim_coefficients(mx, my, exx, eyy, exy, x[c, row], y[c, row],
+                                           coef_a[c, row], coef_b[c, row], coef_c[c, row],
+                                           s_sum, l1_sum)
     return s_sum, l1_sum
 
 

@@ -47,6 +47,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .errors import InputProblem
+from .suffixes import IMAGE_SUFFIXES
 from .values import parse_background, parse_size
 
 __all__ = ["BatchError", "BatchSpec", "BatchJob", "JobResult", "load_batch", "run_batch",
@@ -61,7 +62,6 @@ IMAGE_KEYS = ("name", "type", "model", "output", "view", "time", "size", "backgr
 #: How a job's error names the inputs a runtime message leaves as {input} (runtime/errors.py).
 KEY_NAMES = {"extrapolate": "extrapolate: true"}
 ALL_KEYS = tuple(dict.fromkeys(VIDEO_KEYS + IMAGE_KEYS))
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff")
 
 
 class BatchError(InputProblem):

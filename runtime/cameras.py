@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputProblem
+from .images import CAMERA_IMAGE_SUFFIXES, STILL_SUFFIXES
 
 # Blender/NeRF/D-NeRF store camera-to-world with OpenGL axes (y up, z back); negating the
 # rotation's columns 1 and 2 turns it into OpenCV axes (docs/design.md section 3).
@@ -52,7 +53,6 @@ _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 ROTATION_TOLERANCE = 1e-4  # |R^T R - I| (max abs) and |det R - 1| allowed in a camera rotation
 _BOTTOM_ROW_TOLERANCE = 1e-6
 _CONVENTIONS = ("opengl", "opencv")
-_IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff", ".PNG", ".JPG", ".JPEG")
 
 
 class CameraError(InputProblem):
@@ -364,7 +364,7 @@ def _image_size(base: Path, file_path, source: str, fld: str) -> tuple[int, int]
     if not isinstance(file_path, str) or not file_path:
         raise _err(source, fld, "missing field (needed for the image size when w/h are absent)")
     p = base / file_path
-    candidates = [p] + [p.with_name(p.name + ext) for ext in _IMAGE_EXTENSIONS]
+    candidates = [p] + [p.with_name(p.name + ext) for ext in CAMERA_IMAGE_SUFFIXES]
     found = next((c for c in candidates if c.is_file()), None)
     if found is None:
         raise _err(source, fld, f"image {p} not found (give w and h in the transforms file)")
@@ -532,10 +532,10 @@ def frame_image_path(transforms_path, index: int) -> Path:
     if not isinstance(fp, str) or not fp:
         raise _err(str(path), f"frames[{index}].file_path", "expected a relative image path")
     base = path.parent / fp
-    if base.suffix in _IMAGE_EXTENSIONS:
+    if base.suffix in CAMERA_IMAGE_SUFFIXES:
         candidates = [base]
     else:
-        candidates = [base.with_name(base.name + ext) for ext in (".png", ".jpg", ".jpeg")] + [base]
+        candidates = [base.with_name(base.name + ext) for ext in STILL_SUFFIXES] + [base]
     found = next((c for c in candidates if c.is_file()), None)
     if found is None:
         raise _err(str(path), f"frames[{index}].file_path", f"image {candidates[0]} not found")

@@ -3,6 +3,9 @@
 Writes are atomic: a temporary file in the same folder is renamed over the target, so a crash
 never leaves a half-written image behind. :func:`atomic_path` is the helper the other writers of
 the runtime (PLY, cam.json) share.
+
+The image file suffixes every reader and writer checks against are defined in
+:mod:`runtime.suffixes` (re-exported here).
 """
 
 from __future__ import annotations
@@ -15,6 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputProblem
+from .suffixes import (ALPHA_SUFFIXES, CAMERA_IMAGE_SUFFIXES, DNERF_IMAGE_SUFFIXES,  # noqa: F401
+                       IMAGE_SUFFIXES, STILL_SUFFIXES)
 
 
 class ImageError(InputProblem, OSError):

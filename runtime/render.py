@@ -18,12 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .images import ALPHA_SUFFIXES, IMAGE_SUFFIXES  # re-exported: the stills' formats
 from .scene import SceneError
-
-#: Image formats a still can be written as (OpenImageIO picks the writer from the suffix).
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff")
-#: Those with an alpha channel (JPEG has none).
-ALPHA_SUFFIXES = (".png", ".exr", ".tif", ".tiff")
 
 
 @dataclass

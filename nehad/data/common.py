@@ -145,16 +145,20 @@ _PLY_TYPES = {
 }
 
 
-def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
-    """Vertices of an ascii or binary PLY file: (M, 3) float32 points, (M, 3) colours in [0, 1]."""
-    data = path.read_bytes()
+def _ply_header(path: Path, data: bytes) -> tuple[list[str], int]:
+    """The header lines of a PLY file (before ``end_header``) and where its body starts."""
     end = data.find(b"end_header")
     if not data.startswith(b"ply") or end < 0:
         raise DatasetError(f"{path}: not a PLY file (no 'ply' magic or no end_header)")
     nl = data.find(b"\n", end)
     body_start = len(data) if nl < 0 else nl + 1
-    header = data[:end].decode("ascii", errors="replace").splitlines()
-    fmt, elements = None, []  # elements: [name, count, [(prop, type or None-for-list)]]
+    return data[:end].decode("ascii", errors="replace").splitlines(), body_start
+
+
+def _ply_elements(path: Path, header: list[str]) -> tuple[str | None, list]:
+    """The format and the elements of a PLY header: [name, count, [(prop, type or None for a
+    list)]] each."""
+    fmt, elements = None, []
     for line in header[1:]:
         parts = line.split()
         if not parts or parts[0] in ("comment", "obj_info"):
@@ -173,6 +177,12 @@ def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
                 elements[-1][2].append((parts[2], _PLY_TYPES[parts[1]]))
             else:
                 raise DatasetError(f"{path}: header: unsupported property {line!r}")
+    return fmt, elements
+
+
+def _ply_vertex_element(path: Path, fmt, elements) -> int:
+    """The index of the vertex element, checked: a known format, x/y/z, no list property and
+    at least one point."""
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise DatasetError(f"{path}: header: format: expected ascii or binary, got {fmt!r}")
     names = [e[0] for e in elements]
@@ -188,49 +198,72 @@ def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
         raise DatasetError(f"{path}: element vertex: list properties are not supported")
     if count <= 0:
         raise DatasetError(f"{path}: element vertex: count is {count}, expected at least one point")
+    return vi
 
-    if fmt == "ascii":
-        lines = data[body_start:].decode("ascii", errors="replace").splitlines()
-        skip = sum(e[1] for e in elements[:vi])
-        rows = lines[skip: skip + count]
-        if len(rows) < count:
-            raise DatasetError(f"{path}: element vertex: expected {count} rows, file has {len(rows)}")
-        try:
-            table = np.array([r.split() for r in rows], dtype=np.float64)
-        except ValueError:
-            raise DatasetError(f"{path}: element vertex: rows are not {len(props)} numbers each") from None
-        if table.ndim != 2 or table.shape[1] != len(props):
-            raise DatasetError(f"{path}: element vertex: rows are not {len(props)} numbers each")
-        cols = {p: table[:, i] for i, p in enumerate(prop_names)}
-        types = dict(props)
-    else:
-        order = "<" if fmt == "binary_little_endian" else ">"
-        offset = body_start
-        for name, n, eprops in elements[:vi]:
-            if any(t is None for _, t in eprops):
-                raise DatasetError(f"{path}: element {name}: list properties before the vertices "
-                                   f"are not supported")
-            offset += n * np.dtype([(p, order + t) for p, t in eprops]).itemsize
-        dtype = np.dtype([(p, order + t) for p, t in props])
-        if offset + count * dtype.itemsize > len(data):
-            raise DatasetError(f"{path}: element vertex: file is truncated "
-                               f"({count} vertices of {dtype.itemsize} bytes announced)")
-        rec = np.frombuffer(data, dtype=dtype, count=count, offset=offset)
-        cols = {p: rec[p] for p in prop_names}
-        types = dict(props)
-    points = np.stack([cols["x"], cols["y"], cols["z"]], axis=1).astype(np.float32)
-    if not np.isfinite(points).all():
-        raise DatasetError(f"{path}: element vertex: x/y/z hold NaN or infinite values")
-    colours = None
+
+def _ply_ascii_columns(path: Path, data: bytes, body_start: int, elements, vi: int) -> dict:
+    """The vertex properties of an ascii PLY body, by name (float64 columns)."""
+    _, count, props = elements[vi]
+    lines = data[body_start:].decode("ascii", errors="replace").splitlines()
+    skip = sum(e[1] for e in elements[:vi])
+    rows = lines[skip: skip + count]
+    if len(rows) < count:
+        raise DatasetError(f"{path}: element vertex: expected {count} rows, file has {len(rows)}")
+    try:
+        table = np.array([r.split() for r in rows], dtype=np.float64)
+    except ValueError:
+        raise DatasetError(f"{path}: element vertex: rows are not {len(props)} numbers each") from None
+    if table.ndim != 2 or table.shape[1] != len(props):
+        raise DatasetError(f"{path}: element vertex: rows are not {len(props)} numbers each")
+    return {p: table[:, i] for i, (p, _) in enumerate(props)}
+
+
+def _ply_binary_columns(path: Path, data: bytes, body_start: int, fmt: str, elements,
+                        vi: int) -> dict:
+    """The vertex properties of a binary PLY body, by name (columns of their stored type)."""
+    _, count, props = elements[vi]
+    order = "<" if fmt == "binary_little_endian" else ">"
+    offset = body_start
+    for name, n, eprops in elements[:vi]:
+        if any(t is None for _, t in eprops):
+            raise DatasetError(f"{path}: element {name}: list properties before the vertices "
+                               f"are not supported")
+        offset += n * np.dtype([(p, order + t) for p, t in eprops]).itemsize
+    dtype = np.dtype([(p, order + t) for p, t in props])
+    if offset + count * dtype.itemsize > len(data):
+        raise DatasetError(f"{path}: element vertex: file is truncated "
+                           f"({count} vertices of {dtype.itemsize} bytes announced)")
+    rec = np.frombuffer(data, dtype=dtype, count=count, offset=offset)
+    return {p: rec[p] for p, _ in props}
+
+
+def _ply_colours(cols: dict, types: dict) -> np.ndarray | None:
+    """(M, 3) colours in [0, 1] from the first colour trio present (integers scaled by their
+    type's maximum), or None."""
     for trio in (("red", "green", "blue"), ("r", "g", "b"), ("diffuse_red", "diffuse_green", "diffuse_blue")):
         if all(c in cols for c in trio):
             rgb = np.stack([cols[c] for c in trio], axis=1).astype(np.float64)
             kind = np.dtype(types[trio[0]])
             if kind.kind in "iu":
                 rgb = rgb / float(np.iinfo(kind).max)
-            colours = np.clip(rgb, 0.0, 1.0).astype(np.float32)
-            break
-    return points, colours
+            return np.clip(rgb, 0.0, 1.0).astype(np.float32)
+    return None
+
+
+def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
+    """Vertices of an ascii or binary PLY file: (M, 3) float32 points, (M, 3) colours in [0, 1]."""
+    data = path.read_bytes()
+    header, body_start = _ply_header(path, data)
+    fmt, elements = _ply_elements(path, header)
+    vi = _ply_vertex_element(path, fmt, elements)
+    if fmt == "ascii":
+        cols = _ply_ascii_columns(path, data, body_start, elements, vi)
+    else:
+        cols = _ply_binary_columns(path, data, body_start, fmt, elements, vi)
+    points = np.stack([cols["x"], cols["y"], cols["z"]], axis=1).astype(np.float32)
+    if not np.isfinite(points).all():
+        raise DatasetError(f"{path}: element vertex: x/y/z hold NaN or infinite values")
+    return points, _ply_colours(cols, dict(elements[vi][2]))
 
 
 # --------------------------------------------------------------------------------------------

@@ -36,7 +36,7 @@ from nehad.data.common import (DNERF_INIT_BOUND, DatasetError, DNeRFScene, Frame
                                area_downscale, check_background, check_scene_args,
                                downscale_camera, number, read_json, read_ply_points)
 from nehad.runtime.cameras import Camera, CameraError
-from nehad.runtime.images import read_image
+from nehad.runtime.images import DNERF_IMAGE_SUFFIXES, STILL_SUFFIXES, read_image
 
 __all__ = ["DatasetError", "Frame", "DNeRFScene", "load_dnerf", "SPLITS", "POINT_CLOUD_NAMES"]
 
@@ -44,10 +44,6 @@ __all__ = ["DatasetError", "Frame", "DNeRFScene", "load_dnerf", "SPLITS", "POINT
 SPLITS = ("train", "val", "test")
 #: Initial point clouds looked for in the scene folder, in this order.
 POINT_CLOUD_NAMES = ("fused.ply", "points3d.ply", "points3D.ply")
-#: Half side of the cube D-NeRF initialises random points in (docs/design.md section 5).
-
-_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".exr")
-
 
 # --------------------------------------------------------------------------------------------
 # transforms files
@@ -139,10 +135,10 @@ def _image_path(root: Path, frame: dict, k: int, path: Path) -> Path:
     if not isinstance(fp, str) or not fp:
         raise DatasetError(f"{path}: frames[{k}].file_path: expected a relative image path, got {fp!r}")
     base = root / fp
-    if base.suffix.lower() in _IMAGE_SUFFIXES:
+    if base.suffix.lower() in DNERF_IMAGE_SUFFIXES:
         candidates = [base]
     else:
-        candidates = [base.with_name(base.name + s) for s in (".png", ".jpg", ".jpeg")] + [base]
+        candidates = [base.with_name(base.name + s) for s in STILL_SUFFIXES] + [base]
     for c in candidates:
         if c.is_file():
             return c
@@ -180,6 +176,75 @@ def _load_image(img_path: Path, background: np.ndarray, downscale: int, json_pat
     return rgb, alpha, pixels.shape[1], pixels.shape[0]
 
 
+def _check_downscale(downscale) -> int:
+    """`downscale` as an int; ValueError unless it is an integer >= 1 (not a bool)."""
+    if isinstance(downscale, bool) or int(downscale) != downscale or int(downscale) < 1:
+        raise ValueError(f"downscale: expected an integer >= 1, got {downscale!r}")
+    return int(downscale)
+
+
+def _read_split_files(root: Path, splits: tuple) -> dict[str, tuple[Path, dict]]:
+    """(path, parsed document) of every requested split, plus the other standard splits present
+    (their times take part in the normalisation, so a split's times do not depend on which
+    splits were asked for)."""
+    docs: dict[str, tuple[Path, dict]] = {}
+    for split in splits + tuple(s for s in SPLITS if s not in splits):
+        path = root / f"transforms_{split}.json"
+        if split in splits or path.is_file():
+            docs[split] = (path, _read_transforms(path))
+    return docs
+
+
+def _source_time_range(raw_times: dict[str, list[float]]) -> tuple[float, float]:
+    """(t0, t1) that the file times are normalised by: (0, 1) when they all lie in [0, 1]
+    already, else their minimum and maximum."""
+    every = [t for ts in raw_times.values() for t in ts]
+    if every and (min(every) < 0.0 or max(every) > 1.0):
+        return min(every), max(every)
+    return 0.0, 1.0
+
+
+def _load_frame(root: Path, fr: dict, k: int, path: Path, doc: dict, split: str, time: float,
+                bg: np.ndarray, downscale: int) -> Frame:
+    """Frame `k` of a split's transforms file `path`: its image composited and downscaled, its
+    camera at the normalised `time`."""
+    c2w = _frame_matrix(fr, k, path)
+    img_path = _image_path(root, fr, k, path)
+    rgb, alpha, width, height = _load_image(img_path, bg, downscale, path, k)
+    fx, fy, cx, cy = _intrinsics(doc, fr, k, path, width, height)
+    try:
+        cam = Camera.from_camera_to_world(c2w, width, height, fx, fy, cx, cy,
+                                          convention="opengl", time=time,
+                                          name=f"{split}/{img_path.stem}")
+    except (CameraError, np.linalg.LinAlgError) as exc:
+        raise DatasetError(f"{path}: frames[{k}]: invalid camera ({exc})") from None
+    if downscale > 1:
+        cam = downscale_camera(cam, downscale)
+    return Frame(cam, rgb, alpha, img_path)
+
+
+def _load_split(root: Path, split: str, path: Path, doc: dict, times: list[float],
+                bg: np.ndarray, downscale: int) -> list[Frame]:
+    """The frames of one split at their normalised `times`; every frame's camera fields and
+    image file are checked before any image is decoded."""
+    for k, fr in enumerate(doc["frames"]):  # validate the camera fields before decoding
+        _frame_matrix(fr, k, path)
+        _image_path(root, fr, k, path)
+    return [_load_frame(root, fr, k, path, doc, split, times[k], bg, downscale)
+            for k, fr in enumerate(doc["frames"])]
+
+
+def _initial_points(root: Path):
+    """(points, colours, file) of the first of POINT_CLOUD_NAMES in `root` (the name spelled
+    exactly so), or Nones."""
+    for name in POINT_CLOUD_NAMES:
+        candidate = root / name
+        if candidate.is_file() and candidate.name in {p.name for p in root.iterdir()}:
+            points, colours = read_ply_points(candidate)
+            return points, colours, candidate
+    return None, None, None
+
+
 def load_dnerf(root, splits=SPLITS, background=(1.0, 1.0, 1.0), downscale: int = 1) -> DNeRFScene:
     """Load a D-NeRF scene folder (see the module docstring for the format).
 
@@ -189,27 +254,14 @@ def load_dnerf(root, splits=SPLITS, background=(1.0, 1.0, 1.0), downscale: int =
     Raises :class:`DatasetError` (a ValueError) naming the file and field on bad data.
     """
     root, splits = check_scene_args(root, splits)
-    if isinstance(downscale, bool) or int(downscale) != downscale or int(downscale) < 1:
-        raise ValueError(f"downscale: expected an integer >= 1, got {downscale!r}")
-    downscale = int(downscale)
+    downscale = _check_downscale(downscale)
     bg = check_background(background)
 
-    # Parse every requested split, plus the other standard splits present (their times take part
-    # in the normalisation, so a split's times do not depend on which splits were asked for).
-    docs: dict[str, tuple[Path, dict]] = {}
-    for split in splits + tuple(s for s in SPLITS if s not in splits):
-        path = root / f"transforms_{split}.json"
-        if split in splits or path.is_file():
-            docs[split] = (path, _read_transforms(path))
-
+    docs = _read_split_files(root, splits)
     raw_times: dict[str, list[float]] = {}
     for split, (path, doc) in docs.items():
         raw_times[split] = [_frame_time(fr, k, path) for k, fr in enumerate(doc["frames"])]
-    every = [t for ts in raw_times.values() for t in ts]
-    if every and (min(every) < 0.0 or max(every) > 1.0):
-        t0, t1 = min(every), max(every)
-    else:
-        t0, t1 = 0.0, 1.0
+    t0, t1 = _source_time_range(raw_times)
     span = t1 - t0
 
     def normalise(t: float) -> float:
@@ -218,34 +270,9 @@ def load_dnerf(root, splits=SPLITS, background=(1.0, 1.0, 1.0), downscale: int =
     frames: dict[str, list[Frame]] = {}
     for split in splits:
         path, doc = docs[split]
-        out = []
-        for k, fr in enumerate(doc["frames"]):  # validate the camera fields before decoding
-            _frame_matrix(fr, k, path)
-            _image_path(root, fr, k, path)
-        for k, fr in enumerate(doc["frames"]):
-            c2w = _frame_matrix(fr, k, path)
-            img_path = _image_path(root, fr, k, path)
-            rgb, alpha, width, height = _load_image(img_path, bg, downscale, path, k)
-            fx, fy, cx, cy = _intrinsics(doc, fr, k, path, width, height)
-            try:
-                cam = Camera.from_camera_to_world(c2w, width, height, fx, fy, cx, cy,
-                                                  convention="opengl",
-                                                  time=normalise(raw_times[split][k]),
-                                                  name=f"{split}/{img_path.stem}")
-            except (CameraError, np.linalg.LinAlgError) as exc:
-                raise DatasetError(f"{path}: frames[{k}]: invalid camera ({exc})") from None
-            if downscale > 1:
-                cam = downscale_camera(cam, downscale)
-            out.append(Frame(cam, rgb, alpha, img_path))
-        frames[split] = out
-
-    points = colours = points_path = None
-    for name in POINT_CLOUD_NAMES:
-        candidate = root / name
-        if candidate.is_file() and candidate.name in {p.name for p in root.iterdir()}:
-            points, colours = read_ply_points(candidate)
-            points_path = candidate
-            break
+        times = [normalise(t) for t in raw_times[split]]
+        frames[split] = _load_split(root, split, path, doc, times, bg, downscale)
+    points, colours, points_path = _initial_points(root)
 
     loaded = [f.time for fs in frames.values() for f in fs]
     time_range = (min(loaded), max(loaded)) if loaded else (0.0, 1.0)
@@ -253,3 +280,4 @@ def load_dnerf(root, splits=SPLITS, background=(1.0, 1.0, 1.0), downscale: int =
                       initial_points=points, initial_colors=colours, time_range=time_range,
                       source_time_range=(float(t0), float(t1)), points_path=points_path,
                       downscale=downscale)
+

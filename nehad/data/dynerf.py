@@ -54,6 +54,7 @@ from nehad.data.common import (check_background, check_downscale, check_rotation
 from nehad.data.common import (DatasetError, DNeRFScene, Frame, area_downscale, check_scene_args,
                               downscale_camera)
 from nehad.runtime.cameras import Camera, CameraError
+from nehad.runtime.images import STILL_SUFFIXES
 
 __all__ = ["load_dynerf", "llff_to_camera_to_world", "camera_to_world_to_llff", "extract_frames",
            "find_cameras", "is_dynerf", "POINT_FILES", "MAX_FRAMES", "TEST_CAMERA_INDEX"]
@@ -110,7 +111,7 @@ def _frame_files(folder: Path) -> list[Path]:
     if not folder.is_dir():
         return []
     files = [p for p in folder.iterdir()
-             if p.suffix.lower() in (".png", ".jpg", ".jpeg") and not p.name.startswith(".")]
+             if p.suffix.lower() in STILL_SUFFIXES and not p.name.startswith(".")]
     return sorted(files, key=lambda p: _natural_key(p.name))
 
 
@@ -195,6 +196,79 @@ def _read_poses(path: Path) -> np.ndarray:
     return arr
 
 
+def _matched_cameras(root: Path, poses_path: Path, poses: np.ndarray,
+                     splits: tuple) -> list[tuple[str, Path | None, Path | None]]:
+    """The cameras of `root` (:func:`find_cameras`), one per row of the poses file, and at
+    least two when the train split is asked for."""
+    cameras = find_cameras(root)
+    if len(cameras) != len(poses):
+        names = ", ".join(c[0] for c in cameras[:8]) + (", ..." if len(cameras) > 8 else "")
+        raise DatasetError(f"{poses_path}: holds {len(poses)} camera poses but {root} has "
+                           f"{len(cameras)} camera videos / frame folders"
+                           + (f" ({names})" if cameras else " (no cam*.mp4 or cam*/images)"))
+    if len(cameras) < 2 and "train" in splits:
+        raise DatasetError(f"{root}: needs at least two cameras (cam00 is held out for testing), "
+                           f"found {len(cameras)}")
+    return cameras
+
+
+def _camera_poses(poses: np.ndarray, cameras, poses_path: Path):
+    """Every camera's OpenCV camera-to-world and (height, width, focal), checked before any
+    decoding."""
+    c2ws, intr = [], []
+    for i, row in enumerate(poses):
+        p = row[:15].reshape(3, 5)
+        c2w = llff_to_camera_to_world(p)
+        check_rotation(c2w[:3, :3], poses_path, f"row {i} ({cameras[i][0]}) rotation")
+        h, w, f = p[:, 4]
+        if min(h, w, f) <= 0:
+            raise DatasetError(f"{poses_path}: row {i} ({cameras[i][0]}): height, width and focal "
+                               f"must be positive, got {h:g}, {w:g}, {f:g}")
+        c2ws.append(c2w)
+        intr.append((h, w, f))
+    return c2ws, intr
+
+
+def _time_axis(cameras, max_frames: int, frame_stride: int):
+    """(n, times, keep): a frame count common to every camera (cheap: cache or container),
+    capped at `max_frames`, the time of each frame and the frame indices kept."""
+    counts = []
+    for name, video, images in cameras:
+        counts.append(len(_frame_files(images)) if images is not None
+                      else _video_frame_count(video))
+    n = min(min(counts), int(max_frames))
+    times = [k / (n - 1) if n > 1 else 0.0 for k in range(n)]
+    return n, times, list(range(0, n, frame_stride))
+
+
+def _split_frames(splits: tuple, camera_count: int, load_camera) -> dict[str, list[Frame]]:
+    """The frames of each split (train: every camera but cam00; test, val: cam00), each camera
+    loaded once by `load_camera(index)` and its frames renamed per split."""
+    split_cams = {"train": [i for i in range(camera_count) if i != TEST_CAMERA_INDEX],
+                  "test": [TEST_CAMERA_INDEX], "val": [TEST_CAMERA_INDEX]}
+    frames: dict[str, list[Frame]] = {}
+    cache: dict[int, list[Frame]] = {}
+    for s in splits:
+        out = []
+        for i in split_cams[s]:
+            if i not in cache:
+                cache[i] = load_camera(i)
+            out.extend(Frame(_renamed(f.camera, f"{s}/{f.camera.name}"), f.image, f.alpha,
+                             f.path) for f in cache[i])
+        frames[s] = out
+    return frames
+
+
+def _initial_points(root: Path):
+    """(float32 points, colours, file) of the first of POINT_FILES in `root`, or Nones."""
+    points = colours = None
+    points_path = find_point_cloud(root, POINT_FILES)
+    if points_path is not None:
+        pts, colours = read_points(points_path)
+        points = pts.astype(np.float32)
+    return points, colours, points_path
+
+
 def load_dynerf(root, splits=("train", "test"), background=(0.0, 0.0, 0.0), downscale: int = 1,
                 frame_stride: int = 1, max_frames: int = MAX_FRAMES) -> DNeRFScene:
     """Load a DyNeRF scene folder (see the module docstring for the format).
@@ -214,57 +288,16 @@ def load_dynerf(root, splits=("train", "test"), background=(0.0, 0.0, 0.0), down
 
     poses_path = root / "poses_bounds.npy"
     poses = _read_poses(poses_path)
-    cameras = find_cameras(root)
-    if len(cameras) != len(poses):
-        names = ", ".join(c[0] for c in cameras[:8]) + (", ..." if len(cameras) > 8 else "")
-        raise DatasetError(f"{poses_path}: holds {len(poses)} camera poses but {root} has "
-                           f"{len(cameras)} camera videos / frame folders"
-                           + (f" ({names})" if cameras else " (no cam*.mp4 or cam*/images)"))
-    if len(cameras) < 2 and "train" in splits:
-        raise DatasetError(f"{root}: needs at least two cameras (cam00 is held out for testing), "
-                           f"found {len(cameras)}")
+    cameras = _matched_cameras(root, poses_path, poses, splits)
+    c2ws, intr = _camera_poses(poses, cameras, poses_path)
+    n, times, keep = _time_axis(cameras, max_frames, frame_stride)
 
-    # every camera's pose, checked before any decoding
-    c2ws, intr = [], []
-    for i, row in enumerate(poses):
-        p = row[:15].reshape(3, 5)
-        c2w = llff_to_camera_to_world(p)
-        check_rotation(c2w[:3, :3], poses_path, f"row {i} ({cameras[i][0]}) rotation")
-        h, w, f = p[:, 4]
-        if min(h, w, f) <= 0:
-            raise DatasetError(f"{poses_path}: row {i} ({cameras[i][0]}): height, width and focal "
-                               f"must be positive, got {h:g}, {w:g}, {f:g}")
-        c2ws.append(c2w)
-        intr.append((h, w, f))
+    def load_camera(i: int) -> list[Frame]:
+        return _load_camera(i, cameras[i], c2ws[i], intr[i], poses_path, keep, times, bg,
+                            downscale)
 
-    # a common frame count for the time axis, from every camera (cheap: cache or container)
-    counts = []
-    for name, video, images in cameras:
-        counts.append(len(_frame_files(images)) if images is not None
-                      else _video_frame_count(video))
-    n = min(min(counts), int(max_frames))
-    times = [k / (n - 1) if n > 1 else 0.0 for k in range(n)]
-    keep = list(range(0, n, frame_stride))
-
-    split_cams = {"train": [i for i in range(len(cameras)) if i != TEST_CAMERA_INDEX],
-                  "test": [TEST_CAMERA_INDEX], "val": [TEST_CAMERA_INDEX]}
-    frames: dict[str, list[Frame]] = {}
-    cache: dict[int, list[Frame]] = {}
-    for s in splits:
-        out = []
-        for i in split_cams[s]:
-            if i not in cache:
-                cache[i] = _load_camera(i, cameras[i], c2ws[i], intr[i], poses_path, keep, times,
-                                        bg, downscale)
-            out.extend(Frame(_renamed(f.camera, f"{s}/{f.camera.name}"), f.image, f.alpha,
-                             f.path) for f in cache[i])
-        frames[s] = out
-
-    points = colours = None
-    points_path = find_point_cloud(root, POINT_FILES)
-    if points_path is not None:
-        pts, colours = read_points(points_path)
-        points = pts.astype(np.float32)
+    frames = _split_frames(splits, len(cameras), load_camera)
+    points, colours, points_path = _initial_points(root)
     loaded = [f.time for fs in frames.values() for f in fs]
     scene = DNeRFScene(root=root, frames=frames, background=tuple(float(x) for x in bg),
                        initial_points=points, initial_colors=colours,

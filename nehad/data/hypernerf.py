@@ -47,6 +47,7 @@ undistortion) only, no torch.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -233,6 +234,131 @@ def _image_folder(root: Path, downscale: int) -> tuple[Path, int]:
                        f"{rgb} holds {', '.join(have) if have else 'no scale folders'}")
 
 
+def _checked_camera(root: Path, ident: str, undistort: bool) -> HyperNeRFCamera:
+    """Read ``camera/<ident>.json``; DatasetError when it is missing, or distorted or skewed
+    while `undistort` is off."""
+    cam_path = root / "camera" / f"{ident}.json"
+    if not cam_path.is_file():
+        raise DatasetError(f"{cam_path}: camera file not found (id {ident!r} of "
+                           f"{root / 'dataset.json'})")
+    cam = read_hypernerf_camera(cam_path)
+    if not undistort and (cam.distorted or abs(cam.skew) > DISTORTION_EPS):
+        fld = "skew" if not cam.distorted else "radial_distortion"
+        raise DatasetError(
+            f"{cam_path}: field '{fld}': the camera is distorted or skewed and "
+            f"undistortion is off; load with undistort=True to resample the image "
+            f"into a pinhole camera")
+    return cam
+
+
+def _checked_cameras(root: Path, ids: list[str], wanted: dict, folder: Path,
+                     undistort: bool) -> dict[int, HyperNeRFCamera]:
+    """The camera file of every index in `wanted`, each checked along with its image file
+    before any image is decoded."""
+    cams: dict[int, HyperNeRFCamera] = {}
+    for s, idx in wanted.items():
+        for i in idx:
+            if i not in cams:
+                cams[i] = _checked_camera(root, ids[i], undistort)
+            img = folder / f"{ids[i]}.png"
+            if not img.is_file():
+                raise DatasetError(f"{img}: image file not found (id {ids[i]!r})")
+    return cams
+
+
+@dataclass
+class _Reading:
+    """What every frame of one load shares: the ids, their times, the normalisation of the
+    world frame, the image folder with the `extra` area downscale still to apply and the camera
+    scale `factor` of its files, the background and the undistortion maps made so far."""
+
+    ids: list[str]
+    times: list[float]
+    center: np.ndarray
+    scale: float
+    folder: Path
+    extra: int
+    factor: float
+    bg: np.ndarray
+    maps: dict = field(default_factory=dict)
+
+
+def _check_image_size(img: Path, hc: HyperNeRFCamera, w: int, h: int, factor: float) -> None:
+    """DatasetError unless the image is the camera file's ``image_size`` at scale `factor`."""
+    exp_w, exp_h = hc.size[0] * factor, hc.size[1] * factor
+    if abs(w - exp_w) >= 1.0 or abs(h - exp_h) >= 1.0:
+        raise DatasetError(f"{img}: image is {w}x{h} but {hc.path} field 'image_size' "
+                           f"{list(hc.size)} at scale {factor:g} gives "
+                           f"{exp_w:g}x{exp_h:g}")
+
+
+def _undistorted(rgb, alpha, hc: HyperNeRFCamera, cam: Camera, rd: _Reading):
+    """`rgb` and `alpha` resampled into the pinhole `cam` when the file's camera is distorted
+    or skewed (the maps are cached in `rd` by camera)."""
+    if not (hc.distorted or abs(hc.skew) > DISTORTION_EPS):
+        return rgb, alpha
+    (h, w), factor = rgb.shape[:2], rd.factor
+    key = (w, h, cam.fx, cam.fy, cam.cx, cam.cy, hc.skew * factor,
+           tuple(hc.radial), tuple(hc.tangential))
+    if key not in rd.maps:
+        rd.maps[key] = undistortion_maps(w, h, cam.fx, cam.fy, cam.cx, cam.cy,
+                                         hc.skew * factor, hc.radial, hc.tangential)
+    rgb = remap(rgb, *rd.maps[key])
+    alpha = None if alpha is None else remap(alpha, *rd.maps[key])
+    return rgb, alpha
+
+
+def _load_frame(hc: HyperNeRFCamera, i: int, name: str, rd: _Reading):
+    """(camera, rgb, alpha, image path) of id index `i`: read, checked against its camera
+    file, undistorted and area-downscaled."""
+    img = rd.folder / f"{rd.ids[i]}.png"
+    rgb, alpha = read_rgb(img, rd.bg, f"id {rd.ids[i]!r}")
+    h, w = rgb.shape[:2]
+    _check_image_size(img, hc, w, h, rd.factor)
+    cam = hc.camera(rd.center, rd.scale, rd.factor, w, h, rd.times[i], name)
+    rgb, alpha = _undistorted(rgb, alpha, hc, cam, rd)
+    if rd.extra > 1:
+        rgb = area_downscale(rgb, rd.extra)
+        alpha = None if alpha is None else area_downscale(alpha[:, :, None], rd.extra)[:, :, 0]
+        cam = downscale_camera(cam, rd.extra)
+    rgb = np.ascontiguousarray(rgb, np.float32)
+    alpha = None if alpha is None else np.ascontiguousarray(alpha, np.float32)
+    return cam, rgb, alpha, img
+
+
+def _renamed(cam: Camera, name: str) -> Camera:
+    return Camera(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy,
+                  cam.world_to_camera, cam.time, name)
+
+
+def _load_frames(wanted: dict, cams: dict, rd: _Reading) -> dict[str, list[Frame]]:
+    """The frames of each split; an image that two splits share is decoded once."""
+    frames: dict[str, list[Frame]] = {}
+    loaded_by_index: dict[int, tuple] = {}
+    for s, idx in wanted.items():
+        out = []
+        for i in idx:
+            name = f"{s}/{rd.ids[i]}"
+            if i in loaded_by_index:  # test and val read the same images
+                cam, rgb, alpha, img = loaded_by_index[i]
+                out.append(Frame(_renamed(cam, name), rgb, alpha, img))
+                continue
+            loaded_by_index[i] = _load_frame(cams[i], i, name, rd)
+            out.append(Frame(*loaded_by_index[i]))
+        frames[s] = out
+    return frames
+
+
+def _initial_points(root: Path, center, scale):
+    """(points in the normalised frame, colours, file) of the first point file, or Nones."""
+    points = colours = None
+    points_path = find_point_cloud(root, POINT_FILES)
+    if points_path is not None:
+        raw, colours = read_points(points_path)
+        points = ((raw - center) * scale).astype(np.float32)
+    return points, colours, points_path
+
+
 def load_hypernerf(root, splits=("train", "test"), background=(0.0, 0.0, 0.0),
                    downscale: int = 1, frame_stride: int = 1,
                    undistort: bool = True) -> DNeRFScene:
@@ -256,72 +382,11 @@ def load_hypernerf(root, splits=("train", "test"), background=(0.0, 0.0, 0.0),
     folder, extra = _image_folder(root, downscale)
     factor = 1.0 / downscale if extra == 1 else 1.0  # the camera scale of the files read
 
-    # check every camera file and image of the requested splits before decoding any image
     wanted = {s: index[SPLIT_ALIASES[s]][::frame_stride] for s in splits}
-    cams: dict[int, HyperNeRFCamera] = {}
-    for s, idx in wanted.items():
-        for i in idx:
-            if i not in cams:
-                cam_path = root / "camera" / f"{ids[i]}.json"
-                if not cam_path.is_file():
-                    raise DatasetError(f"{cam_path}: camera file not found (id {ids[i]!r} of "
-                                       f"{root / 'dataset.json'})")
-                cams[i] = read_hypernerf_camera(cam_path)
-                if not undistort and (cams[i].distorted or abs(cams[i].skew) > DISTORTION_EPS):
-                    fld = "skew" if not cams[i].distorted else "radial_distortion"
-                    raise DatasetError(
-                        f"{cam_path}: field '{fld}': the camera is distorted or skewed and "
-                        f"undistortion is off; load with undistort=True to resample the image "
-                        f"into a pinhole camera")
-            img = folder / f"{ids[i]}.png"
-            if not img.is_file():
-                raise DatasetError(f"{img}: image file not found (id {ids[i]!r})")
-
-    maps: dict[tuple, tuple] = {}
-    frames: dict[str, list[Frame]] = {}
-    loaded_by_index: dict[int, tuple] = {}
-    for s, idx in wanted.items():
-        out = []
-        for i in idx:
-            if i in loaded_by_index:  # test and val read the same images
-                cam, rgb, alpha, img = loaded_by_index[i]
-                cam = Camera(cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy,
-                             cam.world_to_camera, cam.time, f"{s}/{ids[i]}")
-                out.append(Frame(cam, rgb, alpha, img))
-                continue
-            hc = cams[i]
-            img = folder / f"{ids[i]}.png"
-            rgb, alpha = read_rgb(img, bg, f"id {ids[i]!r}")
-            h, w = rgb.shape[:2]
-            exp_w, exp_h = hc.size[0] * factor, hc.size[1] * factor
-            if abs(w - exp_w) >= 1.0 or abs(h - exp_h) >= 1.0:
-                raise DatasetError(f"{img}: image is {w}x{h} but {hc.path} field 'image_size' "
-                                   f"{list(hc.size)} at scale {factor:g} gives "
-                                   f"{exp_w:g}x{exp_h:g}")
-            cam = hc.camera(center, scale, factor, w, h, times[i], f"{s}/{ids[i]}")
-            if hc.distorted or abs(hc.skew) > DISTORTION_EPS:
-                key = (w, h, cam.fx, cam.fy, cam.cx, cam.cy, hc.skew * factor,
-                       tuple(hc.radial), tuple(hc.tangential))
-                if key not in maps:
-                    maps[key] = undistortion_maps(w, h, cam.fx, cam.fy, cam.cx, cam.cy,
-                                                  hc.skew * factor, hc.radial, hc.tangential)
-                rgb = remap(rgb, *maps[key])
-                alpha = None if alpha is None else remap(alpha, *maps[key])
-            if extra > 1:
-                rgb = area_downscale(rgb, extra)
-                alpha = None if alpha is None else area_downscale(alpha[:, :, None], extra)[:, :, 0]
-                cam = downscale_camera(cam, extra)
-            rgb = np.ascontiguousarray(rgb, np.float32)
-            alpha = None if alpha is None else np.ascontiguousarray(alpha, np.float32)
-            loaded_by_index[i] = (cam, rgb, alpha, img)
-            out.append(Frame(cam, rgb, alpha, img))
-        frames[s] = out
-
-    points = colours = None
-    points_path = find_point_cloud(root, POINT_FILES)
-    if points_path is not None:
-        raw, colours = read_points(points_path)
-        points = ((raw - center) * scale).astype(np.float32)
+    cams = _checked_cameras(root, ids, wanted, folder, undistort)
+    frames = _load_frames(wanted, cams, _Reading(ids, times, center, scale, folder, extra,
+                                                 factor, bg))
+    points, colours, points_path = _initial_points(root, center, scale)
 
     loaded = [f.time for fs in frames.values() for f in fs]
     scene = DNeRFScene(root=root, frames=frames, background=tuple(float(x) for x in bg),

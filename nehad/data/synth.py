@@ -275,6 +275,79 @@ def class_mapping(objects) -> dict[str, str]:
     return names
 
 
+def _sample_directions(camera: Camera, c2w_rot: np.ndarray, window, s_: int) -> np.ndarray:
+    """World directions (h, w, 3) of the supersample rays of the pixel `window` = (v0, v1, u0,
+    u1). Camera-space direction (dx, dy, 1): the ray parameter equals the view depth z."""
+    v0, v1, u0, u1 = window
+    us = u0 + (np.arange((u1 - u0) * s_) + 0.5) / s_
+    vs = v0 + (np.arange((v1 - v0) * s_) + 0.5) / s_
+    dx = (us - camera.cx) / camera.fx
+    dy = (vs - camera.cy) / camera.fy
+    return (dx[None, :, None] * c2w_rot[:, 0] + dy[:, None, None] * c2w_rot[:, 1]
+            + c2w_rot[:, 2])
+
+
+def _shaded_colour(obj, s: np.ndarray, normal: np.ndarray, origin: np.ndarray,
+                   d: np.ndarray) -> np.ndarray:
+    """Colour of `obj` where the rays ``origin + s d`` hit it: its surface colour lit by the
+    light and the ambient term (unlit surfaces unshaded)."""
+    if obj.surface.unlit:
+        shade = np.ones(s.shape)
+    else:
+        shade = _AMBIENT + (1.0 - _AMBIENT) * np.clip(normal @ _LIGHT, 0.0, None)
+    points = origin + np.where(np.isfinite(s), s, 0.0)[..., None] * d
+    return shade[..., None] * _surface_colour(obj, points)
+
+
+def _draw_object(k: int, obj, camera: Camera, w2c: np.ndarray, s_: int, buffers):
+    """Ray-cast object `k` into the supersample `buffers` (depth, colour, ids) where it is in
+    front of what is there. Returns its pixel window (v0, v1, u0, u1), or None when it drew
+    nothing."""
+    depth, colour, ids = buffers
+    window = _screen_window(obj, camera, w2c)
+    v0, v1, u0, u1 = window
+    if v0 >= v1 or u0 >= u1:
+        return None
+    d = _sample_directions(camera, w2c[:3, :3].T, window, s_)
+    origin = camera.centre
+    s, normal = _intersect(obj, origin, d)
+    win = (slice(v0 * s_, v1 * s_), slice(u0 * s_, u1 * s_))
+    closer = s < depth[win]
+    if not closer.any():
+        return None
+    rgb = _shaded_colour(obj, s, normal, origin, d)
+    depth[win] = np.where(closer, s, depth[win])
+    colour[win] = np.where(closer[..., None], rgb, colour[win])
+    ids[win] = np.where(closer, k, ids[win])
+    return window
+
+
+def _average_samples(colour: np.ndarray, ids: np.ndarray, box, h: int, w: int,
+                     s_: int) -> np.ndarray:
+    """(h, w, 4) premultiplied RGBA: the supersamples averaged, only inside the pixel
+    rectangle `box` that something was drawn in (uncovered samples count as 0)."""
+    rgba = np.zeros((h, w, 4), dtype=np.float32)
+    v0, v1, u0, u1 = box
+    if v0 < v1 and u0 < u1:
+        hh, ww = v1 - v0, u1 - u0
+        win = (slice(v0 * s_, v1 * s_), slice(u0 * s_, u1 * s_))
+        hit = (ids[win] >= 0).astype(np.float32)[..., None]
+        both = np.concatenate([colour[win], hit], axis=-1)
+        rgba[v0:v1, u0:u1] = both.reshape(hh, s_, ww * s_, 4).sum(axis=1, dtype=np.float64).reshape(
+            hh, ww, s_, 4).sum(axis=2) / (s_ * s_)
+    return rgba
+
+
+def _coverage(ids: np.ndarray, n_objects: int, h: int, w: int, s_: int) -> np.ndarray:
+    """float32 (h, w, n_objects): the fraction of each pixel's samples where object k is in
+    front."""
+    ids4 = ids.reshape(h, s_, w, s_)
+    coverage = np.stack([(ids4 == k).mean(axis=(1, 3)) for k in range(n_objects)], axis=-1)
+    if not n_objects:
+        coverage = np.zeros((h, w, 0))
+    return coverage.astype(np.float32)
+
+
 def render_view(objects, camera: Camera, supersample: int = 3, return_coverage: bool = False):
     """Ray-cast `objects` from `camera` (a :class:`~nehad.runtime.cameras.Camera`, OpenCV axes).
 
@@ -292,54 +365,19 @@ def render_view(objects, camera: Camera, supersample: int = 3, return_coverage: 
         raise ValueError(f"supersample: expected an integer >= 1, got {supersample!r}")
     h, w = camera.height, camera.width
     w2c = np.asarray(camera.world_to_camera, dtype=np.float64)
-    c2w_rot = w2c[:3, :3].T
-    origin = camera.centre
-    depth = np.full((h * s_, w * s_), np.inf)
-    colour = np.zeros((h * s_, w * s_, 3), dtype=np.float32)
-    ids = np.full((h * s_, w * s_), -1, dtype=np.int16)
+    buffers = (np.full((h * s_, w * s_), np.inf),
+               np.zeros((h * s_, w * s_, 3), dtype=np.float32),
+               np.full((h * s_, w * s_), -1, dtype=np.int16))
     box = [h, 0, w, 0]  # pixel rectangle touched by some object
     for k, obj in enumerate(objects):
-        v0, v1, u0, u1 = _screen_window(obj, camera, w2c)
-        if v0 >= v1 or u0 >= u1:
-            continue
-        us = u0 + (np.arange((u1 - u0) * s_) + 0.5) / s_
-        vs = v0 + (np.arange((v1 - v0) * s_) + 0.5) / s_
-        dx = (us - camera.cx) / camera.fx
-        dy = (vs - camera.cy) / camera.fy
-        # Camera-space direction (dx, dy, 1): the ray parameter equals the view depth z.
-        d = (dx[None, :, None] * c2w_rot[:, 0] + dy[:, None, None] * c2w_rot[:, 1]
-             + c2w_rot[:, 2])
-        s, normal = _intersect(obj, origin, d)
-        win = (slice(v0 * s_, v1 * s_), slice(u0 * s_, u1 * s_))
-        closer = s < depth[win]
-        if not closer.any():
-            continue
-        if obj.surface.unlit:
-            shade = np.ones(s.shape)
-        else:
-            shade = _AMBIENT + (1.0 - _AMBIENT) * np.clip(normal @ _LIGHT, 0.0, None)
-        points = origin + np.where(np.isfinite(s), s, 0.0)[..., None] * d
-        rgb = shade[..., None] * _surface_colour(obj, points)
-        depth[win] = np.where(closer, s, depth[win])
-        colour[win] = np.where(closer[..., None], rgb, colour[win])
-        ids[win] = np.where(closer, k, ids[win])
-        box = [min(box[0], v0), max(box[1], v1), min(box[2], u0), max(box[3], u1)]
-    rgba = np.zeros((h, w, 4), dtype=np.float32)
-    v0, v1, u0, u1 = box
-    if v0 < v1 and u0 < u1:  # average the supersamples, only where something was drawn
-        hh, ww = v1 - v0, u1 - u0
-        win = (slice(v0 * s_, v1 * s_), slice(u0 * s_, u1 * s_))
-        hit = (ids[win] >= 0).astype(np.float32)[..., None]
-        both = np.concatenate([colour[win], hit], axis=-1)  # uncovered samples count as 0
-        rgba[v0:v1, u0:u1] = both.reshape(hh, s_, ww * s_, 4).sum(axis=1, dtype=np.float64).reshape(
-            hh, ww, s_, 4).sum(axis=2) / (s_ * s_)
+        drawn = _draw_object(k, obj, camera, w2c, s_, buffers)
+        if drawn is not None:
+            v0, v1, u0, u1 = drawn
+            box = [min(box[0], v0), max(box[1], v1), min(box[2], u0), max(box[3], u1)]
+    rgba = _average_samples(buffers[1], buffers[2], box, h, w, s_)
     if not return_coverage:
         return rgba
-    ids4 = ids.reshape(h, s_, w, s_)
-    coverage = np.stack([(ids4 == k).mean(axis=(1, 3)) for k in range(len(objects))], axis=-1)
-    if not objects:
-        coverage = np.zeros((h, w, 0))
-    return rgba, coverage.astype(np.float32)
+    return rgba, _coverage(buffers[2], len(objects), h, w, s_)
 
 
 def _surface_points(objects, n: int, rng: np.random.Generator):
@@ -392,19 +430,9 @@ def write_frame(root: Path, split: str, name: str, objects, camera: Camera,
                 label_mask(objects, coverage).astype(np.float32) / 255.0, bit_depth=8)
 
 
-def synthesize_scene(out_dir, scene: str = "spheres", resolution: int = 64, frames: int = 50,
-                     seed: int = 0, fixed_time: float | None = None, fov_deg: float = 45.0,
-                     supersample: int = 3, points: int = 2000, progress=None) -> Path:
-    """Write a synthetic dynamic scene in the D-NeRF layout to `out_dir` and return its path.
-    `progress`, if given, is called once per image written.
-
-    `resolution` is the square image size, `frames` the number of train frames (val and test get
-    ``max(1, round(0.1 * frames))`` each). Train frame k has time ``k / (frames - 1)``; val and test
-    times are drawn uniformly in [0, 1]. With `fixed_time` every frame of every split has that time
-    (a static scene). Cameras: radius 4 around the origin, random azimuth, elevation 10-60 degrees,
-    horizontal field of view `fov_deg`. `points` > 0 also writes ``points3d.ply`` with that many
-    surface points at time 0.5 (or `fixed_time`). Same arguments give the same bytes.
-    """
+def _check_synth_args(scene: str, resolution, frames, fixed_time, fov_deg):
+    """(resolution, frames, fixed_time) of :func:`synthesize_scene` as int, int and float (or
+    None); ValueError naming the first invalid argument."""
     if scene not in SCENES:
         raise ValueError(f"scene: unknown synthetic scene {scene!r}; expected one of {', '.join(SCENES)}")
     resolution, frames = int(resolution), int(frames)
@@ -418,7 +446,71 @@ def synthesize_scene(out_dir, scene: str = "spheres", resolution: int = 64, fram
             raise ValueError(f"fixed_time: expected a time in [0, 1], got {fixed_time}")
     if not 1.0 <= fov_deg <= 170.0:
         raise ValueError(f"fov_deg: expected 1..170 degrees, got {fov_deg}")
+    return resolution, frames, fixed_time
 
+
+@dataclass(frozen=True)
+class _Shoot:
+    """What every view of a :func:`synthesize_scene` call shares."""
+
+    out: Path
+    scene: str
+    resolution: int
+    focal: float
+    angle_x: float
+    digits: int  # of the frame numbers in the file names
+    supersample: int
+    fixed_time: float | None
+    progress: object
+
+
+def _write_view(job: _Shoot, split: str, k: int, azimuth: float, elevation: float,
+                t: float) -> dict:
+    """Render and write view `k` of `split` from the orbit camera at (azimuth, elevation);
+    returns its ``frames`` record of the transforms file."""
+    c2w = orbit_camera_to_world(azimuth, elevation)
+    cam = Camera.from_camera_to_world(c2w, job.resolution, job.resolution, job.focal, job.focal,
+                                      time=t)
+    name = f"r_{k:0{job.digits}d}"
+    write_frame(job.out, split, name, scene_objects(job.scene, t), cam, job.supersample)
+    if job.progress is not None:
+        job.progress()
+    return {"file_path": f"./{split}/{name}", "time": t,
+            "transform_matrix": [[float(x) for x in row] for row in c2w]}
+
+
+def _write_split(job: _Shoot, split: str, rng: np.random.Generator, times, n: int) -> None:
+    """The `n` views of `split` and ``transforms_<split>.json``: random azimuth, elevation
+    10-60 degrees; `times` None draws sorted uniform times (all `fixed_time` when set)."""
+    azimuth = rng.uniform(0.0, 2.0 * math.pi, size=n)
+    elevation = np.radians(rng.uniform(10.0, 60.0, size=n))
+    if times is None:
+        times = np.sort(rng.uniform(0.0, 1.0, size=n)).tolist()
+    if job.fixed_time is not None:
+        times = [job.fixed_time] * n
+    (job.out / split).mkdir(exist_ok=True)
+    records = [_write_view(job, split, k, float(azimuth[k]), float(elevation[k]), float(times[k]))
+               for k in range(n)]
+    doc = {"camera_angle_x": job.angle_x, "frames": records}
+    atomic_write_bytes(job.out / f"transforms_{split}.json",
+                       (json.dumps(doc, indent=2) + "\n").encode("utf-8"))
+
+
+def synthesize_scene(out_dir, scene: str = "spheres", resolution: int = 64, frames: int = 50,
+                     seed: int = 0, fixed_time: float | None = None, fov_deg: float = 45.0,
+                     supersample: int = 3, points: int = 2000, progress=None) -> Path:
+    """Write a synthetic dynamic scene in the D-NeRF layout to `out_dir` and return its path.
+    `progress`, if given, is called once per image written.
+
+    `resolution` is the square image size, `frames` the number of train frames (val and test get
+    ``max(1, round(0.1 * frames))`` each). Train frame k has time ``k / (frames - 1)``; val and test
+    times are drawn uniformly in [0, 1]. With `fixed_time` every frame of every split has that time
+    (a static scene). Cameras: radius 4 around the origin, random azimuth, elevation 10-60 degrees,
+    horizontal field of view `fov_deg`. `points` > 0 also writes ``points3d.ply`` with that many
+    surface points at time 0.5 (or `fixed_time`). Same arguments give the same bytes.
+    """
+    resolution, frames, fixed_time = _check_synth_args(scene, resolution, frames, fixed_time,
+                                                       fov_deg)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     angle_x = math.radians(fov_deg)
@@ -431,30 +523,10 @@ def synthesize_scene(out_dir, scene: str = "spheres", resolution: int = 64, fram
         "val": (rng_val, None),
         "test": (rng_test, None),
     }
-    digits = max(3, len(str(frames - 1)))
+    job = _Shoot(out, scene, resolution, focal, angle_x, max(3, len(str(frames - 1))),
+                 supersample, fixed_time, progress)
     for split, (rng, times) in plan.items():
-        n = len(times) if times is not None else n_held
-        azimuth = rng.uniform(0.0, 2.0 * math.pi, size=n)
-        elevation = np.radians(rng.uniform(10.0, 60.0, size=n))
-        if times is None:
-            times = np.sort(rng.uniform(0.0, 1.0, size=n)).tolist()
-        if fixed_time is not None:
-            times = [fixed_time] * n
-        (out / split).mkdir(exist_ok=True)
-        records = []
-        for k in range(n):
-            c2w = orbit_camera_to_world(float(azimuth[k]), float(elevation[k]))
-            t = float(times[k])
-            cam = Camera.from_camera_to_world(c2w, resolution, resolution, focal, focal, time=t)
-            name = f"r_{k:0{digits}d}"
-            write_frame(out, split, name, scene_objects(scene, t), cam, supersample)
-            if progress is not None:
-                progress()
-            records.append({"file_path": f"./{split}/{name}", "time": t,
-                            "transform_matrix": [[float(x) for x in row] for row in c2w]})
-        doc = {"camera_angle_x": angle_x, "frames": records}
-        atomic_write_bytes(out / f"transforms_{split}.json",
-                            (json.dumps(doc, indent=2) + "\n").encode("utf-8"))
+        _write_split(job, split, rng, times, len(times) if times is not None else n_held)
     atomic_write_bytes(out / "class_mapping.json", (json.dumps(
         class_mapping(scene_objects(scene, 0.0)), indent=2) + "\n").encode("utf-8"))
     if points > 0:
@@ -462,3 +534,4 @@ def synthesize_scene(out_dir, scene: str = "spheres", resolution: int = 64, fram
         pts, cols = _surface_points(scene_objects(scene, t_pts), int(points), rng_pts)
         atomic_write_bytes(out / "points3d.ply", _ply_bytes(pts, cols))
     return out
+

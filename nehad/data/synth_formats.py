@@ -29,6 +29,7 @@ mp4 files with one PyAV/x264 build; another build may encode them differently, l
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -139,19 +140,106 @@ def write_dnerf_twin(out, views: dict[str, list[tuple[Camera, np.ndarray, str]]]
 # HyperNeRF
 
 
-def _write_hypernerf(out: Path, scene, size, frames, seed, fixed_time, points, progress, bg,
-                     twin, distortion, skew, fov_deg, supersample):
+@dataclass(frozen=True)
+class _HyperCapture:
+    """What every view of a hypernerf write shares: the scene drawn, the image size and
+    intrinsics, the lens (radial `k`, tangential `p`, `skew`), the arc the cameras sweep (from
+    azimuth `az0`, elevation `el0`) and the raw frame's `center`."""
+
+    out: Path
+    scene: str
+    w: int
+    h: int
+    focal: float
+    px: float
+    py: float
+    k: tuple
+    p: tuple
+    skew: float
+    distorted: bool
+    az0: float
+    el0: float
+    frames: int
+    center: np.ndarray
+    fixed_time: float | None
+    bg: np.ndarray
+    supersample: int
+    progress: object
+
+
+def _hypernerf_capture(out: Path, scene, size, frames, rng, fixed_time, progress, bg,
+                       distortion, skew, fov_deg, supersample) -> _HyperCapture:
+    """The capture of a hypernerf write; draws the arc's start from `rng`."""
     w, h = size
-    rng = np.random.default_rng(np.random.SeedSequence(int(seed)).spawn(1)[0])
     focal = 0.5 * w / math.tan(0.5 * math.radians(fov_deg))
-    px, py = 0.53 * w, 0.48 * h  # off-centre principal point
     k = tuple(float(v) for v in (distortion or (0.0,) * 5)[:3])
     p = tuple(float(v) for v in (distortion or (0.0,) * 5)[3:5])
     az0 = rng.uniform(0.0, 2.0 * math.pi)
     el0 = math.radians(rng.uniform(20.0, 35.0))
-    arc, baseline = math.radians(60.0), math.radians(8.0)
-    center = np.asarray(HYPERNERF_CENTER)
+    return _HyperCapture(out, scene, w, h, focal, 0.53 * w, 0.48 * h,  # off-centre principal point
+                         k, p, skew, distortion is not None, az0, el0, frames,
+                         np.asarray(HYPERNERF_CENTER), fixed_time, bg, supersample, progress)
+
+
+def _hypernerf_camera(cap: _HyperCapture, rig: str, kk: int) -> Camera:
+    """The pinhole camera of time step `kk` of the "left" or "right" rig camera: along a 60
+    degree arc, the right one 8 degrees further, elevation swinging by 6 degrees."""
+    frames = cap.frames
     steps = frames - 1 if frames > 1 else 1
+    arc, baseline = math.radians(60.0), math.radians(8.0)
+    s = kk / steps if frames > 1 else 0.0
+    az = cap.az0 + arc * s + (baseline if rig == "right" else 0.0)
+    el = cap.el0 + math.radians(6.0) * math.sin(2.0 * math.pi * s)
+    c2w = orbit_camera_to_world(az, el, _RADIUS)
+    t = kk / (frames - 1) if frames > 1 else 0.0  # = warp_id / max(warp_id), the reader's
+    return Camera.from_camera_to_world(c2w, cap.w, cap.h, cap.focal, cap.focal, cap.px, cap.py,
+                                       time=t)
+
+
+def _hypernerf_camera_doc(cap: _HyperCapture, cam: Camera) -> dict:
+    """The nerfies ``camera/<id>.json`` of `cam` (position in the raw frame)."""
+    r = cam.world_to_camera[:3, :3]
+    return {"orientation": [[float(x) for x in row] for row in r],
+            "position": [float(x) for x in cam.centre / HYPERNERF_SCALE + cap.center],
+            "focal_length": cap.focal, "principal_point": [cap.px, cap.py],
+            "skew": float(cap.skew), "pixel_aspect_ratio": 1.0, "radial_distortion": list(cap.k),
+            "tangential_distortion": list(cap.p), "image_size": [cap.w, cap.h]}
+
+
+def _write_hypernerf_view(cap: _HyperCapture, rig: str, kk: int):
+    """Render time step `kk` from the `rig` camera and write its images (1x, 2x; distorted
+    when the lens is) and camera file. Returns (image id, camera, pinhole image)."""
+    cam = _hypernerf_camera(cap, rig, kk)
+    t_scene = cam.time if cap.fixed_time is None else cap.fixed_time
+    pinhole = _composite(render_view(scene_objects(cap.scene, t_scene), cam, cap.supersample),
+                         cap.bg)
+    img = pinhole
+    if cap.distorted or cap.skew:
+        img = _distort_image(pinhole, cam, cap.skew, cap.k, cap.p)
+    image_id = f"{rig}_{kk:06d}"
+    write_image(cap.out / "rgb" / "1x" / f"{image_id}.png", _q8(img))
+    write_image(cap.out / "rgb" / "2x" / f"{image_id}.png", _q8(area_downscale(img, 2)))
+    if cap.progress is not None:
+        cap.progress()
+    atomic_write_json(cap.out / "camera" / f"{image_id}.json", _hypernerf_camera_doc(cap, cam))
+    return image_id, cam, pinhole
+
+
+def _write_hypernerf_points(out: Path, scene, points, fixed_time, rng, center: np.ndarray):
+    """Write `points` surface points to ``points.npy`` in the raw frame; returns them in the
+    normalised frame (what the reader will compute) and their colours."""
+    t_pts = 0.5 if fixed_time is None else fixed_time
+    pts, cols = _surface_points(scene_objects(scene, t_pts), int(points), rng)
+    raw = pts.astype(np.float64) / HYPERNERF_SCALE + center
+    atomic_write_bytes(out / "points.npy", _npy_bytes(raw))
+    return (raw - center) * HYPERNERF_SCALE, cols
+
+
+def _write_hypernerf(out: Path, scene, size, frames, seed, fixed_time, points, progress, bg,
+                     twin, distortion, skew, fov_deg, supersample):
+    rng = np.random.default_rng(np.random.SeedSequence(int(seed)).spawn(1)[0])
+    cap = _hypernerf_capture(out, scene, size, frames, rng, fixed_time, progress, bg,
+                             distortion, skew, fov_deg, supersample)
     for sub in ("camera", "rgb/1x", "rgb/2x"):
         (out / sub).mkdir(parents=True, exist_ok=True)
 
@@ -160,38 +248,14 @@ def _write_hypernerf(out: Path, scene, size, frames, seed, fixed_time, points, p
     ids, train_ids, val_ids, meta = [], [], [], {}
     twin_views: dict[str, list] = {"train": [], "val": [], "test": []}
     for rig, cam_id, kk, split in plan:
-        s = kk / steps if frames > 1 else 0.0
-        az = az0 + arc * s + (baseline if rig == "right" else 0.0)
-        el = el0 + math.radians(6.0) * math.sin(2.0 * math.pi * s)
-        c2w = orbit_camera_to_world(az, el, _RADIUS)
-        t = kk / (frames - 1) if frames > 1 else 0.0  # = warp_id / max(warp_id), the reader's
-        cam = Camera.from_camera_to_world(c2w, w, h, focal, focal, px, py, time=t)
-        t_scene = t if fixed_time is None else fixed_time
-        pinhole = _composite(render_view(scene_objects(scene, t_scene), cam, supersample), bg)
-        img = pinhole
-        if distortion is not None or skew:
-            img = _distort_image(pinhole, cam, skew, k, p)
-        image_id = f"{rig}_{kk:06d}"
-        write_image(out / "rgb" / "1x" / f"{image_id}.png", _q8(img))
-        write_image(out / "rgb" / "2x" / f"{image_id}.png", _q8(area_downscale(img, 2)))
-        if progress is not None:
-            progress()
-        r = cam.world_to_camera[:3, :3]
-        doc = {"orientation": [[float(x) for x in row] for row in r],
-               "position": [float(x) for x in cam.centre / HYPERNERF_SCALE + center],
-               "focal_length": focal, "principal_point": [px, py], "skew": float(skew),
-               "pixel_aspect_ratio": 1.0, "radial_distortion": list(k),
-               "tangential_distortion": list(p), "image_size": [w, h]}
-        atomic_write_json(out / "camera" / f"{image_id}.json", doc)
+        image_id, cam, pinhole = _write_hypernerf_view(cap, rig, kk)
         ids.append(image_id)
         (train_ids if split == "train" else val_ids).append(image_id)
         meta[image_id] = {"warp_id": kk, "appearance_id": kk, "camera_id": cam_id}
-        if split == "train":
-            twin_views["train"].append((cam, pinhole, image_id))
-        else:
-            twin_views["val"].append((cam, pinhole, image_id))
-            twin_views["test"].append((cam, pinhole, image_id))
-    atomic_write_json(out / "scene.json", {"scale": HYPERNERF_SCALE, "center": center.tolist(),
+        for twin_split in (("train",) if split == "train" else ("val", "test")):
+            twin_views[twin_split].append((cam, pinhole, image_id))
+    atomic_write_json(out / "scene.json", {"scale": HYPERNERF_SCALE,
+                                           "center": cap.center.tolist(),
                                            "near": (_RADIUS - 2.3) * 1.0, "far": _RADIUS + 2.3})
     atomic_write_json(out / "metadata.json", meta)
     atomic_write_json(out / "dataset.json", {"count": len(ids), "num_exemplars": len(train_ids),
@@ -199,12 +263,7 @@ def _write_hypernerf(out: Path, scene, size, frames, seed, fixed_time, points, p
                                              "val_ids": val_ids})
     pts = cols = None
     if points > 0:
-        t_pts = 0.5 if fixed_time is None else fixed_time
-        pts, cols = _surface_points(scene_objects(scene, t_pts), int(points), rng)
-        raw = pts.astype(np.float64) / HYPERNERF_SCALE + center
-        buf = _npy_bytes(raw)
-        atomic_write_bytes(out / "points.npy", buf)
-        pts = (raw - center) * HYPERNERF_SCALE  # what the reader will compute
+        pts, cols = _write_hypernerf_points(out, scene, points, fixed_time, rng, cap.center)
     if twin is not None:
         write_dnerf_twin(twin, twin_views, pts, cols)
 

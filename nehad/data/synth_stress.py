@@ -74,80 +74,110 @@ def _smooth(x: float) -> float:
     return x * x * (3.0 - 2.0 * x)
 
 
+def _occluder(t: float) -> list:
+    """A small sphere on a long loop that passes behind a large static wall."""
+    th = 2.0 * math.pi * t
+    return [
+        _FLOOR,
+        Box("wall", np.array([0.0, 0.0, 0.75]), np.array([0.06, 1.1, 0.75]), np.eye(3),
+            (0.2, 0.3, 0.9)),
+        Sphere("sphere", np.array([1.0 * math.cos(th), 1.45 * math.sin(th),
+                                   0.4 + 0.25 * math.sin(2.0 * th)]), 0.11, (1.0, 0.55, 0.1)),
+    ]
+
+
+def _crossing(t: float) -> list:
+    """Two identical spheres whose paths cross (at different times)."""
+    colour = (0.35, 0.8, 0.45)
+    return [
+        _FLOOR,
+        Sphere("sphere_1", np.array([2.2 * (t - 0.35), 1.5 * (t - 0.35), 0.25]), 0.25, colour),
+        Sphere("sphere_2", np.array([2.2 * (t - 0.65), -1.5 * (t - 0.65), 0.25]), 0.25, colour),
+    ]
+
+
+def _scaling(t: float) -> list:
+    """A sphere that grows 5.6-fold and a box that shrinks 5-fold."""
+    r = 0.08 * (0.45 / 0.08) ** t
+    h = 0.4 * (0.08 / 0.4) ** t
+    return [
+        _FLOOR,
+        Sphere("grower", np.array([-0.6, -0.1, r]), r, (0.9, 0.3, 0.25)),
+        Box("shrinker", np.array([0.6, 0.3, h]), np.array([h, h, h]),
+            _axis_angle([0.0, 0.0, 1.0], 0.5), (0.25, 0.5, 0.9)),
+    ]
+
+
+def _split_merge(t: float) -> list:
+    """One sphere splitting into two, and two spheres merging into one."""
+    split = _smooth((t - 0.1) / 0.4)
+    merge = 1.0 - _smooth((t - 0.5) / 0.4)
+    a = np.array([-0.6, -0.3, 0.22])
+    m = np.array([0.6, 0.5, 0.22])
+    pink, blue = (0.85, 0.3, 0.6), (0.2, 0.6, 0.9)
+    return [
+        _FLOOR,
+        Sphere("piece_stays", a, 0.22, pink),
+        Sphere("piece_splits_off", a + split * np.array([0.9, -0.6, 0.0]), 0.22, pink),
+        Sphere("merger_1", m + merge * np.array([0.0, 0.9, 0.0]), 0.22, blue),
+        Sphere("merger_2", m + merge * np.array([-0.8, -0.4, 0.0]), 0.22, blue),
+    ]
+
+
+def _spinning_textures(t: float) -> list:
+    """A checkered sphere that spins and bounces, a striped box that spins."""
+    r = 0.35
+    return [
+        _FLOOR,
+        Sphere("checker_sphere",
+               np.array([-0.5 + 1.0 * t, -0.2, r + 0.7 * abs(math.sin(3.0 * math.pi * t))]), r,
+               (0.6, 0.2, 0.8), rotation=_axis_angle([0.3, 0.2, 1.0], 6.0 * math.pi * t),
+               surface=Surface("checker", (0.95, 0.9, 0.3), cells=8)),
+        Box("striped_box", np.array([0.7, 0.6, 0.3]), np.array([0.3, 0.2, 0.3]),
+            _axis_angle([0.0, 0.0, 1.0], 4.0 * math.pi * t), (0.1, 0.5, 0.3),
+            surface=Surface("stripes", (0.95, 0.95, 0.95), cells=6)),
+    ]
+
+
+def _thin_rod(t: float) -> list:
+    """A rod 23 times longer than it is thick, spinning four turns."""
+    return [
+        _FLOOR,
+        Box("rod", np.array([0.0, 0.0, 0.6]), np.array([0.7, 0.03, 0.03]),
+            _axis_angle([0.3, 0.2, 1.0], 8.0 * math.pi * t), (0.9, 0.25, 0.2)),
+    ]
+
+
+def _fast_few_frames(t: float) -> list:
+    """A ball that flies across the scene within 15% of the time range and is hidden under the
+    floor the rest of the time, beside a still block."""
+    u = (t - 0.33) / 0.15  # in flight over timestamps 40-57: test frames 54-56 see it
+    if u < 0.0:
+        ball = np.array([-1.5, 0.3, -0.6])  # under the floor: hidden from every camera
+    elif u > 1.0:
+        ball = np.array([1.5, 0.3, -0.6])
+    else:
+        ball = np.array([-1.5 + 3.0 * u, 0.3, -0.3 + 6.4 * u * (1.0 - u)])
+    return [
+        _FLOOR,
+        Box("block", np.array([0.0, -0.7, 0.25]), np.array([0.25, 0.25, 0.25]),
+            _axis_angle([0.0, 0.0, 1.0], 0.3), (0.3, 0.7, 0.35)),
+        Sphere("ball", ball, 0.15, (0.95, 0.8, 0.1)),
+    ]
+
+
+#: The objects of each stress scene as a function of time, in STRESS_SCENES order.
+_SCENE_OBJECTS = {"occluder": _occluder, "crossing": _crossing, "scaling": _scaling,
+                  "split_merge": _split_merge, "spinning_textures": _spinning_textures,
+                  "thin_rod": _thin_rod, "fast_few_frames": _fast_few_frames}
+
+
 def stress_objects(name: str, t: float) -> list:
     """The objects of stress scene `name` at time `t` in [0, 1] (the floor first, unlabelled)."""
     t = float(t)
-    if name == "occluder":
-        th = 2.0 * math.pi * t
-        return [
-            _FLOOR,
-            Box("wall", np.array([0.0, 0.0, 0.75]), np.array([0.06, 1.1, 0.75]), np.eye(3),
-                (0.2, 0.3, 0.9)),
-            Sphere("sphere", np.array([1.0 * math.cos(th), 1.45 * math.sin(th),
-                                       0.4 + 0.25 * math.sin(2.0 * th)]), 0.11, (1.0, 0.55, 0.1)),
-        ]
-    if name == "crossing":
-        colour = (0.35, 0.8, 0.45)
-        return [
-            _FLOOR,
-            Sphere("sphere_1", np.array([2.2 * (t - 0.35), 1.5 * (t - 0.35), 0.25]), 0.25, colour),
-            Sphere("sphere_2", np.array([2.2 * (t - 0.65), -1.5 * (t - 0.65), 0.25]), 0.25, colour),
-        ]
-    if name == "scaling":
-        r = 0.08 * (0.45 / 0.08) ** t
-        h = 0.4 * (0.08 / 0.4) ** t
-        return [
-            _FLOOR,
-            Sphere("grower", np.array([-0.6, -0.1, r]), r, (0.9, 0.3, 0.25)),
-            Box("shrinker", np.array([0.6, 0.3, h]), np.array([h, h, h]),
-                _axis_angle([0.0, 0.0, 1.0], 0.5), (0.25, 0.5, 0.9)),
-        ]
-    if name == "split_merge":
-        split = _smooth((t - 0.1) / 0.4)
-        merge = 1.0 - _smooth((t - 0.5) / 0.4)
-        a = np.array([-0.6, -0.3, 0.22])
-        m = np.array([0.6, 0.5, 0.22])
-        pink, blue = (0.85, 0.3, 0.6), (0.2, 0.6, 0.9)
-        return [
-            _FLOOR,
-            Sphere("piece_stays", a, 0.22, pink),
-            Sphere("piece_splits_off", a + split * np.array([0.9, -0.6, 0.0]), 0.22, pink),
-            Sphere("merger_1", m + merge * np.array([0.0, 0.9, 0.0]), 0.22, blue),
-            Sphere("merger_2", m + merge * np.array([-0.8, -0.4, 0.0]), 0.22, blue),
-        ]
-    if name == "spinning_textures":
-        r = 0.35
-        return [
-            _FLOOR,
-            Sphere("checker_sphere",
-                   np.array([-0.5 + 1.0 * t, -0.2, r + 0.7 * abs(math.sin(3.0 * math.pi * t))]), r,
-                   (0.6, 0.2, 0.8), rotation=_axis_angle([0.3, 0.2, 1.0], 6.0 * math.pi * t),
-                   surface=Surface("checker", (0.95, 0.9, 0.3), cells=8)),
-            Box("striped_box", np.array([0.7, 0.6, 0.3]), np.array([0.3, 0.2, 0.3]),
-                _axis_angle([0.0, 0.0, 1.0], 4.0 * math.pi * t), (0.1, 0.5, 0.3),
-                surface=Surface("stripes", (0.95, 0.95, 0.95), cells=6)),
-        ]
-    if name == "thin_rod":
-        return [
-            _FLOOR,
-            Box("rod", np.array([0.0, 0.0, 0.6]), np.array([0.7, 0.03, 0.03]),
-                _axis_angle([0.3, 0.2, 1.0], 8.0 * math.pi * t), (0.9, 0.25, 0.2)),
-        ]
-    if name == "fast_few_frames":
-        u = (t - 0.33) / 0.15  # in flight over timestamps 40-57: test frames 54-56 see it
-        if u < 0.0:
-            ball = np.array([-1.5, 0.3, -0.6])  # under the floor: hidden from every camera
-        elif u > 1.0:
-            ball = np.array([1.5, 0.3, -0.6])
-        else:
-            ball = np.array([-1.5 + 3.0 * u, 0.3, -0.3 + 6.4 * u * (1.0 - u)])
-        return [
-            _FLOOR,
-            Box("block", np.array([0.0, -0.7, 0.25]), np.array([0.25, 0.25, 0.25]),
-                _axis_angle([0.0, 0.0, 1.0], 0.3), (0.3, 0.7, 0.35)),
-            Sphere("ball", ball, 0.15, (0.95, 0.8, 0.1)),
-        ]
-    raise _unknown(name)
+    if name not in STRESS_SCENES:
+        raise _unknown(name)
+    return _SCENE_OBJECTS[name](t)
 
 
 def rig_cameras() -> list[np.ndarray]:

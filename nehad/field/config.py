@@ -159,86 +159,100 @@ class FieldConfig:
 
     def validate(self) -> "FieldConfig":
         """Check every field; raise ValueError naming the first invalid one. Returns self."""
+        self._validate_encoder()
+        self._validate_network()
+        self._validate_switches()
+        self._validate_physics()
+        return self
 
-        def bad(name: str, why: str):
-            raise ValueError(f"FieldConfig.{name} = {getattr(self, name)!r}: {why}")
+    def _bad(self, name: str, why: str):
+        raise ValueError(f"FieldConfig.{name} = {getattr(self, name)!r}: {why}")
 
-        def finite(name):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                bad(name, "must be a finite number")
-            return float(v)
+    def _finite(self, name: str) -> float:
+        """The value of field `name` as a float; ValueError unless it is a finite number."""
+        v = getattr(self, name)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            self._bad(name, "must be a finite number")
+        return float(v)
 
-        def pos_int(name, minimum=1):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
-                bad(name, f"must be an integer >= {minimum}")
+    def _pos_int(self, name: str, minimum: int = 1) -> None:
+        """ValueError unless field `name` is an integer >= `minimum`."""
+        v = getattr(self, name)
+        if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
+            self._bad(name, f"must be an integer >= {minimum}")
 
-        pos_int("out_dim")
+    def _validate_encoder(self) -> None:
+        """The hex-plane fields: sizes, initialisation and regularisers."""
+        self._pos_int("out_dim")
         res = self.resolution
         if (not isinstance(res, (tuple, list)) or len(res) != 4
                 or any(isinstance(r, bool) or not isinstance(r, int) or r < 2 for r in res)):
-            bad("resolution", "must be 4 integers (x, y, z, t), each >= 2")
+            self._bad("resolution", "must be 4 integers (x, y, z, t), each >= 2")
         mr = self.multires
         if (not isinstance(mr, (tuple, list)) or len(mr) == 0
                 or any(isinstance(m, bool) or not isinstance(m, int) or m < 1 for m in mr)):
-            bad("multires", "must be a non-empty list of integers >= 1")
-        lo, hi = finite("plane_init_low"), finite("plane_init_high")
+            self._bad("multires", "must be a non-empty list of integers >= 1")
+        lo, hi = self._finite("plane_init_low"), self._finite("plane_init_high")
         if not lo < hi:
-            bad("plane_init_high", "must exceed plane_init_low")
-        finite("time_plane_init")
+            self._bad("plane_init_high", "must exceed plane_init_low")
+        self._finite("time_plane_init")
         if self.spatial_regularizer not in SPATIAL_REGULARIZERS:
-            bad("spatial_regularizer", f"must be one of {SPATIAL_REGULARIZERS}")
+            self._bad("spatial_regularizer", f"must be one of {SPATIAL_REGULARIZERS}")
         for name in ("reg_plane_weight", "reg_time_smoothness_weight", "reg_time_l1_weight"):
-            if finite(name) < 0:
-                bad(name, "must be >= 0")
-        pos_int("width", 2)
+            if self._finite(name) < 0:
+                self._bad(name, "must be >= 0")
+
+    def _validate_network(self) -> None:
+        """The trunk, the decoder and the HNN: sizes, activation and kernels."""
+        self._pos_int("width", 2)
         if self.width % 2:
-            bad("width", "must be even (h = (q, p) with d = W/2)")
-        pos_int("depth")
+            self._bad("width", "must be even (h = (q, p) with d = W/2)")
+        self._pos_int("depth")
         if self.decoder not in DECODERS:
-            bad("decoder", f"must be one of {DECODERS}")
-        pos_int("hnn_hidden")
-        pos_int("hnn_depth")
+            self._bad("decoder", f"must be one of {DECODERS}")
+        self._pos_int("hnn_hidden")
+        self._pos_int("hnn_depth")
         if self.activation not in SMOOTH_ACTIVATIONS:
             why = f"must be one of {SMOOTH_ACTIVATIONS}"
             if self.activation == "relu":
                 why += ("; ReLU makes grad_h F piecewise constant in h, so nothing upstream of "
                         "the HNN would learn through v")
-            bad("activation", why)
+            self._bad("activation", why)
         if self.hexplane_kernel not in ("numba", "torch"):
-            bad("hexplane_kernel", "must be numba or torch")
+            self._bad("hexplane_kernel", "must be numba or torch")
         if self.hnn_grad not in HNN_GRAD_MODES:
-            bad("hnn_grad", f"must be one of {HNN_GRAD_MODES}")
+            self._bad("hnn_grad", f"must be one of {HNN_GRAD_MODES}")
         if (isinstance(self.mipmap_levels, bool) or not isinstance(self.mipmap_levels, int)
                 or self.mipmap_levels < 0):
-            bad("mipmap_levels", "must be an integer >= 0 (0 = automatic)")
+            self._bad("mipmap_levels", "must be an integer >= 0 (0 = automatic)")
+
+    def _validate_switches(self) -> None:
+        """The on/off switches are bools."""
         for name in ("use_hnn", "verlet", "bed_position", "bed_scale", "rigidity",
                      "deform_opacity_sh", "mipmap"):
             if not isinstance(getattr(self, name), bool):
-                bad(name, "must be a bool")
-        if finite("hnn_init_gain") <= 0:
-            bad("hnn_init_gain", "must be > 0")
-        if finite("dt") <= 0:
-            bad("dt", "must be > 0")
+                self._bad(name, "must be a bool")
+
+    def _validate_physics(self) -> None:
+        """The integrator, BED, rigidity and appearance constants."""
+        if self._finite("hnn_init_gain") <= 0:
+            self._bad("hnn_init_gain", "must be > 0")
+        if self._finite("dt") <= 0:
+            self._bad("dt", "must be > 0")
         if self.bed_distance not in ("canonical", "deformed"):
-            bad("bed_distance", "must be 'canonical' or 'deformed'")
-        if finite("sigma_s_fraction") <= 0:
-            bad("sigma_s_fraction", "must be > 0")
-        if finite("sigma_t") <= 0:
-            bad("sigma_t", "must be > 0")
-        if finite("beta") <= 0:
-            bad("beta", "must be > 0")
-        if not 0.0 <= finite("gamma") < 1.0:
-            bad("gamma", "must lie in [0, 1)")
-        if not abs(finite("lam")) < 1.0:
-            bad("lam", "|lam| must be < 1 so that E_st >= 0 (masks <= 1)")
-        if finite("norm_eps") <= 0:
-            bad("norm_eps", "must be > 0")
-        if not 0.0 < finite("phi_max") <= 2 * math.pi:
-            bad("phi_max", "must lie in (0, 2 pi]")
-        pos_int("sh_coeffs")
-        return self
+            self._bad("bed_distance", "must be 'canonical' or 'deformed'")
+        for name in ("sigma_s_fraction", "sigma_t", "beta"):
+            if self._finite(name) <= 0:
+                self._bad(name, "must be > 0")
+        if not 0.0 <= self._finite("gamma") < 1.0:
+            self._bad("gamma", "must lie in [0, 1)")
+        if not abs(self._finite("lam")) < 1.0:
+            self._bad("lam", "|lam| must be < 1 so that E_st >= 0 (masks <= 1)")
+        if self._finite("norm_eps") <= 0:
+            self._bad("norm_eps", "must be > 0")
+        if not 0.0 < self._finite("phi_max") <= 2 * math.pi:
+            self._bad("phi_max", "must lie in (0, 2 pi]")
+        self._pos_int("sh_coeffs")
 
     # ------------------------------------------------------------------------------------------
     @classmethod

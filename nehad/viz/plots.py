@@ -11,6 +11,7 @@ Images are RGB uint8 arrays (H, W, 3). Lines are anti-aliased and drawn with sub
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -103,26 +104,48 @@ def _dashed_vline(img, x: int, y0: int, y1: int, color, dash: int = 5) -> None:
         cv2.line(img, (x, y), (x, min(y + dash, y1)), color, 1, cv2.LINE_AA)
 
 
-def line_plot(series, *, title: str = "", xlabel: str = "", ylabel: str = "",
-              size: tuple[int, int] = (640, 360), logy: bool = False, vlines=(),
-              ylim: tuple[float, float] | None = None, legend: bool = True) -> np.ndarray:
-    """A line plot as an RGB uint8 image of `size` = (width, height).
+_GRID, _AXIS, _INK = (232, 232, 232), (90, 90, 90), (40, 40, 40)
+_LEFT, _RIGHT = 64, 16  # margins of the plot area (pixels)
 
-    series: dicts with "x", "y" (sequences of equal length), optional "label", "color" (RGB
-    0-255; default the palette), "width" (line thickness, default 2) and "markers" (bool: a dot
-    at each point). logy: logarithmic y axis (values <= 0 are left out). vlines: (x, label) pairs
-    drawn as dashed vertical markers (e.g. where the fine stage starts). ylim: fixed y range.
-    """
-    cv2 = _cv2()
-    width, height = int(size[0]), int(size[1])
-    img = np.full((height, width, 3), 255, np.uint8)
-    left, right = 64, 16
+
+@dataclass(frozen=True)
+class _Axes:
+    """The plot area (`left`, `top`, `pw` x `ph` pixels) and the data range it shows."""
+
+    left: int
+    top: int
+    pw: int
+    ph: int
+    x0: float
+    x1: float
+    y0: float
+    y1: float
+
+    def X(self, v):
+        return self.left + (np.asarray(v, np.float64) - self.x0) / (self.x1 - self.x0) * self.pw
+
+    def Y(self, v):
+        return (self.top + self.ph
+                - (np.asarray(v, np.float64) - self.y0) / (self.y1 - self.y0) * self.ph)
+
+
+def _series_color(s: dict, k: int) -> tuple:
+    """The RGB colour of series `k`: its "color", or the palette's."""
+    return tuple(int(c) for c in s.get("color", PALETTE[k % len(PALETTE)]))
+
+
+def _plot_box(width: int, height: int, title: str, xlabel: str) -> tuple[int, int, int]:
+    """Top margin, width and height of the plot area; ValueError when it is too small."""
     top = 34 if title else 14
     bottom = 44 if xlabel else 30
-    pw, ph = width - left - right, height - top - bottom
+    pw, ph = width - _LEFT - _RIGHT, height - top - bottom
     if pw < 20 or ph < 20:
         raise ValueError(f"line_plot: size {width}x{height} is too small")
+    return top, pw, ph
 
+
+def _series_data(series, logy: bool) -> list[tuple[np.ndarray, np.ndarray, dict]]:
+    """(x, y, series) per series as float64 arrays; with `logy`, y as log10 (NaN where <= 0)."""
     data = []
     for k, s in enumerate(series):
         x = np.asarray(s["x"], np.float64).reshape(-1)
@@ -133,8 +156,12 @@ def line_plot(series, *, title: str = "", xlabel: str = "", ylabel: str = "",
             y = np.where(y > 0, y, np.nan)
             y = np.log10(y)
         data.append((x, y, s))
+    return data
+
+
+def _x_range(data) -> tuple[float, float]:
+    """The x range of the points with a finite y (widened when empty or a single value)."""
     xs = np.concatenate([d[0][np.isfinite(d[1])] for d in data]) if data else np.zeros(0)
-    ys = np.concatenate([d[1][np.isfinite(d[1])] for d in data]) if data else np.zeros(0)
     xs = xs[np.isfinite(xs)]
     if xs.size == 0:
         x0, x1 = 0.0, 1.0
@@ -142,6 +169,12 @@ def line_plot(series, *, title: str = "", xlabel: str = "", ylabel: str = "",
         x0, x1 = float(xs.min()), float(xs.max())
     if x1 <= x0:
         x0, x1 = x0 - 0.5, x1 + 0.5
+    return x0, x1
+
+
+def _y_range(data, logy: bool, ylim) -> tuple[float, float]:
+    """`ylim` (log10 with `logy`), else the finite y values' range with a 5 % margin."""
+    ys = np.concatenate([d[1][np.isfinite(d[1])] for d in data]) if data else np.zeros(0)
     if ylim is not None:
         y0, y1 = (math.log10(v) if logy else float(v) for v in ylim)
     elif ys.size == 0:
@@ -150,50 +183,58 @@ def line_plot(series, *, title: str = "", xlabel: str = "", ylabel: str = "",
         y0, y1 = float(ys.min()), float(ys.max())
         pad = 0.05 * (y1 - y0) if y1 > y0 else (0.5 if not logy else 0.25)
         y0, y1 = y0 - pad, y1 + pad
+    return y0, y1
 
-    def X(v):
-        return left + (np.asarray(v, np.float64) - x0) / (x1 - x0) * pw
 
-    def Y(v):
-        return top + ph - (np.asarray(v, np.float64) - y0) / (y1 - y0) * ph
-
-    grid, axis, ink = (232, 232, 232), (90, 90, 90), (40, 40, 40)
-    # y grid and ticks
+def _y_ticks(y0: float, y1: float, logy: bool) -> tuple[list[float], list[str]]:
+    """Tick values on the y axis and their labels (powers of ten on a log axis)."""
     if logy:
         lo_e, hi_e = math.floor(y0), math.ceil(y1)
         yt = [float(e) for e in range(lo_e, hi_e + 1) if y0 <= e <= y1]
         if len(yt) < 2:  # narrow range: 1-2-5 ticks in linear values
             yt = [math.log10(v) for v in nice_ticks(10 ** y0, 10 ** y1) if v > 0]
-        labels = [format_tick(10 ** v) for v in yt]
-    else:
-        yt = nice_ticks(y0, y1)
-        labels = [format_tick(v) for v in yt]
-    for v, lab in zip(yt, labels):
-        py = int(round(float(Y(v))))
-        if top <= py <= top + ph:
-            cv2.line(img, (left, py), (left + pw, py), grid, 1)
-            cv2.line(img, (left - 4, py), (left, py), axis, 1)
-            put_text(img, lab, (left - 7, py + 4), ink, 0.38, anchor="right")
-    for v in nice_ticks(x0, x1, 6):
-        px = int(round(float(X(v))))
-        if left <= px <= left + pw:
-            cv2.line(img, (px, top), (px, top + ph), grid, 1)
-            cv2.line(img, (px, top + ph), (px, top + ph + 4), axis, 1)
-            put_text(img, format_tick(v), (px, top + ph + 17), ink, 0.38, anchor="center")
-    cv2.rectangle(img, (left, top), (left + pw, top + ph), axis, 1)
-    for xv, lab in vlines:
-        px = int(round(float(X(xv))))
-        if left <= px <= left + pw:
-            _dashed_vline(img, px, top + 1, top + ph, (150, 150, 150))
-            if lab:
-                put_text(img, str(lab), (px + 4, top + 13), (110, 110, 110), 0.38)
+        return yt, [format_tick(10 ** v) for v in yt]
+    yt = nice_ticks(y0, y1)
+    return yt, [format_tick(v) for v in yt]
 
-    # the lines, clipped to the plot area
-    area = img[top:top + ph + 1, left:left + pw + 1]
+
+def _draw_grid(img: np.ndarray, ax: _Axes, logy: bool) -> None:
+    """Grid lines, ticks with their labels and the frame of the plot area."""
+    cv2 = _cv2()
+    left, top, pw, ph = ax.left, ax.top, ax.pw, ax.ph
+    for v, lab in zip(*_y_ticks(ax.y0, ax.y1, logy)):
+        py = int(round(float(ax.Y(v))))
+        if top <= py <= top + ph:
+            cv2.line(img, (left, py), (left + pw, py), _GRID, 1)
+            cv2.line(img, (left - 4, py), (left, py), _AXIS, 1)
+            put_text(img, lab, (left - 7, py + 4), _INK, 0.38, anchor="right")
+    for v in nice_ticks(ax.x0, ax.x1, 6):
+        px = int(round(float(ax.X(v))))
+        if left <= px <= left + pw:
+            cv2.line(img, (px, top), (px, top + ph), _GRID, 1)
+            cv2.line(img, (px, top + ph), (px, top + ph + 4), _AXIS, 1)
+            put_text(img, format_tick(v), (px, top + ph + 17), _INK, 0.38, anchor="center")
+    cv2.rectangle(img, (left, top), (left + pw, top + ph), _AXIS, 1)
+
+
+def _draw_vlines(img: np.ndarray, ax: _Axes, vlines) -> None:
+    """The dashed vertical markers (x, label) inside the plot area."""
+    for xv, lab in vlines:
+        px = int(round(float(ax.X(xv))))
+        if ax.left <= px <= ax.left + ax.pw:
+            _dashed_vline(img, px, ax.top + 1, ax.top + ax.ph, (150, 150, 150))
+            if lab:
+                put_text(img, str(lab), (px + 4, ax.top + 13), (110, 110, 110), 0.38)
+
+
+def _draw_series(img: np.ndarray, ax: _Axes, data) -> None:
+    """The lines (and markers), clipped to the plot area."""
+    cv2 = _cv2()
+    area = img[ax.top:ax.top + ax.ph + 1, ax.left:ax.left + ax.pw + 1]
     for k, (x, y, s) in enumerate(data):
-        color = tuple(int(c) for c in s.get("color", PALETTE[k % len(PALETTE)]))
+        color = _series_color(s, k)
         thick = int(s.get("width", 2))
-        px, py = X(x) - left, Y(y) - top
+        px, py = ax.X(x) - ax.left, ax.Y(y) - ax.top
         segs = _segments(px, py)
         if segs:
             cv2.polylines(area, segs, False, color, thick, cv2.LINE_AA, _SHIFT)
@@ -203,57 +244,116 @@ def line_plot(series, *, title: str = "", xlabel: str = "", ylabel: str = "",
                     cv2.circle(area, (int(p[0]), int(p[1])), 3 * _S, color, -1, cv2.LINE_AA,
                                _SHIFT)
 
+
+def _draw_ylabel(img: np.ndarray, ax: _Axes, ylabel: str) -> None:
+    """The y axis label, rotated: drawn on a strip that is turned a quarter and pasted."""
+    height = img.shape[0]
+    w_t, h_t = text_size(ylabel, 0.42)
+    strip = np.full((h_t + 6, w_t + 6, 3), 255, np.uint8)
+    put_text(strip, ylabel, (3, h_t), _INK, 0.42)
+    rot = np.ascontiguousarray(np.rot90(strip))
+    y_start = max(ax.top, ax.top + ax.ph // 2 - rot.shape[0] // 2)
+    y_end = min(height, y_start + rot.shape[0])
+    img[y_start:y_end, 2:2 + rot.shape[1]] = rot[:y_end - y_start]
+
+
+def _draw_labels(img: np.ndarray, ax: _Axes, title: str, xlabel: str, ylabel: str) -> None:
+    """Title, x label and y label, each when given."""
     if title:
-        put_text(img, title, (left, 22), ink, 0.55, 1)
+        put_text(img, title, (ax.left, 22), _INK, 0.55, 1)
     if xlabel:
-        put_text(img, xlabel, (left + pw // 2, height - 8), ink, 0.42, anchor="center")
-    if ylabel:  # rotated: draw on a strip and rotate it
-        w_t, h_t = text_size(ylabel, 0.42)
-        strip = np.full((h_t + 6, w_t + 6, 3), 255, np.uint8)
-        put_text(strip, ylabel, (3, h_t), ink, 0.42)
-        rot = np.ascontiguousarray(np.rot90(strip))
-        y_start = max(top, top + ph // 2 - rot.shape[0] // 2)
-        y_end = min(height, y_start + rot.shape[0])
-        img[y_start:y_end, 2:2 + rot.shape[1]] = rot[:y_end - y_start]
+        put_text(img, xlabel, (ax.left + ax.pw // 2, img.shape[0] - 8), _INK, 0.42,
+                 anchor="center")
+    if ylabel:
+        _draw_ylabel(img, ax, ylabel)
+
+
+def _legend_row(img: np.ndarray, items, widths, title: str) -> None:
+    """The legend in one row at the top right, outside the axes."""
+    cv2 = _cv2()
+    x = img.shape[1] - _RIGHT - sum(widths)
+    yy = 22 if title else 11
+    for (lab, color), wd in zip(items, widths):
+        cv2.line(img, (x + 4, yy - 4), (x + 22, yy - 4), color, 2, cv2.LINE_AA)
+        put_text(img, lab, (x + 27, yy), _INK, 0.4)
+        x += wd
+
+
+def _plotted_points(ax: _Axes, data) -> np.ndarray:
+    """(N, 2) finite pixel positions of the series: vertices and points along the segments."""
+    pts = []
+    for x, y, _ in data:
+        p = np.stack([ax.X(x), ax.Y(y)], 1)
+        f = np.linspace(0.0, 1.0, 9)[:, None, None]
+        pts.append(p.reshape(-1, 2) if len(p) < 2 else
+                   (p[:-1][None] * (1 - f) + p[1:][None] * f).reshape(-1, 2))
+    pts = np.concatenate(pts) if pts else np.zeros((0, 2))
+    return pts[np.isfinite(pts).all(1)]
+
+
+def _legend_corner(ax: _Axes, data, bw: int, bh: int) -> tuple[int, int]:
+    """The corner of the plot area whose `bw` x `bh` box covers the fewest data points."""
+    pts = _plotted_points(ax, data)
+    left, top, pw, ph = ax.left, ax.top, ax.pw, ax.ph
+    corners = [(left + pw - bw - 6, top + 6), (left + 6, top + 6),
+               (left + pw - bw - 6, top + ph - bh - 6), (left + 6, top + ph - bh - 6)]
+
+    def covered(c):
+        return int(((pts[:, 0] >= c[0] - 4) & (pts[:, 0] <= c[0] + bw + 4)
+                    & (pts[:, 1] >= c[1] - 4) & (pts[:, 1] <= c[1] + bh + 4)).sum())
+
+    return min(corners, key=covered)
+
+
+def _legend_box(img: np.ndarray, ax: _Axes, data, items) -> None:
+    """The legend in a framed box in the emptiest corner of the plot area."""
+    cv2 = _cv2()
+    wmax = max(text_size(lab, 0.4)[0] for lab, _ in items)
+    bw, bh = wmax + 38, 18 * len(items) + 8
+    bx, by = _legend_corner(ax, data, bw, bh)
+    cv2.rectangle(img, (bx, by), (bx + bw, by + bh), (255, 255, 255), -1)
+    cv2.rectangle(img, (bx, by), (bx + bw, by + bh), (200, 200, 200), 1)
+    for i, (lab, color) in enumerate(items):
+        yy = by + 14 + 18 * i
+        cv2.line(img, (bx + 6, yy - 4), (bx + 26, yy - 4), color, 2, cv2.LINE_AA)
+        put_text(img, lab, (bx + 32, yy), _INK, 0.4)
+
+
+def _draw_legend(img: np.ndarray, ax: _Axes, data, title: str) -> None:
+    """The labelled series' legend: preferably in one row right of the title, outside the
+    axes; else in a box inside them."""
+    items = [(s.get("label"), _series_color(s, k))
+             for k, (_, _, s) in enumerate(data) if s.get("label")]
+    widths = [text_size(lab, 0.4)[0] + 34 for lab, _ in items]
+    title_w = text_size(title, 0.55)[0] if title else 0
+    if items and ax.left + title_w + 16 + sum(widths) <= img.shape[1] - _RIGHT:
+        _legend_row(img, items, widths, title)
+    elif items:
+        _legend_box(img, ax, data, items)
+
+
+def line_plot(series, *, title: str = "", xlabel: str = "", ylabel: str = "",
+              size: tuple[int, int] = (640, 360), logy: bool = False, vlines=(),
+              ylim: tuple[float, float] | None = None, legend: bool = True) -> np.ndarray:
+    """A line plot as an RGB uint8 image of `size` = (width, height).
+
+    series: dicts with "x", "y" (sequences of equal length), optional "label", "color" (RGB
+    0-255; default the palette), "width" (line thickness, default 2) and "markers" (bool: a dot
+    at each point). logy: logarithmic y axis (values <= 0 are left out). vlines: (x, label) pairs
+    drawn as dashed vertical markers (e.g. where the fine stage starts). ylim: fixed y range.
+    """
+    _cv2()
+    width, height = int(size[0]), int(size[1])
+    img = np.full((height, width, 3), 255, np.uint8)
+    top, pw, ph = _plot_box(width, height, title, xlabel)
+    data = _series_data(series, logy)
+    ax = _Axes(_LEFT, top, pw, ph, *_x_range(data), *_y_range(data, logy, ylim))
+    _draw_grid(img, ax, logy)
+    _draw_vlines(img, ax, vlines)
+    _draw_series(img, ax, data)
+    _draw_labels(img, ax, title, xlabel, ylabel)
     if legend:
-        items = [(s.get("label"), tuple(int(c) for c in s.get("color", PALETTE[k % len(PALETTE)])))
-                 for k, (_, _, s) in enumerate(data) if s.get("label")]
-        # preferably in one row right of the title, outside the axes
-        widths = [text_size(lab, 0.4)[0] + 34 for lab, _ in items]
-        title_w = text_size(title, 0.55)[0] if title else 0
-        if items and left + title_w + 16 + sum(widths) <= width - right:
-            x = width - right - sum(widths)
-            yy = 22 if title else 11
-            for (lab, color), wd in zip(items, widths):
-                cv2.line(img, (x + 4, yy - 4), (x + 22, yy - 4), color, 2, cv2.LINE_AA)
-                put_text(img, lab, (x + 27, yy), ink, 0.4)
-                x += wd
-        elif items:
-            wmax = max(text_size(lab, 0.4)[0] for lab, _ in items)
-            bw, bh = wmax + 38, 18 * len(items) + 8
-            # the corner whose box covers the fewest data points
-            pts = []
-            for x, y, _ in data:  # vertices and points along the segments between them
-                p = np.stack([X(x), Y(y)], 1)
-                f = np.linspace(0.0, 1.0, 9)[:, None, None]
-                pts.append(p.reshape(-1, 2) if len(p) < 2 else
-                           (p[:-1][None] * (1 - f) + p[1:][None] * f).reshape(-1, 2))
-            pts = np.concatenate(pts) if pts else np.zeros((0, 2))
-            pts = pts[np.isfinite(pts).all(1)]
-            corners = [(left + pw - bw - 6, top + 6), (left + 6, top + 6),
-                       (left + pw - bw - 6, top + ph - bh - 6), (left + 6, top + ph - bh - 6)]
-
-            def covered(c):
-                return int(((pts[:, 0] >= c[0] - 4) & (pts[:, 0] <= c[0] + bw + 4)
-                            & (pts[:, 1] >= c[1] - 4) & (pts[:, 1] <= c[1] + bh + 4)).sum())
-
-            bx, by = min(corners, key=covered)
-            cv2.rectangle(img, (bx, by), (bx + bw, by + bh), (255, 255, 255), -1)
-            cv2.rectangle(img, (bx, by), (bx + bw, by + bh), (200, 200, 200), 1)
-            for i, (lab, color) in enumerate(items):
-                yy = by + 14 + 18 * i
-                cv2.line(img, (bx + 6, yy - 4), (bx + 26, yy - 4), color, 2, cv2.LINE_AA)
-                put_text(img, lab, (bx + 32, yy), ink, 0.4)
+        _draw_legend(img, ax, data, title)
     return img
 
 
