@@ -14,10 +14,8 @@ Gaussians (1e-5).
 
 from __future__ import annotations
 
-import io
 import json
 import time as _time
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,10 +27,9 @@ from nehad.model import RunInfo
 from nehad.export.checks import MIN_OPSET
 from nehad.export.deform_graph import FastDeform
 from nehad.export.graph import LAYER_OUTPUT, OUTPUT_NAMES, closed_form_copy
-from nehad.export.onnx_export import (MAX_OPSET, PARITY_TIMES, PARITY_TOL, ExportError,
-                                      _name_outputs, _seal_and_open, _to_fp16_initializers,
-                                      build_metadata, parity_error, round_to_fp16,
-                                      run_layers_of)
+from nehad.export.onnx_export import (PARITY_TIMES, PARITY_TOL, ExportError, _seal_and_open,
+                                      build_metadata, check_finite, check_opset, parity_error,
+                                      round_to_fp16, run_layers_of, traced_proto)
 from nehad.runtime.layers import (BASE_FILE, CHUNK_ARRAYS, EXTRA_LAYER, EXTRA_PREFIX, MANIFEST,
                                   MANIFEST_FORMAT, atomic_write, chunk_file_name, encode_chunk,
                                   sha256_of)
@@ -121,12 +118,9 @@ def export_split_model(model, info: RunInfo, out_dir, *, cfg=None, opset: int = 
     base.onnx, halving the part of the first download that does not shrink with the layers; the
     Gaussians (layer 0 and the chunks) stay float32. The parity check then compares against the
     model with its field rounded the same way."""
-    import onnx
-
     start = _time.perf_counter()
     out_dir = Path(out_dir)
-    if not MIN_OPSET <= int(opset) <= MAX_OPSET:
-        raise ExportError(f"--opset {opset}: supported opsets are {MIN_OPSET}..{MAX_OPSET}")
+    check_opset(opset)
     if out_dir.exists() and not out_dir.is_dir():
         raise ExportError(f"--split-layers {out_dir}: exists and is not a folder")
     if not out_dir.parent.is_dir():
@@ -148,9 +142,7 @@ def export_split_model(model, info: RunInfo, out_dir, *, cfg=None, opset: int = 
     offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
     with torch.no_grad():
         full = canonical_arrays(work, k)
-    for name, value in full.items():
-        if not torch.isfinite(value).all():
-            raise ExportError(f"the model's {name} holds NaN or infinite values")
+    check_finite(full)
     chunk_arrays = [{nm: full[nm][offsets[j]:offsets[j + 1]].detach() for nm in CHUNK_ARRAYS}
                     for j in range(len(sizes))]
 
@@ -164,19 +156,9 @@ def export_split_model(model, info: RunInfo, out_dir, *, cfg=None, opset: int = 
     out_names = list(OUTPUT_NAMES) + [LAYER_OUTPUT]
     dyn = {nm: {0: "extra"} for nm in INPUT_NAMES[1:]}
     dyn.update({nm: {0: "gaussians"} for nm in out_names})
-    buf = io.BytesIO()
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            torch.onnx.export(graph, ex_inputs, buf, input_names=list(INPUT_NAMES),
-                              output_names=out_names, dynamic_axes=dyn, opset_version=int(opset),
-                              dynamo=False, do_constant_folding=True)
-    except Exception as e:
-        raise ExportError(f"torch.onnx.export failed: {' '.join(str(e).split())[:400]}") from e
-    proto = onnx.load_from_string(buf.getvalue())
-    _name_outputs(proto, out_names)
-    if fp16_field:  # only the rounded field is exactly representable: the Gaussians stay float32
-        _to_fp16_initializers(proto)
+    # with fp16_field only the rounded field is exactly representable: the Gaussians stay float32
+    proto = traced_proto(graph, ex_inputs, INPUT_NAMES, out_names, opset, dynamic_axes=dyn,
+                         fp16=fp16_field)
     tails = {"means": (3,), "log_scales": (3,), "quats": (4,), "opacity_logits": (),
              "sh": (k, 3), "mu_eq": (3,), "t_eq": (1,)}
     _empty_initializers(proto, {**{EXTRA_PREFIX + nm: (tails[nm], np.float32)
@@ -190,6 +172,19 @@ def export_split_model(model, info: RunInfo, out_dir, *, cfg=None, opset: int = 
     _, data, sess = _seal_and_open(
         proto, md, "NeHaD dynamic 3D Gaussians (nehad-onnx/1), streaming base: field + layer 0; "
         "optional inputs extra_* append enhancement layers")
+    parity = _split_parity(sess, work, chunk_arrays, layer, sizes, out_names, k, times)
+    worst = max(parity.values())
+    if not worst <= tol:
+        raise ExportError(f"base graph does not match the torch model: max error {worst:.3g} > "
+                          f"{tol:g} ({parity})")
+    manifest = _write_split(out_dir, data, chunk_arrays, sizes, sh_degree, md, info)
+    return SplitReport(out_dir, manifest, parity, _time.perf_counter() - start)
+
+
+def _split_parity(sess, work, chunk_arrays, layer, sizes, out_names, k: int, times) -> dict:
+    """The largest parity error of each output: every prefix of layers, at every check time,
+    against the full torch model."""
+    offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
     parity = {nm: 0.0 for nm in out_names}
     layer_np = layer.astype(np.int32)
     for t in times:
@@ -210,13 +205,15 @@ def export_split_model(model, info: RunInfo, out_dir, *, cfg=None, opset: int = 
                 if not np.isfinite(a).all():
                     raise ExportError(f"base graph: output {nm} at time {t} holds NaN/inf")
                 parity[nm] = max(parity[nm], parity_error(a, b[:end]))
-    worst = max(parity.values())
-    if not worst <= tol:
-        raise ExportError(f"base graph does not match the torch model: max error {worst:.3g} > "
-                          f"{tol:g} ({parity})")
+    return parity
 
-    # write: chunks first, base, then the manifest (a reader never sees a manifest whose files
-    # are not all there yet)
+
+def _write_split(out_dir: Path, data: bytes, chunk_arrays, sizes, sh_degree: int, md: dict,
+                 info: RunInfo) -> dict:
+    """Write the chunks first, then the base, then the manifest (a reader never sees a manifest
+    whose files are not all there yet); stale chunks of an earlier export go. Returns the
+    manifest."""
+    k = (sh_degree + 1) ** 2
     out_dir.mkdir(exist_ok=True)
     blobs = [(BASE_FILE, data)] + [
         (chunk_file_name(j), encode_chunk(j, {nm: c[nm].numpy() for nm in CHUNK_ARRAYS}))
@@ -229,13 +226,12 @@ def export_split_model(model, info: RunInfo, out_dir, *, cfg=None, opset: int = 
         entries.append({"layer": j, "file": name, "bytes": len(blob), "sha256": sha256_of(blob),
                         "gaussians": int(sizes[j]), "cumulative_bytes": cum_b,
                         "cumulative_gaussians": cum_n})
-    lod = info.lod
     manifest = {
         "format": MANIFEST_FORMAT, "base": BASE_FILE, "sh_degree": sh_degree,
         "time_range": json.loads(md["time_range"]), "background": json.loads(md["background"]),
         "bytes_per_gaussian": per_gaussian,
         "field_bytes": len(data) - sizes[0] * per_gaussian,
-        "train_downscales": list(lod.get("downscales", [])),
+        "train_downscales": list(info.lod.get("downscales", [])),
         "layers": entries,
     }
     for name, blob in blobs:
@@ -244,7 +240,7 @@ def export_split_model(model, info: RunInfo, out_dir, *, cfg=None, opset: int = 
         if stale.name not in {b[0] for b in blobs}:
             stale.unlink()
     atomic_write(out_dir / MANIFEST, (json.dumps(manifest, indent=1) + "\n").encode())
-    return SplitReport(out_dir, manifest, parity, _time.perf_counter() - start)
+    return manifest
 
 
 __all__ = ["INPUT_NAMES", "SplitBaseGraph", "SplitReport", "canonical_arrays",

@@ -161,14 +161,43 @@ def _name_outputs(proto, names=OUTPUT_NAMES) -> None:
             out.name = name
 
 
-def _trace(graph: ExportGraph, opset: int) -> bytes:
+# -- the export pipeline, shared by the one-file export (`export_model`) and the split-layer
+# export (nehad.export.layers): check the request, trace, seal, check parity, write.
+
+def check_opset(opset: int) -> None:
+    if not MIN_OPSET <= int(opset) <= MAX_OPSET:
+        raise ExportError(f"--opset {opset}: supported opsets are {MIN_OPSET}..{MAX_OPSET}")
+
+
+def check_finite(arrays: dict) -> None:
+    """Refuse a model whose parameters hold NaN or infinite values."""
+    for name, value in arrays.items():
+        if not torch.isfinite(value).all():
+            raise ExportError(f"the model's {name} holds NaN or infinite values")
+
+
+def traced_proto(graph, inputs: tuple, input_names, output_names, opset: int, *,
+                 dynamic_axes=None, fp16: bool = False):
+    """`graph` traced by torch.onnx (the TorchScript exporter, constants folded) as an ONNX
+    ModelProto with the outputs named `output_names` (`_name_outputs`); with `fp16` the float32
+    initializers that float16 holds exactly are stored as float16 (`_to_fp16_initializers`)."""
+    import onnx
+
     buf = io.BytesIO()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        torch.onnx.export(graph, (torch.tensor([0.5], dtype=torch.float32),), buf,
-                          input_names=["time"], output_names=list(graph.output_names),
-                          opset_version=opset, dynamo=False, do_constant_folding=True)
-    return buf.getvalue()
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            torch.onnx.export(graph, inputs, buf, input_names=list(input_names),
+                              output_names=list(output_names), dynamic_axes=dynamic_axes,
+                              opset_version=int(opset), dynamo=False,
+                              do_constant_folding=True)
+    except Exception as e:
+        raise ExportError(f"torch.onnx.export failed: {' '.join(str(e).split())[:400]}") from e
+    proto = onnx.load_from_string(buf.getvalue())
+    _name_outputs(proto, list(output_names))
+    if fp16:
+        _to_fp16_initializers(proto)
+    return proto
 
 
 def _seal_and_open(proto, md: dict[str, str], doc: str):
@@ -229,12 +258,9 @@ def export_model(model, info: RunInfo, out_path, *, opset: int = MIN_OPSET, fp16
     do not move are written pre-deformed and skip the field (nehad.export.static_split); the
     parity check holds the graph to the model with those rows frozen, and the report's
     `static_deviation` says how far the frozen rows are from the model at any sampled time."""
-    import onnx
-
     start = _time.perf_counter()
     out_path = Path(out_path)
-    if not MIN_OPSET <= int(opset) <= MAX_OPSET:
-        raise ExportError(f"--opset {opset}: supported opsets are {MIN_OPSET}..{MAX_OPSET}")
+    check_opset(opset)
     if not out_path.parent.is_dir():
         raise ExportError(f"{out_path}: output folder {out_path.parent} does not exist")
     from nehad.runtime.tempfiles import remove_stale_temps
@@ -254,20 +280,10 @@ def export_model(model, info: RunInfo, out_path, *, opset: int = MIN_OPSET, fp16
         split = find_static(work, sh_degree, canonical_time=canonical)
     graph = ExportGraph(work, sh_degree, layer, static=split).eval()
     names_out = graph.output_names
-    for name, value in zip(("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest"),
-                           (work.gaussians.means, work.gaussians.log_scales, work.gaussians.quats,
-                            work.gaussians.opacity_logits, work.gaussians.sh_dc,
-                            work.gaussians.sh_rest)):
-        if not torch.isfinite(value).all():
-            raise ExportError(f"the model's {name} holds NaN or infinite values")
-    try:
-        blob = _trace(graph, int(opset))
-    except Exception as e:
-        raise ExportError(f"torch.onnx.export failed: {' '.join(str(e).split())[:400]}") from e
-    proto = onnx.load_from_string(blob)
-    _name_outputs(proto, names_out)
-    if fp16_weights:
-        _to_fp16_initializers(proto)
+    check_finite({name: getattr(work.gaussians, name) for name in
+                  ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")})
+    proto = traced_proto(graph, (torch.tensor([0.5], dtype=torch.float32),), ["time"], names_out,
+                         opset, fp16=fp16_weights)
     md = build_metadata(model, info, sh_degree, cfg)
     md["fp16_weights"] = "1" if fp16_weights else "0"
     if split is not None and split.num_static:
