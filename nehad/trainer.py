@@ -28,10 +28,9 @@ from nehad.curriculum import eligible_frames, resolution_factor
 from nehad.data.loader import load_dataset
 from nehad.densify import DensifyState, DensifyStrategy, ViewStats
 from nehad.field.deformation import DeformationField
-from nehad.gaussians import GaussianParameters
 from nehad.losses import photometric_loss, psnr
 from nehad.lod import schedule_for
-from nehad.model import NeHaDModel, RunError
+from nehad.model import NeHaDModel, RunError, model_from_state
 from nehad.optim import make_optimizer, set_learning_rates
 from nehad.runtime.interrupts import check as interrupt_point
 from nehad.initial import initial_gaussians, scene_bounds
@@ -81,14 +80,12 @@ class Trainer:
     def _build(self, state) -> None:
         cfg = self.cfg
         if state is None:
-            gaussians = initial_gaussians(cfg.train, self.scene)
-        else:
-            gaussians = GaussianParameters.empty_like_state(state["gaussians"])
-            gaussians.load_state_dict(state["gaussians"])
-        field = DeformationField(cfg.field, torch.as_tensor(self.aabb), self.extent)
-        if state is not None:
-            field.load_state_dict(state["field"])
-        self.model = NeHaDModel(gaussians, field)
+            self.model = NeHaDModel(initial_gaussians(cfg.train, self.scene),
+                                    DeformationField(cfg.field, torch.as_tensor(self.aabb),
+                                                     self.extent))
+        else:  # a checkpoint: the one way a model is rebuilt from a saved state
+            self.model = model_from_state(state).train()
+        field = self.model.field
         self.optimizer = make_optimizer(self.model, cfg.optim, self.extent)
         self.strategy = DensifyStrategy(cfg.densify, self.extent)
         self.densify_state = DensifyState.zeros(0)
