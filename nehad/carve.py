@@ -40,6 +40,8 @@ are relocated, as 3DGS-MCMC relocates dead Gaussians), so a full budget cannot s
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+
 import numpy as np
 import torch
 
@@ -101,6 +103,25 @@ def _match_distances(bad, chromas, centre: np.ndarray, tol: float) -> list[np.nd
     return out
 
 
+@dataclass(frozen=True)
+class _CarvePass:
+    """What every view of one carving pass needs (the arguments of `carve_points`)."""
+
+    cameras: list
+    targets: list
+    bad: list  # per view: (H, W) bool, the unexplained pixels
+    box: np.ndarray
+    times: np.ndarray
+    render_alphas: list | None
+    render_depths: list | None
+    margin: float  # how far behind a drawn surface a point is hidden by it
+    stride: int
+    min_views: int
+    agree: float
+    motion: float
+    depth_fractions: np.ndarray  # (S,) where the depth samples sit between entry and exit
+
+
 def carve_points(cameras, targets, alphas, renders, box: np.ndarray, times=None, *,
                  render_alphas=None, render_depths=None, residual: float = 0.25,
                  stride: int = 2, depth_samples: int = 96, min_views: int = 2,
@@ -123,10 +144,7 @@ def carve_points(cameras, targets, alphas, renders, box: np.ndarray, times=None,
     margin = 0.02 * float(np.linalg.norm(box[1] - box[0]))
     times = np.zeros(len(cameras)) if times is None else np.asarray(times, np.float64)
     bad = [unexplained_mask(r, t, a, residual) for r, t, a in zip(renders, targets, alphas)]
-    rays = []  # (view, v, u)
-    for k, b in enumerate(bad):
-        vs, us = np.nonzero(b[::stride, ::stride])
-        rays += [(k, v * stride, u * stride) for v, u in zip(vs, us)]
+    rays = _grid_rays(bad, stride)
     n_bad = len(rays)
     empty = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), n_bad
     if not rays or len(cameras) < min_views + 1:
@@ -134,64 +152,104 @@ def carve_points(cameras, targets, alphas, renders, box: np.ndarray, times=None,
     rays = np.asarray(rays)
     if len(rays) > max_rays:
         rays = rays[rng.choice(len(rays), max_rays, replace=False)]
-    # one colour class per chromaticity cell of size colour_tol: each gets its distance maps
     chromas = [_chroma(t) for t in targets]
+    job = _CarvePass(cameras, targets, bad, box, times, render_alphas, render_depths, margin,
+                     stride, min_views, agree, motion,
+                     (np.arange(depth_samples) + 0.5) / depth_samples)
+    found = []
+    for centre, in_class in _colour_classes(rays, chromas, colour_tol):
+        dist = _match_distances(bad, chromas, centre, colour_tol)
+        for k in np.unique(rays[in_class, 0]):
+            carved = _carve_view(job, k, rays[in_class & (rays[:, 0] == k)], dist)
+            if carved is not None:
+                found.append(carved)
+    if not found:
+        return empty
+    pts_out, cols_out, width_out = zip(*found)
+    return (np.concatenate(pts_out), np.concatenate(cols_out), np.concatenate(width_out), n_bad)
+
+
+def _grid_rays(bad, stride: int) -> list[tuple]:
+    """(view, v, u) of every unexplained pixel on the `stride` grid of each view."""
+    rays = []
+    for k, b in enumerate(bad):
+        vs, us = np.nonzero(b[::stride, ::stride])
+        rays += [(k, v * stride, u * stride) for v, u in zip(vs, us)]
+    return rays
+
+
+def _colour_classes(rays: np.ndarray, chromas, colour_tol: float):
+    """One colour class per chromaticity cell of size `colour_tol`: yields (the cell's centre
+    chromaticity (3,), which rays are in it (R,) bool); each class gets its distance maps."""
     chroma = np.stack([chromas[k][v, u] for k, v, u in rays])
     keys = np.round(chroma[:, :2] / colour_tol).astype(np.int64)
-    pts_out, cols_out, width_out = [], [], []
-    s = (np.arange(depth_samples) + 0.5) / depth_samples
     for key in np.unique(keys, axis=0):
         in_class = np.all(keys == key, axis=1)
         centre = np.array([key[0] * colour_tol, key[1] * colour_tol,
                            1.0 - (key[0] + key[1]) * colour_tol])
-        dist = _match_distances(bad, chromas, centre, colour_tol)
-        for k in np.unique(rays[in_class, 0]):
-            cam = cameras[k]
-            mine = rays[in_class & (rays[:, 0] == k)]
-            v, u = mine[:, 1], mine[:, 2]
-            origin, dirs, near, far = _pixel_rays(cam, u, v, box)
-            hit = far > near
-            if not hit.any():
-                continue
-            v, u, dirs, near, far = v[hit], u[hit], dirs[hit], near[hit], far[hit]
-            depth = near[:, None] + (far - near)[:, None] * s[None, :]  # (R, S)
-            pts = origin + depth[..., None] * dirs[:, None, :]  # (R, S, 3)
-            votes = np.zeros(depth.shape, np.int32)
-            seen = np.zeros(depth.shape, np.int32)
-            flat = pts.reshape(-1, 3)
-            for j, other in enumerate(cameras):
-                if j == k:
-                    continue
-                uv, z = other.project(flat)
-                uj = np.floor(uv[:, 0]).astype(np.int64)
-                vj = np.floor(uv[:, 1]).astype(np.int64)
-                inside = ((z > 1e-3) & (uj >= 0) & (vj >= 0) & (uj < other.width)
-                          & (vj < other.height))
-                idx = np.flatnonzero(inside)
-                if render_depths is not None:  # behind a drawn surface that is right: hidden
-                    a_j = render_alphas[j][vj[idx], uj[idx]]
-                    d_j = render_depths[j][vj[idx], uj[idx]]
-                    hidden = (a_j >= 0.5) & ~bad[j][vj[idx], uj[idx]] & (d_j < z[idx] - margin)
-                    inside[idx[hidden]] = False
-                    idx = idx[~hidden]
-                slack = 1.0 + motion * abs(times[j] - times[k]) * other.width
-                ok = np.zeros(len(flat), bool)
-                ok[idx] = dist[j][vj[idx], uj[idx]] <= slack
-                seen += inside.reshape(depth.shape)
-                votes += ok.reshape(depth.shape)
-            # the most votes; among equals the nearest depth (the first surface)
-            best = votes.argmax(axis=1)
-            r = np.arange(len(best))
-            bv, bs = votes[r, best], seen[r, best]
-            take = (bs >= min_views) & (bv >= agree * np.maximum(bs, 1))
-            if not take.any():
-                continue
-            pts_out.append(pts[r, best][take])
-            cols_out.append(targets[k][v[take], u[take]])
-            width_out.append(depth[r, best][take] * stride / cam.fx)
-    if not pts_out:
-        return empty
-    return (np.concatenate(pts_out), np.concatenate(cols_out), np.concatenate(width_out), n_bad)
+        yield centre, in_class
+
+
+def _carve_view(job: _CarvePass, k, mine: np.ndarray, dist):
+    """The accepted points on the rays `mine` ((R, 3) rows of view, v, u) of view k, against
+    the distance maps `dist` of their colour class: (points, colours, pixel widths), or None
+    when none is accepted."""
+    cam = job.cameras[k]
+    v, u = mine[:, 1], mine[:, 2]
+    origin, dirs, near, far = _pixel_rays(cam, u, v, job.box)
+    hit = far > near
+    if not hit.any():
+        return None
+    v, u, dirs, near, far = v[hit], u[hit], dirs[hit], near[hit], far[hit]
+    depth = near[:, None] + (far - near)[:, None] * job.depth_fractions[None, :]  # (R, S)
+    pts = origin + depth[..., None] * dirs[:, None, :]  # (R, S, 3)
+    votes, seen = _count_votes(job, k, pts.reshape(-1, 3), dist, depth.shape)
+    # the most votes; among equals the nearest depth (the first surface)
+    best = votes.argmax(axis=1)
+    r = np.arange(len(best))
+    bv, bs = votes[r, best], seen[r, best]
+    take = (bs >= job.min_views) & (bv >= job.agree * np.maximum(bs, 1))
+    if not take.any():
+        return None
+    return (pts[r, best][take], job.targets[k][v[take], u[take]],
+            depth[r, best][take] * job.stride / cam.fx)
+
+
+def _count_votes(job: _CarvePass, k, flat: np.ndarray, dist, shape):
+    """(votes, seen), each of `shape`: how many views other than k vote for each sample point
+    of `flat` (P, 3), and in how many it is in frame and not hidden."""
+    votes = np.zeros(shape, np.int32)
+    seen = np.zeros(shape, np.int32)
+    for j in range(len(job.cameras)):
+        if j == k:
+            continue
+        inside, ok = _view_votes(job, j, k, flat, dist[j])
+        seen += inside.reshape(shape)
+        votes += ok.reshape(shape)
+    return votes, seen
+
+
+def _view_votes(job: _CarvePass, j: int, k, flat: np.ndarray, dist_j: np.ndarray):
+    """(inside, ok), each (P,) bool: the points `flat` of view k that view j sees (in frame,
+    not behind a drawn, explained surface), and those it votes for (an unexplained pixel of
+    the class within the motion allowance of their projection)."""
+    other = job.cameras[j]
+    uv, z = other.project(flat)
+    uj = np.floor(uv[:, 0]).astype(np.int64)
+    vj = np.floor(uv[:, 1]).astype(np.int64)
+    inside = ((z > 1e-3) & (uj >= 0) & (vj >= 0) & (uj < other.width)
+              & (vj < other.height))
+    idx = np.flatnonzero(inside)
+    if job.render_depths is not None:  # behind a drawn surface that is right: hidden
+        a_j = job.render_alphas[j][vj[idx], uj[idx]]
+        d_j = job.render_depths[j][vj[idx], uj[idx]]
+        hidden = (a_j >= 0.5) & ~job.bad[j][vj[idx], uj[idx]] & (d_j < z[idx] - job.margin)
+        inside[idx[hidden]] = False
+        idx = idx[~hidden]
+    slack = 1.0 + job.motion * abs(job.times[j] - job.times[k]) * other.width
+    ok = np.zeros(len(flat), bool)
+    ok[idx] = dist_j[vj[idx], uj[idx]] <= slack
+    return inside, ok
 
 
 def seed_rays(cameras, targets, alphas, renders, box: np.ndarray, *, residual: float = 0.25,

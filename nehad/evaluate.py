@@ -252,29 +252,59 @@ def _atomic_json(path: Path, obj) -> None:
 
 def evaluate_run(run_dir, split: str = "test", data_dir=None, lpips: bool = True,
                  write_renders: bool = True, progress: bool = True, max_frames: int = 0) -> dict:
-    from tqdm import tqdm
-
-    from nehad.metrics import image_metrics
-    from nehad.runtime.images import write_image
-    from nehad.runtime.raster import render
-
+    """Render `split` (its first `max_frames` frames when > 0) with the run, score every frame
+    and write RUN/eval_SPLIT/metrics.json (and the renders); returns what it wrote."""
     run = Path(run_dir)
     model, info = load_run(run)
+    data, frames = _eval_frames(run, info, split, data_dir, max_frames)
+    masks = _object_masks(data, split, frames)
+    out_dir = run / f"eval_{split}"
+    out_dir.mkdir(exist_ok=True)
+    per_frame, object_records, render_seconds = _render_and_score(
+        model, info, split, frames, masks, out_dir if write_renders else None, lpips, progress)
+    h, w = frames[0].image.shape[:2]
+    time_range = list(info.time_range)
+    result = {
+        "run": str(run), "split": split, "frames": len(per_frame), "resolution": [w, h],
+        "gaussians": len(model.gaussians), **summarize(per_frame, time_range),
+        "background": list(info.background), "per_frame": per_frame,
+        "fps": len(per_frame) / render_seconds if render_seconds > 0 else None,
+        "fps_threads": {"torch": torch.get_num_threads(), "numba": _numba_threads()},
+        "lpips_input": "[-1, 1] (official lpips convention; 3DGS/4DGS code fed [0, 1])",
+    }
+    if masks is not None:
+        result.update(_objects_result(object_records, masks[0], time_range, split))
+    _atomic_json(out_dir / "metrics.json", result)
+    return result
+
+
+def _eval_frames(run: Path, info, split: str, data_dir, max_frames: int) -> tuple[Path, list]:
+    """(dataset folder, the frames of `split` to evaluate), loaded as the run was trained: same
+    background, downscale and frame stride."""
     cfg = info.config
     data = Path(data_dir) if data_dir is not None else Path(info.data_dir or "")
     if not data.is_dir():
         raise RunError(f"{run}: dataset folder {data} not found; pass --data DIR")
-    background = info.background
-    scene = load_dataset(data, splits=(split,), background=background,
+    scene = load_dataset(data, splits=(split,), background=info.background,
                          downscale=cfg.data.downscale, frame_stride=cfg.data.frame_stride)
     frames = scene.frames[split]
     if max_frames > 0:
         frames = frames[:max_frames]
-    masks = _object_masks(data, split, frames)
-    out_dir = run / f"eval_{split}"
-    out_dir.mkdir(exist_ok=True)
-    degree = info.degree_for(model)
+    return data, frames
 
+
+def _render_and_score(model, info, split: str, frames, masks, render_dir: Path | None,
+                      lpips: bool, progress: bool) -> tuple[list[dict], list[dict], float]:
+    """Render every frame (after an untimed warm-up) and score it beside the blank image:
+    (per-frame records, per-frame object records when `masks`, seconds spent rendering).
+    The renders are written to `render_dir` unless it is None."""
+    from tqdm import tqdm
+
+    from nehad.runtime.images import write_image
+    from nehad.runtime.raster import render
+
+    background = info.background
+    degree = info.degree_for(model)
     # warm-up: JIT and caches, not timed
     render(cloud_at(model, frames[0].camera.time, degree), frames[0].camera, background)
     per_frame, object_records, render_seconds = [], [], 0.0
@@ -284,42 +314,41 @@ def evaluate_run(run_dir, split: str = "test", data_dir=None, lpips: bool = True
         cloud = cloud_at(model, frame.camera.time, degree)
         rgb = render(cloud, frame.camera, background).rgb
         render_seconds += time.perf_counter() - t0
-        scores = image_metrics(rgb, frame.image, require_lpips=lpips,
-                               lpips_nets=("alex", "vgg") if lpips else ())
-        blank = image_metrics(blank_image, frame.image, require_lpips=lpips,
-                              lpips_nets=("alex", "vgg") if lpips else ())
-        record = {"frame": i, "file": frame.path.name, "time": frame.camera.time}
-        record.update({k: scores.get(k) for k in METRIC_KEYS})
-        record.update({f"blank_{k}": blank.get(k) for k in METRIC_KEYS})
-        per_frame.append(record)
+        per_frame.append(_frame_record(i, frame, rgb, blank_image, lpips))
         if masks is not None:
             object_records.append(_frame_object_record(masks[1][i], frame, rgb, background))
-        if write_renders:
-            write_image(out_dir / f"r_{i:03d}.png", rgb)
-    h, w = frames[0].image.shape[:2]
-    time_range = list(info.time_range)
-    result = {
-        "run": str(run), "split": split, "frames": len(per_frame), "resolution": [w, h],
-        "gaussians": len(model.gaussians), **summarize(per_frame, time_range),
-        "background": list(background), "per_frame": per_frame,
-        "fps": len(per_frame) / render_seconds if render_seconds > 0 else None,
-        "fps_threads": {"torch": torch.get_num_threads(), "numba": _numba_threads()},
-        "lpips_input": "[-1, 1] (official lpips convention; 3DGS/4DGS code fed [0, 1])",
-    }
-    if masks is not None:
-        objects = summarize_objects(object_records, masks[0], time_range)
-        result.update({
-            "objects": objects, "worst_object_bin": worst_object_bin(objects),
-            "object_warnings": object_warnings(objects),
-            "object_rules": {
-                "masks": f"{split}/masks/*.png, names from class_mapping.json",
-                "pixel": f"area coverage >= {OBJECT_COVERAGE:g} of the pixel's block at the eval "
-                         f"resolution (ties to the lower id)",
-                "pooling": "squared error summed over the object's pixels of all frames in the "
-                           "quarter, then one PSNR",
-                "min_pixels": OBJECT_MIN_PIXELS, "warn_gain_db": OBJECT_WARN_GAIN}})
-    _atomic_json(out_dir / "metrics.json", result)
-    return result
+        if render_dir is not None:
+            write_image(render_dir / f"r_{i:03d}.png", rgb)
+    return per_frame, object_records, render_seconds
+
+
+def _frame_record(i: int, frame, rgb, blank_image, lpips: bool) -> dict:
+    """The metrics of one frame's render and of the blank image (``blank_`` keys) against it."""
+    from nehad.metrics import image_metrics
+
+    scores = image_metrics(rgb, frame.image, require_lpips=lpips,
+                           lpips_nets=("alex", "vgg") if lpips else ())
+    blank = image_metrics(blank_image, frame.image, require_lpips=lpips,
+                          lpips_nets=("alex", "vgg") if lpips else ())
+    record = {"frame": i, "file": frame.path.name, "time": frame.camera.time}
+    record.update({k: scores.get(k) for k in METRIC_KEYS})
+    record.update({f"blank_{k}": blank.get(k) for k in METRIC_KEYS})
+    return record
+
+
+def _objects_result(object_records: list[dict], names: dict, time_range, split: str) -> dict:
+    """The per-object entries of metrics.json: scores, worst quarter, warnings and rules."""
+    objects = summarize_objects(object_records, names, time_range)
+    return {
+        "objects": objects, "worst_object_bin": worst_object_bin(objects),
+        "object_warnings": object_warnings(objects),
+        "object_rules": {
+            "masks": f"{split}/masks/*.png, names from class_mapping.json",
+            "pixel": f"area coverage >= {OBJECT_COVERAGE:g} of the pixel's block at the eval "
+                     f"resolution (ties to the lower id)",
+            "pooling": "squared error summed over the object's pixels of all frames in the "
+                       "quarter, then one PSNR",
+            "min_pixels": OBJECT_MIN_PIXELS, "warn_gain_db": OBJECT_WARN_GAIN}}
 
 
 def _numba_threads() -> int:

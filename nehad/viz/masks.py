@@ -380,83 +380,117 @@ def score_run(run_dir, split: str = "test", data_dir=None, threshold: float = DE
     detected moving objects), else a `nehad synth` scene (given or recognised). Returns
     {"summary": {...}, "per_frame": [...], "ground_truth": str, "moving": ..., ...}; the first
     `keep_maps` frames also carry their weight map, alpha and ground truth (for pictures)."""
-    from nehad.data.dnerf import load_dnerf
-    from nehad.model import cloud_at, load_run
-
     if model is None:
+        from nehad.model import load_run
+
         model, run_info = load_run(run_dir)
     why = bed_status(model)
     if why is not None:
         raise VizError(f"{run_dir}: this run has no BED position mask: {why}")
-    cfg = run_info.config
-    data = default_data_dir(run_info, data_dir)
-    scene = load_dnerf(data, splits=(split,), background=run_info.background,
-                       downscale=cfg.data.downscale)
-    frames = scene.frames[split]
-    if max_frames > 0:
-        frames = frames[:max_frames]
-    if not frames:
-        raise VizError(f"{data}: the {split} split has no frames")
+    data, frames = _score_frames(run_info, split, data_dir, max_frames)
     info: dict = {"split": split, "data": str(data), "threshold": threshold,
                   "alpha_min": ALPHA_MIN}
-    # a `nehad synth` scene (random cameras: no two frames share one, so the label masks cannot
-    # tell which objects move) is scored against its ray-cast truth, though it has label masks
-    synth_name = synth_scene or (None if moving_ids else synth_scene_name(frames[0]))
-    if has_label_masks(data, split) and synth_name is None:
-        found = moving_object_ids(data)
-        ids = sorted(int(i) for i in moving_ids) if moving_ids else found["moving"]
-        if not ids:
-            raise VizError(f"{data}: no moving object found in the label masks "
-                           f"({found['method']}); name them with --moving-ids")
-        names = found["names"]
-        info.update(ground_truth="label masks", moving=[names.get(i, str(i)) for i in ids],
-                    moving_ids=ids, moving_detection=found["method"] if not moving_ids else
-                    "given", static_objects=[names.get(i, str(i)) for i in found["static"]
-                                             if i not in ids])
-
-        def truth(frame):
-            return label_ground_truth(frame, ids, frame.camera.width, frame.camera.height)
-    else:
-        name = synth_name
-        if name is None:
-            raise VizError(f"{data}: no ground truth for the split: no {split}/masks/ label "
-                           f"masks, and not recognised as a `nehad synth` scene")
-        from nehad.data.synth import SCENES, scene_objects
-
-        if name not in SCENES:
-            raise VizError(f"--synth-scene {name}: expected one of {', '.join(SCENES)}")
-        flags = synth_moving_objects(name)
-        objs = scene_objects(name, 0.0)
-        info.update(ground_truth=f"nehad synth scene {name!r} (ray cast)",
-                    moving=[o.name for o, f in zip(objs, flags) if f],
-                    static_objects=[o.name for o, f in zip(objs, flags) if not f])
-
-        def truth(frame):
-            return synth_ground_truth(name, frame.camera, flags)
-
-    degree = run_info.degree_for(model)
+    described, truth = _ground_truth(data, split, frames, moving_ids, synth_scene)
+    info.update(described)
     counts, per_frame, maps = [], [], []
+    degree = run_info.degree_for(model)
     for i, frame in enumerate(frames):
-        t = float(frame.camera.time)
-        w = bed_weights(model, t)
-        wmap, alpha = render_weights(cloud_at(model, t, degree), w, frame.camera)
-        moving, static_fg = truth(frame)
-        c = frame_counts(wmap, alpha, moving, static_fg, threshold)
+        c, record, kept = _score_frame(model, degree, frame, truth, threshold)
         counts.append(c)
-        s = summarize([c])
-        per_frame.append({"frame": i, "file": frame.path.name, "time": t,
-                          "dynamic_gaussians": float((w > threshold).mean()),
-                          **{k: s[k] for k in ("iou", "precision", "recall", "auc",
-                                               "mean_weight_moving", "mean_weight_static")}})
+        per_frame.append({"frame": i, **record})
         if i < keep_maps:
-            maps.append({"frame": frame, "weight_map": wmap, "alpha": alpha, "moving": moving,
-                         "static": static_fg})
+            maps.append({"frame": frame, **kept})
         if progress is not None:
             progress()
     result = {**info, "frames": len(frames), "summary": summarize(counts), "per_frame": per_frame}
     if keep_maps:
         result["maps"] = maps
     return result
+
+
+def _score_frames(run_info: RunInfo, split: str, data_dir, max_frames: int) -> tuple[Path, list]:
+    """(dataset folder, the frames of `split` to score: the first `max_frames` when > 0)."""
+    from nehad.data.dnerf import load_dnerf
+
+    data = default_data_dir(run_info, data_dir)
+    scene = load_dnerf(data, splits=(split,), background=run_info.background,
+                       downscale=run_info.config.data.downscale)
+    frames = scene.frames[split]
+    if max_frames > 0:
+        frames = frames[:max_frames]
+    if not frames:
+        raise VizError(f"{data}: the {split} split has no frames")
+    return data, frames
+
+
+def _ground_truth(data: Path, split: str, frames, moving_ids, synth_scene: str | None):
+    """(what the ground truth is: the result's "ground_truth", "moving", ... entries, and
+    truth(frame) -> (moving, static foreground) masks) for the split."""
+    # a `nehad synth` scene (random cameras: no two frames share one, so the label masks cannot
+    # tell which objects move) is scored against its ray-cast truth, though it has label masks
+    synth_name = synth_scene or (None if moving_ids else synth_scene_name(frames[0]))
+    if has_label_masks(data, split) and synth_name is None:
+        return _label_truth(data, moving_ids)
+    if synth_name is None:
+        raise VizError(f"{data}: no ground truth for the split: no {split}/masks/ label "
+                       f"masks, and not recognised as a `nehad synth` scene")
+    return _synth_truth(synth_name)
+
+
+def _label_truth(data: Path, moving_ids):
+    """`_ground_truth` from the dataset's label masks (`moving_ids`, or the detected ones)."""
+    found = moving_object_ids(data)
+    ids = sorted(int(i) for i in moving_ids) if moving_ids else found["moving"]
+    if not ids:
+        raise VizError(f"{data}: no moving object found in the label masks "
+                       f"({found['method']}); name them with --moving-ids")
+    names = found["names"]
+    described = {"ground_truth": "label masks", "moving": [names.get(i, str(i)) for i in ids],
+                 "moving_ids": ids,
+                 "moving_detection": found["method"] if not moving_ids else "given",
+                 "static_objects": [names.get(i, str(i)) for i in found["static"]
+                                    if i not in ids]}
+
+    def truth(frame):
+        return label_ground_truth(frame, ids, frame.camera.width, frame.camera.height)
+
+    return described, truth
+
+
+def _synth_truth(name: str):
+    """`_ground_truth` ray cast from the `nehad synth` scene `name`."""
+    from nehad.data.synth import SCENES, scene_objects
+
+    if name not in SCENES:
+        raise VizError(f"--synth-scene {name}: expected one of {', '.join(SCENES)}")
+    flags = synth_moving_objects(name)
+    objs = scene_objects(name, 0.0)
+    described = {"ground_truth": f"nehad synth scene {name!r} (ray cast)",
+                 "moving": [o.name for o, f in zip(objs, flags) if f],
+                 "static_objects": [o.name for o, f in zip(objs, flags) if not f]}
+
+    def truth(frame):
+        return synth_ground_truth(name, frame.camera, flags)
+
+    return described, truth
+
+
+def _score_frame(model, degree: int, frame, truth, threshold: float):
+    """One frame scored: (its `frame_counts`, its per-frame record without the index, its
+    weight map, alpha and ground truth)."""
+    from nehad.model import cloud_at
+
+    t = float(frame.camera.time)
+    w = bed_weights(model, t)
+    wmap, alpha = render_weights(cloud_at(model, t, degree), w, frame.camera)
+    moving, static_fg = truth(frame)
+    c = frame_counts(wmap, alpha, moving, static_fg, threshold)
+    s = summarize([c])
+    record = {"file": frame.path.name, "time": t,
+              "dynamic_gaussians": float((w > threshold).mean()),
+              **{k: s[k] for k in ("iou", "precision", "recall", "auc",
+                                   "mean_weight_moving", "mean_weight_static")}}
+    return c, record, {"weight_map": wmap, "alpha": alpha, "moving": moving, "static": static_fg}
 
 
 def truth_image(moving, static_fg, background=(1.0, 1.0, 1.0)) -> np.ndarray:

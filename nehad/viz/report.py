@@ -20,7 +20,10 @@ import datetime as _dt
 import html
 import json
 import math
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -28,6 +31,9 @@ from nehad.configtools import read_text
 
 from . import VizError
 from .plots import PALETTE, colormap, ema, encode_png, line_plot, to_uint8
+
+if TYPE_CHECKING:
+    from nehad.model import RunInfo
 
 _CSS = """
 body{font-family:system-ui,-apple-system,Segoe UI,Roboto,Helvetica,Arial,sans-serif;margin:0;
@@ -276,52 +282,122 @@ def build_report(run_dir, output, data_dir=None, frames: int = 4, score: bool = 
                  max_side: int = 480, track_count: int = 300, log=None) -> dict:
     """Write the report of `run_dir` to `output` (atomically). Returns {"bytes", "images",
     "sections", "skipped": {section: reason}}."""
-    from nehad import __version__
-    from nehad.data.common import DatasetError
-    from nehad.data.loader import load_dataset
     from nehad.runtime.images import atomic_path
-    from nehad.runtime.raster import render
-    from nehad.model import RunError, cloud_at, load_run
 
-    from .masks import (bed_status, bed_weights, dynamic_fraction, format_scores, fraction_plot,
-                        render_weights, score_run, truth_image, weight_image)
-    from .trajectories import compute_tracks, track_times, trajectory_image
-
-    say = log or (lambda m: None)
     run = Path(run_dir)
     # every file the page reads from the run folder, read (and refused) before the slow work
     records = read_log(run)
     _eval_results(run)
-    cfg_path = run / "config.yaml"
-    cfg_file_text = read_text(cfg_path, "config file", "the run's YAML config", VizError) \
-        if cfg_path.is_file() else None
-    model, info = load_run(run)
-    cfg = info.config
-    degree = info.degree_for(model)
-    bg = info.background
-    lo, hi = info.time_range
-    n_gauss = len(model.gaussians)
-    sections: list[tuple[str, str, str]] = []  # (id, title, html)
-    skipped: dict[str, str] = {}
-    expected = (VizError, DatasetError, RunError, OSError)
-
-    def gaussians_at(t):
-        return cloud_at(model, float(t), degree)
-
-    def fit(cam):  # pictures rendered with the longest side max_side (up or down)
-        s = max(cam.width, cam.height)
-        return cam.with_size(max(1, round(cam.width * max_side / s)),
-                             max(1, round(cam.height * max_side / s)))
-
-    # -- summary
-    last = records[-1] if records else {}
+    cfg_file_text = _read_config_text(run)
+    rep = _open_run(run, log or (lambda m: None))
     evals = _eval_results(run)
-    rows = [["run", str(run.resolve())], ["dataset", info.data_dir or "?"],
+    sections = [_section_summary(rep, records, evals), _section_curves(rep, records),
+                _section_metrics(rep, evals)]
+    rep = _with_test_frames(rep, data_dir, max_side)
+    sections += [_section_renders(rep, frames, max_side),
+                 _section_trajectories(rep, track_count),
+                 _section_masks(rep, data_dir, score, max_side),
+                 _section_config(rep, cfg_file_text)]
+    page = _page(run, sections)
+    data = page.encode("utf-8")
+    output = Path(output)
+    with atomic_path(output, VizError) as tmp:
+        Path(tmp).write_bytes(data)
+    return {"bytes": len(data), "images": page.count("<img "),
+            "sections": [sid for sid, _, _ in sections], "skipped": rep.skipped}
+
+
+@dataclass(frozen=True)
+class _Report:
+    """What every section of one report needs. `skipped` ({section: reason}) is filled in by
+    the sections; the test frames and the camera come with `_with_test_frames`."""
+
+    run: Path
+    model: object
+    info: RunInfo
+    cfg: object
+    degree: int
+    background: tuple
+    time_range: tuple
+    say: Callable[[str], None]
+    skipped: dict = field(default_factory=dict)
+    test_frames: list = field(default_factory=list)
+    camera: object = None  # the first test frame's, sized by `_fit`; None without test frames
+
+    def gaussians_at(self, t):
+        """The run's Gaussians at time t (deformed, at the run's SH degree)."""
+        from nehad.model import cloud_at
+
+        return cloud_at(self.model, float(t), self.degree)
+
+
+def _expected_errors() -> tuple:
+    """The errors a section reports (and skips) instead of failing the page."""
+    from nehad.data.common import DatasetError
+    from nehad.model import RunError
+
+    return (VizError, DatasetError, RunError, OSError)
+
+
+def _read_config_text(run: Path) -> str | None:
+    """The text of RUN/config.yaml, None when there is none."""
+    cfg_path = run / "config.yaml"
+    return read_text(cfg_path, "config file", "the run's YAML config", VizError) \
+        if cfg_path.is_file() else None
+
+
+def _open_run(run: Path, say) -> _Report:
+    """The loaded run, without its test frames."""
+    from nehad.model import load_run
+
+    model, info = load_run(run)
+    return _Report(run=run, model=model, info=info, cfg=info.config,
+                   degree=info.degree_for(model), background=info.background,
+                   time_range=info.time_range, say=say)
+
+
+def _fit(cam, max_side: int):
+    """`cam` resized so that its longest side is `max_side` (up or down)."""
+    s = max(cam.width, cam.height)
+    return cam.with_size(max(1, round(cam.width * max_side / s)),
+                         max(1, round(cam.height * max_side / s)))
+
+
+def _with_test_frames(rep: _Report, data_dir, max_side: int) -> _Report:
+    """`rep` with the test frames (the loader, split and frame stride of `nehad eval`, any
+    dataset layout) and the first one's camera fitted to `max_side`; when the dataset cannot
+    be read, none, and the reason in skipped["renders"]."""
+    from nehad.data.loader import load_dataset
+
+    test_frames, first_cam = [], None
+    try:
+        from .masks import default_data_dir
+
+        data = default_data_dir(rep.info, data_dir)
+        split = rep.cfg.data.eval_split
+        scene = load_dataset(data, splits=(split,), background=rep.background,
+                             downscale=rep.cfg.data.downscale,
+                             frame_stride=rep.cfg.data.frame_stride)
+        test_frames = scene.frames[split]
+        first_cam = test_frames[0].camera if test_frames else None
+    except _expected_errors() as e:
+        rep.skipped["renders"] = str(e)
+    camera = _fit(first_cam, max_side) if first_cam is not None else None
+    return replace(rep, test_frames=test_frames, camera=camera)
+
+
+def _section_summary(rep: _Report, records: list[dict], evals: list[dict]) -> tuple:
+    """The run at a glance: dataset, config, size, last train PSNR, eval scores."""
+    cfg, info = rep.cfg, rep.info
+    lo, hi = rep.time_range
+    last = records[-1] if records else {}
+    rows = [["run", str(rep.run.resolve())], ["dataset", info.data_dir or "?"],
             ["preset", cfg.preset], ["decoder", cfg.field.decoder],
             ["steps", f"{'?' if info.steps is None else info.steps} ({cfg.coarse.iterations} coarse + "
                       f"{cfg.fine.iterations} fine)"],
-            ["Gaussians", str(n_gauss)], ["SH degree", str(degree)],
-            ["time range", f"[{lo:g}, {hi:g}]"], ["background", ",".join(f"{v:g}" for v in bg)]]
+            ["Gaussians", str(len(rep.model.gaussians))], ["SH degree", str(rep.degree)],
+            ["time range", f"[{lo:g}, {hi:g}]"],
+            ["background", ",".join(f"{v:g}" for v in rep.background)]]
     if last:
         rows.append(["last logged train PSNR", f"{_fmt(last.get('psnr'), 2)} dB (step "
                                                f"{last.get('step')})"])
@@ -332,164 +408,212 @@ def build_report(run_dir, output, data_dir=None, frames: int = 4, score: bool = 
         rows.append([f"{r.get('split')} PSNR / SSIM / LPIPS-alex",
                      f"{_fmt(m.get('psnr'), 2)} dB / {_fmt(m.get('ssim'), 4)} / "
                      f"{_fmt(m.get('lpips_alex'), 4)}"])
-    sections.append(("summary", "Summary", table(["", ""], rows, 2)))
+    return ("summary", "Summary", table(["", ""], rows, 2))
 
-    # -- curves
-    say("report: training curves")
+
+def _section_curves(rep: _Report, records: list[dict]) -> tuple:
+    """Loss, PSNR and Gaussian count over the logged training steps."""
+    rep.say("report: training curves")
+    cfg = rep.cfg
     plots = training_plots(records, cfg.coarse.iterations if cfg.fine.iterations else None)
     if plots:
         body = '<div class="grid">' + "".join(figure(img, cap) for cap, img in plots) + "</div>"
     else:
-        body = note(f"{run}/metrics.jsonl has no records")
-        skipped["curves"] = "no metrics.jsonl records"
-    sections.append(("curves", "Training curves", body))
+        body = note(f"{rep.run}/metrics.jsonl has no records")
+        rep.skipped["curves"] = "no metrics.jsonl records"
+    return ("curves", "Training curves", body)
 
-    # -- metrics
-    sections.append(("metrics", "Metrics", metrics_section(run)))
+
+def _section_metrics(rep: _Report, evals: list[dict]) -> tuple:
+    """The scores of `nehad eval` (`metrics_section`)."""
+    body = metrics_section(rep.run)
     if not evals:
-        skipped["metrics"] = "no eval_*/metrics.json"
+        rep.skipped["metrics"] = "no eval_*/metrics.json"
+    return ("metrics", "Metrics", body)
 
-    # -- test renders
-    test_frames, first_cam = [], None
+
+def _section_renders(rep: _Report, frames: int, max_side: int) -> tuple:
+    """`frames` test frames: ground truth | render | error map, with their PSNR."""
+    test_frames = rep.test_frames
+    if not test_frames:
+        body = note(f"No test renders: {rep.skipped.get('renders', 'the test split is empty')}")
+        return ("renders", "Test renders beside ground truth", body)
+    rep.say("report: test renders")
+    figs, psnrs = [], []
+    for i in _pick(len(test_frames), frames):
+        fig, p = _render_figure(rep, test_frames[i], max_side)
+        figs.append(fig)
+        psnrs.append(p)
+    body = ('<div class="grid">' + "".join(figs) + "</div>"
+            + f"<p class=sub>{len(figs)} of {len(test_frames)} test frames at "
+              f"{test_frames[0].camera.width}x{test_frames[0].camera.height}; mean PSNR of "
+              f"these {np.mean(psnrs):.2f} dB.</p>")
+    return ("renders", "Test renders beside ground truth", body)
+
+
+def _render_figure(rep: _Report, fr, max_side: int) -> tuple[str, float]:
+    """(the figure of test frame `fr`: ground truth | render | error map, the render's PSNR)."""
+    from nehad.runtime.raster import render
+
+    rgb = render(rep.gaussians_at(fr.camera.time), fr.camera, background=rep.background).rgb
+    p = _psnr(rgb, fr.image)
+    trio = np.concatenate([fr.image, np.ones((fr.image.shape[0], 4, 3), np.float32),
+                           rgb, np.ones((fr.image.shape[0], 4, 3), np.float32),
+                           _error_map(rgb, fr.image)], axis=1)
+    fig = figure(trio, f"{fr.path.name}, t = {fr.camera.time:.3f}: ground truth | "
+                       f"render | |error| (inferno, 99.5th pct = top); "
+                       f"PSNR {p:.2f} dB", max_side=3 * max_side,
+                 min_height=min(200, max_side))
+    return fig, p
+
+
+def _section_trajectories(rep: _Report, track_count: int) -> tuple:
+    """Paths of `track_count` Gaussians over time, drawn over the render at the first time."""
+    from .trajectories import compute_tracks, track_times, trajectory_image
+
+    title = "Gaussian trajectories"
+    cam = rep.camera
+    if cam is None:
+        rep.skipped["trajectories"] = "no camera"
+        return ("trajectories", title,
+                note("No trajectories: no camera (the dataset's test split was not found)"))
+    rep.say("report: trajectories")
+    lo, hi = rep.time_range
     try:
-        from .masks import default_data_dir
+        times = track_times((lo, hi), 32)
+        tracks = compute_tracks(rep.gaussians_at, cam, times, count=track_count)
+        img = trajectory_image(rep.gaussians_at, cam, tracks, rep.background)
+        pl = tracks.path_length
+        still = (" No tracked Gaussian moves (a coarse-only run, or a field that learned no "
+                 "motion)." if float(pl.max()) == 0.0 else "")
+        body = figure(img, f"{len(tracks)} Gaussians (favouring those that move) tracked at "
+                           f"{len(times)} times in [{lo:g}, {hi:g}], over the render at "
+                           f"t = {lo:g}; colour = time (blue early, red late), dot = final "
+                           f"position. Path length median {np.median(pl):.3g}, max "
+                           f"{pl.max():.3g} world units.{still}")
+    except _expected_errors() as e:
+        body = note(f"No trajectories: {e}")
+        rep.skipped["trajectories"] = str(e)
+    return ("trajectories", title, body)
 
-        data = default_data_dir(info, data_dir)
-        # the same loader, split and frame stride as `nehad eval` (any dataset layout)
-        split = cfg.data.eval_split
-        scene = load_dataset(data, splits=(split,), background=bg, downscale=cfg.data.downscale,
-                             frame_stride=cfg.data.frame_stride)
-        test_frames = scene.frames[split]
-        first_cam = test_frames[0].camera if test_frames else None
-    except expected as e:
-        skipped["renders"] = str(e)
-    if test_frames:
-        say("report: test renders")
-        figs, psnrs = [], []
-        for i in _pick(len(test_frames), frames):
-            fr = test_frames[i]
-            rgb = render(gaussians_at(fr.camera.time), fr.camera, background=bg).rgb
-            p = _psnr(rgb, fr.image)
-            psnrs.append(p)
-            trio = np.concatenate([fr.image, np.ones((fr.image.shape[0], 4, 3), np.float32),
-                                   rgb, np.ones((fr.image.shape[0], 4, 3), np.float32),
-                                   _error_map(rgb, fr.image)], axis=1)
-            figs.append(figure(trio, f"{fr.path.name}, t = {fr.camera.time:.3f}: ground truth | "
-                                     f"render | |error| (inferno, 99.5th pct = top); "
-                                     f"PSNR {p:.2f} dB", max_side=3 * max_side,
-                               min_height=min(200, max_side)))
-        body = ('<div class="grid">' + "".join(figs) + "</div>"
-                + f"<p class=sub>{len(figs)} of {len(test_frames)} test frames at "
-                  f"{test_frames[0].camera.width}x{test_frames[0].camera.height}; mean PSNR of "
-                  f"these {np.mean(psnrs):.2f} dB.</p>")
-    else:
-        body = note(f"No test renders: {skipped.get('renders', 'the test split is empty')}")
-    sections.append(("renders", "Test renders beside ground truth", body))
 
-    # -- trajectories
-    cam = fit(first_cam) if first_cam is not None else None
-    if cam is not None:
-        say("report: trajectories")
-        try:
-            times = track_times((lo, hi), 32)
-            tracks = compute_tracks(gaussians_at, cam, times, count=track_count)
-            img = trajectory_image(gaussians_at, cam, tracks, bg)
-            pl = tracks.path_length
-            still = (" No tracked Gaussian moves (a coarse-only run, or a field that learned no "
-                     "motion)." if float(pl.max()) == 0.0 else "")
-            body = figure(img, f"{len(tracks)} Gaussians (favouring those that move) tracked at "
-                               f"{len(times)} times in [{lo:g}, {hi:g}], over the render at "
-                               f"t = {lo:g}; colour = time (blue early, red late), dot = final "
-                               f"position. Path length median {np.median(pl):.3g}, max "
-                               f"{pl.max():.3g} world units.{still}")
-        except expected as e:
-            body = note(f"No trajectories: {e}")
-            skipped["trajectories"] = str(e)
-    else:
-        body = note("No trajectories: no camera (the dataset's test split was not found)")
-        skipped["trajectories"] = "no camera"
-    sections.append(("trajectories", "Gaussian trajectories", body))
+def _section_masks(rep: _Report, data_dir, score: bool, max_side: int) -> tuple:
+    """The BED split: weight renders at three times, the dynamic fraction over time, and (with
+    `score` and test frames) its score against the moving objects."""
+    from .masks import bed_status
 
-    # -- BED masks
-    why = bed_status(model)
+    title = "BED static/dynamic split"
+    why = bed_status(rep.model)
     if why is not None:
-        body = note(f"No BED split: {why}.")
-        skipped["masks"] = why
-    else:
-        say("report: BED masks")
-        parts = []
-        if cam is not None:
-            figs = []
-            for t in (lo, 0.5 * (lo + hi), hi):
-                w = bed_weights(model, t)
-                wmap, alpha = render_weights(gaussians_at(t), w, cam)
-                figs.append(figure(weight_image(wmap, alpha, bg),
-                                   f"t = {t:g}: {float((w > 0.5).mean()):.1%} of the Gaussians "
-                                   f"dynamic (w > 0.5)"))
-            parts.append('<div class="grid">' + "".join(figs) + "</div>")
-        times = track_times((lo, hi), 41)
-        frac = dynamic_fraction(model, times)
-        mean_w = dynamic_fraction(model, times, weighted=True)
-        parts.append('<div class="grid">' + figure(
-            fraction_plot(times, frac, 0.5, mean_w),
-            "Fraction of Gaussians with BED weight w = 1 - M_pos > 0.5, and the mean weight, over "
-            "time") + "</div>")
-        if score and test_frames:
-            say("report: scoring the split against the moving objects")
-            try:
-                res = score_run(run, "test", data_dir, model=model, run_info=info, keep_maps=2)
-                s = res["summary"]
-                parts.append(table(
-                    ["IoU", "precision", "recall", "AUC", "mean w (moving)", "mean w (static fg)",
-                     "frames"],
-                    [[_fmt(s["iou"]), _fmt(s["precision"]), _fmt(s["recall"]), _fmt(s["auc"]),
-                      _fmt(s["mean_weight_moving"]), _fmt(s["mean_weight_static"]),
-                      res["frames"]]], 0))
-                parts.append(f"<pre>{_e(format_scores(res))}</pre>")
-                figs = []
-                for m in res.get("maps", []):
-                    fr = m["frame"]
-                    pair = np.concatenate([truth_image(m["moving"], m["static"], bg),
-                                           np.ones((m["moving"].shape[0], 4, 3), np.float32),
-                                           weight_image(m["weight_map"], m["alpha"], bg,
-                                                        legend=False)], axis=1)
-                    figs.append(figure(pair, f"{fr.path.name}, t = {fr.camera.time:.3f}: ground "
-                                             f"truth (red moving objects, blue static foreground)"
-                                             f" | BED weight render", max_side=2 * max_side,
-                                       min_height=min(200, max_side)))
-                parts.append('<div class="grid">' + "".join(figs) + "</div>")
-            except expected as e:
-                parts.append(note(f"No score: {e}"))
-                skipped["score"] = str(e)
-        elif score:
-            skipped["score"] = "no test frames"
-        body = "".join(parts)
-    sections.append(("masks", "BED static/dynamic split", body))
+        rep.skipped["masks"] = why
+        return ("masks", title, note(f"No BED split: {why}."))
+    rep.say("report: BED masks")
+    parts = []
+    if rep.camera is not None:
+        parts.append(_weight_renders(rep))
+    parts.append(_fraction_figure(rep))
+    if score and rep.test_frames:
+        _append_score(rep, parts, data_dir, max_side)
+    elif score:
+        rep.skipped["score"] = "no test frames"
+    return ("masks", title, "".join(parts))
 
-    # -- config
+
+def _weight_renders(rep: _Report) -> str:
+    """BED weight renders at the first, middle and last time."""
+    from .masks import bed_weights, render_weights, weight_image
+
+    lo, hi = rep.time_range
+    figs = []
+    for t in (lo, 0.5 * (lo + hi), hi):
+        w = bed_weights(rep.model, t)
+        wmap, alpha = render_weights(rep.gaussians_at(t), w, rep.camera)
+        figs.append(figure(weight_image(wmap, alpha, rep.background),
+                           f"t = {t:g}: {float((w > 0.5).mean()):.1%} of the Gaussians "
+                           f"dynamic (w > 0.5)"))
+    return '<div class="grid">' + "".join(figs) + "</div>"
+
+
+def _fraction_figure(rep: _Report) -> str:
+    """The fraction of dynamic Gaussians and their mean weight over time."""
+    from .masks import dynamic_fraction, fraction_plot
+    from .trajectories import track_times
+
+    lo, hi = rep.time_range
+    times = track_times((lo, hi), 41)
+    frac = dynamic_fraction(rep.model, times)
+    mean_w = dynamic_fraction(rep.model, times, weighted=True)
+    return '<div class="grid">' + figure(
+        fraction_plot(times, frac, 0.5, mean_w),
+        "Fraction of Gaussians with BED weight w = 1 - M_pos > 0.5, and the mean weight, over "
+        "time") + "</div>"
+
+
+def _append_score(rep: _Report, parts: list[str], data_dir, max_side: int) -> None:
+    """Append to `parts` the score of the split against the moving objects (table, text and
+    pictures of two frames), or a note why there is none."""
+    from .masks import format_scores, score_run
+
+    rep.say("report: scoring the split against the moving objects")
+    try:
+        res = score_run(rep.run, "test", data_dir, model=rep.model, run_info=rep.info,
+                        keep_maps=2)
+        s = res["summary"]
+        parts.append(table(
+            ["IoU", "precision", "recall", "AUC", "mean w (moving)", "mean w (static fg)",
+             "frames"],
+            [[_fmt(s["iou"]), _fmt(s["precision"]), _fmt(s["recall"]), _fmt(s["auc"]),
+              _fmt(s["mean_weight_moving"]), _fmt(s["mean_weight_static"]),
+              res["frames"]]], 0))
+        parts.append(f"<pre>{_e(format_scores(res))}</pre>")
+        parts.append(_score_maps(res, rep.background, max_side))
+    except _expected_errors() as e:
+        parts.append(note(f"No score: {e}"))
+        rep.skipped["score"] = str(e)
+
+
+def _score_maps(res: dict, bg, max_side: int) -> str:
+    """Ground truth beside the BED weight render, for the frames `score_run` kept maps of."""
+    from .masks import truth_image, weight_image
+
+    figs = []
+    for m in res.get("maps", []):
+        fr = m["frame"]
+        pair = np.concatenate([truth_image(m["moving"], m["static"], bg),
+                               np.ones((m["moving"].shape[0], 4, 3), np.float32),
+                               weight_image(m["weight_map"], m["alpha"], bg,
+                                            legend=False)], axis=1)
+        figs.append(figure(pair, f"{fr.path.name}, t = {fr.camera.time:.3f}: ground "
+                                 f"truth (red moving objects, blue static foreground)"
+                                 f" | BED weight render", max_side=2 * max_side,
+                           min_height=min(200, max_side)))
+    return '<div class="grid">' + "".join(figs) + "</div>"
+
+
+def _section_config(rep: _Report, cfg_file_text: str | None) -> tuple:
+    """The run's config.yaml (or, without one, the config stored with the run)."""
+    cfg_path = rep.run / "config.yaml"
     cfg_text = cfg_file_text if cfg_file_text is not None else \
-        json.dumps(info.config_dict, indent=1)
-    sections.append(("config", "Config", f"<details open><summary>{_e(cfg_path.name)}</summary>"
-                                         f"<pre>{_e(cfg_text)}</pre></details>"))
+        json.dumps(rep.info.config_dict, indent=1)
+    return ("config", "Config", (f"<details open><summary>{_e(cfg_path.name)}</summary>"
+                                 f"<pre>{_e(cfg_text)}</pre></details>"))
 
-    # -- page
+
+def _page(run: Path, sections: list[tuple]) -> str:
+    """The whole page: title, navigation and the (id, title, html) sections."""
+    from nehad import __version__
+
     now = _dt.datetime.now().strftime("%Y-%m-%d %H:%M")
     nav = " · ".join(f'<a href="#{sid}">{_e(title)}</a>' for sid, title, _ in sections)
     body = "".join(f'<section id="{sid}"><h2>{_e(title)}</h2>{content}</section>'
                    for sid, title, content in sections)
-    page = (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+    return (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
             f"<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\">"
             f"<title>NeHaD report: {_e(run.name)}</title><style>{_CSS}</style>"
             f"<script>{_SCRIPT}</script></head><body><main>"
             f"<h1>NeHaD report: {_e(run.name)}</h1>"
             f"<p class=sub>nehad {_e(__version__)}, written {_e(now)}. {nav}</p>"
             f"{body}</main></body></html>\n")
-    data = page.encode("utf-8")
-    output = Path(output)
-    with atomic_path(output, VizError) as tmp:
-        Path(tmp).write_bytes(data)
-    return {"bytes": len(data), "images": page.count("<img "),
-            "sections": [sid for sid, _, _ in sections], "skipped": skipped}
 
 
 __all__ = ["build_report", "figure", "img_tag", "metrics_section", "objects_section", "read_log",
