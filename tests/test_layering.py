@@ -204,3 +204,38 @@ def test_the_circle_check_finds_a_lazy_circle(tmp_path, monkeypatch):
     graph = import_graph()
     assert import_cycles(graph) == [["nehad.a", "nehad.b"]]
     assert graph["nehad.c"] == set()
+
+
+# -- sizes a reader can take in at once (issue 28) ---------------------------------------------
+
+MAX_FUNCTION_LINES = 60
+MAX_TRAINER_LINES = 300
+
+
+def long_functions(folder: Path, limit: int = MAX_FUNCTION_LINES) -> list[str]:
+    """'path:line name (N lines)' for every function or method under `folder` longer than
+    `limit` lines (its def through its last line, decorators not counted)."""
+    out = []
+    for path in sorted(folder.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                n = node.end_lineno - node.lineno + 1
+                if n > limit:
+                    out.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name} ({n} lines)")
+    return out
+
+
+def test_no_function_of_the_training_package_is_over_60_lines():
+    assert long_functions(ROOT / "nehad") == []
+    assert len((ROOT / "nehad" / "trainer.py").read_text().splitlines()) <= MAX_TRAINER_LINES
+
+
+def test_the_length_check_finds_a_long_function(tmp_path):
+    body = "\n".join(f"    x{i} = {i}" for i in range(61))
+    (tmp_path / "m.py").write_text(f"def short():\n    pass\n\n\ndef long():\n{body}\n")
+    global ROOT
+    saved, ROOT = ROOT, tmp_path
+    try:
+        assert long_functions(tmp_path) == ["m.py:5 long (62 lines)"]
+    finally:
+        ROOT = saved
