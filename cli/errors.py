@@ -30,7 +30,7 @@ USER_ERROR_CLASSES = (
     ("nehad.data.dnerf", "DatasetError"),
     ("nehad.cli.errors", "InputError"),
     ("nehad.configtools", "ConfigError"),
-    ("nehad.model", "RunError"),
+    ("nehad.checkpoint", "RunError"),
     ("nehad.metrics.lpips", "LpipsWeightsMissing"),
     ("nehad.export.onnx_export", "ExportError"),
     ("nehad.viz", "VizError"),

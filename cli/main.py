@@ -28,6 +28,7 @@ from .train import demo, eval_, train
 from .video import video
 from .view import view
 from .viz import report, viz
+from .web import web
 
 
 class _Commands(click.Group):
@@ -89,8 +90,8 @@ def main():
     """
 
 
-for _command in (synth, train, eval_, demo, export_, info, render, ply, video, batch, view, viz,
-                 report):
+for _command in (synth, train, eval_, demo, export_, info, render, ply, video, batch, view, web,
+                 viz, report):
     main.add_command(_command)
 
 

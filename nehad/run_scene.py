@@ -40,7 +40,7 @@ class RunScene(Scene):
             import numpy as np
 
             self.aabb = np.stack([means.min(0), means.max(0)])
-        first = _test_cameras(self.info.data_dir, ":0")  # one frame: no work for the whole split here
+        first = dataset_test_cameras(self.info.data_dir, ":0")  # one frame: no work for the whole split here
         self.default_camera = first[0] if first else None
 
     def _layers(self):
@@ -54,7 +54,7 @@ class RunScene(Scene):
         return int(layers.max()) + 1 if len(layers) else 1
 
     def cameras(self) -> list:
-        return _test_cameras(self.info.data_dir)
+        return dataset_test_cameras(self.info.data_dir)
 
     def gaussians(self, time=None):
         from nehad.model import cloud_at
@@ -80,7 +80,7 @@ class RunScene(Scene):
         return file_sha256(self.path / "model.pt")
 
 
-def _test_cameras(data_dir: str | None, frame: str = "") -> list:
+def dataset_test_cameras(data_dir: str | None, frame: str = "") -> list:
     """The cameras of the run's dataset's test split, or of its frame `frame` (":0"); [] when
     the dataset is gone or unreadable."""
     test = Path(data_dir or "") / "transforms_test.json"
