@@ -169,3 +169,100 @@ def graph_sha256(data, spans=None) -> str:
 
 
 __all__ = ["ModelSummary", "ProtoError", "graph_sha256", "summarize"]
+
+
+# -- one edit: initializers as graph inputs ----------------------------------------------------
+
+# TensorProto
+_T_DIMS, _T_DATA_TYPE, _T_NAME = 1, 2, 8
+
+
+def _encode_varint(value: int) -> bytes:
+    out = bytearray()
+    while True:
+        b = value & 0x7F
+        value >>= 7
+        if value:
+            out.append(b | 0x80)
+        else:
+            out.append(b)
+            return bytes(out)
+
+
+def _field(num: int, payload: bytes) -> bytes:
+    """A length-delimited field."""
+    return _encode_varint(num << 3 | 2) + _encode_varint(len(payload)) + payload
+
+
+def _tensor_header(buf, span) -> tuple[str, int, list[int]]:
+    """(name, data type, dims) of a TensorProto."""
+    name, dtype, dims = "", 0, []
+    for num, wt, v in _fields(buf, *span):
+        if num == _T_NAME and wt == 2:
+            name = _text(buf, v)
+        elif num == _T_DATA_TYPE and wt == 0:
+            dtype = v
+        elif num == _T_DIMS and wt == 0:
+            dims.append(v)
+        elif num == _T_DIMS and wt == 2:  # packed
+            pos = v[0]
+            while pos < v[1]:
+                d, pos = _varint(buf, pos, v[1])
+                dims.append(d)
+    return name, dtype, dims
+
+
+def _input_value_info(name: str, dtype: int, dims: list[int], first_dim: str) -> bytes:
+    """ValueInfoProto of a tensor input whose first axis is named `first_dim` (any length)."""
+    shape = b"".join(_field(1, _field(2, first_dim.encode()) if i == 0
+                            else _encode_varint(1 << 3) + _encode_varint(d))
+                     for i, d in enumerate(dims))
+    tensor_type = _encode_varint(1 << 3) + _encode_varint(dtype) + _field(2, shape)
+    return _field(1, name.encode()) + _field(2, _field(1, tensor_type))
+
+
+def initializers_as_inputs(data: bytes, names, first_dim: str = "extra") -> bytes:
+    """The model `data` with the initializers named in `names` turned into plain graph inputs
+    (onnxruntime-web feeds graph inputs only, not overridable initializers): each initializer is
+    dropped, and where the graph does not list it as an input already, an input of its type and
+    shape is added, its first axis of any length. Every other byte of the model is kept."""
+    names = set(names)
+    buf = memoryview(data)
+    rest, graph_fields = bytearray(), []
+    for num, wt, v in _fields(buf):
+        if num == _M_GRAPH and wt == 2:
+            graph_fields.append(v)
+        else:
+            rest += _raw_field(buf, num, wt, v)
+    out, found = bytearray(), set()
+    for span in graph_fields:
+        listed = {_name_of_value_info(buf, gv) for gnum, gwt, gv in _fields(buf, *span)
+                  if gnum == _G_INPUT and gwt == 2}
+        graph, inputs = bytearray(), []
+        for gnum, gwt, gv in _fields(buf, *span):
+            if gnum == _G_INITIALIZER and gwt == 2:
+                name, dtype, dims = _tensor_header(buf, gv)
+                if name in names:
+                    found.add(name)
+                    if name not in listed:
+                        inputs.append(_field(_G_INPUT, _input_value_info(name, dtype, dims,
+                                                                         first_dim)))
+                    continue
+            graph += _raw_field(buf, gnum, gwt, gv)
+        out += _field(_M_GRAPH, bytes(graph) + b"".join(inputs))
+    missing = names - found
+    if missing:
+        raise ProtoError(f"the model has no initializers {sorted(missing)}")
+    return bytes(rest + out)
+
+
+def _raw_field(buf, num: int, wt: int, value) -> bytes:
+    """A decoded field written back as it was."""
+    key = _encode_varint(num << 3 | wt)
+    if wt == 0:
+        return key + _encode_varint(value)
+    if wt == 1:
+        return key + value.to_bytes(8, "little")
+    if wt == 5:
+        return key + value.to_bytes(4, "little")
+    return key + _encode_varint(value[1] - value[0]) + bytes(buf[value[0]:value[1]])

@@ -116,6 +116,17 @@ def _copy_libraries(ort_dir: Path) -> None:
         (ort_dir / name).write_bytes(data)
 
 
+def _web_base(path: Path) -> bytes:
+    """A split-layer base model whose enhancement-layer slots (`extra_*`, overridable
+    initializers in the export, runtime/layers.py) are plain graph inputs: onnxruntime-web feeds
+    graph inputs only. The graph is otherwise byte for byte the export's."""
+    from .layers import CHUNK_ARRAYS, EXTRA_LAYER, EXTRA_PREFIX
+    from .onnx_proto import initializers_as_inputs
+
+    names = [EXTRA_PREFIX + n for n in CHUNK_ARRAYS] + [EXTRA_LAYER]
+    return initializers_as_inputs(path.read_bytes(), names)
+
+
 def _scene_json(info, model_name: str, manifest, cameras: list) -> dict:
     aabb = np.asarray(info.aabb, np.float64).reshape(2, 3)
     entries = [camera_entry(c, getattr(c, "name", "") or f"camera {i}")
@@ -160,8 +171,9 @@ def build_player(source, out, cameras=None) -> WebReport:
             shutil.copyfile(graph_file, work / model_name)
         else:
             model_name = manifest["layers"][0]["file"]
-            for entry in manifest["layers"]:
+            for entry in manifest["layers"][1:]:
                 shutil.copyfile(source / entry["file"], work / entry["file"])
+            (work / model_name).write_bytes(_web_base(graph_file))
         scene = _scene_json(info, model_name, manifest, cams)
         (work / "scene.json").write_text(json.dumps(scene, indent=1) + "\n")
         (work / "_headers").write_text(HEADERS)
