@@ -19,7 +19,7 @@ from browser import Browser, find_chromium
 from nehad.cli.main import main
 from nehad.runtime.cameras import save_view
 from nehad.runtime.images import read_image
-from video_model import build_tiny_export
+from video_model import build_moving_export
 
 viser = pytest.importorskip("viser")
 needs_browser = pytest.mark.skipif(find_chromium() is None,
@@ -30,25 +30,9 @@ W, H = 480, 360
 
 @pytest.fixture(scope="module")
 def model(tmp_path_factory):
-    """(model.onnx, scene folder): the shared tiny model, whose 70 training steps hardly move
-    anything (its renders at t = 0.2 and 0.8 differ by 50 dB), with its field's adapters and
-    equilibrium times randomised (as tests/test_lod.py does) so that the Gaussians move."""
-    torch = pytest.importorskip("torch")
-    from nehad.checkpoint import atomic_torch_save, load_state
-    from nehad.export.onnx_export import export_run
-
-    onnx, scene = build_tiny_export(tmp_path_factory)
-    state = load_state(onnx.parent / "run" / "model.pt")
-    gen = torch.Generator().manual_seed(3)
-    for name, p in state["field"].items():
-        if name.startswith("adapters."):
-            state["field"][name] = torch.randn(p.shape, generator=gen) * 0.3
-    state["gaussians"]["t_eq"] = torch.rand(state["gaussians"]["t_eq"].shape, generator=gen)
-    run = tmp_path_factory.mktemp("view") / "moving"
-    run.mkdir()
-    atomic_torch_save(state, run / "model.pt")
-    export_run(run, run.parent / "moving.onnx")
-    return run.parent / "moving.onnx", scene
+    """(model.onnx, scene folder): the tiny model with moving Gaussians
+    (video_model.build_moving_export)."""
+    return build_moving_export(tmp_path_factory)
 
 
 def psnr(a, b) -> float:

@@ -30,3 +30,28 @@ def build_tiny_export(tmp_path_factory) -> tuple[Path, Path]:
     Trainer(build_config("test", None, []), scene, root / "run", progress=False).train()
     export_run(root / "run", model)
     return model, scene
+
+
+def build_moving_export(tmp_path_factory) -> tuple[Path, Path]:
+    """(model.onnx, scene folder): the shared tiny model, whose 70 training steps hardly move
+    anything (its renders at t = 0.2 and 0.8 differ by 50 dB), with its field's adapters and
+    equilibrium times randomised (as tests/test_lod.py does) so that the Gaussians move."""
+    torch = pytest.importorskip("torch")
+    from nehad.checkpoint import atomic_torch_save, load_state
+    from nehad.export.onnx_export import export_run
+
+    onnx, scene = build_tiny_export(tmp_path_factory)
+    moving = onnx.parent / "moving.onnx"
+    if moving.is_file():
+        return moving, scene
+    state = load_state(onnx.parent / "run" / "model.pt")
+    gen = torch.Generator().manual_seed(3)
+    for name, p in state["field"].items():
+        if name.startswith("adapters."):
+            state["field"][name] = torch.randn(p.shape, generator=gen) * 0.3
+    state["gaussians"]["t_eq"] = torch.rand(state["gaussians"]["t_eq"].shape, generator=gen)
+    run = onnx.parent / "moving"
+    run.mkdir(exist_ok=True)
+    atomic_torch_save(state, run / "model.pt")
+    export_run(run, moving)
+    return moving, scene

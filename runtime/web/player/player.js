@@ -10,7 +10,7 @@ const $ = (id) => document.getElementById(id);
 const api = (window.nehad = { ready: false, error: null, frames: 0 });
 
 function fail(message) {
-  api.error = String(message);
+  api.error = message instanceof Error ? message.message : String(message);
   const box = $('error');
   box.textContent = 'Error: ' + api.error;
   box.hidden = false;
