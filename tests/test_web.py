@@ -55,11 +55,21 @@ def fake_libraries(tmp_path, monkeypatch):
 
 
 @contextlib.contextmanager
-def serve(folder):
-    """A static file server on 127.0.0.1 for `folder` (python's own); yields its address."""
-    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(folder))
+def serve(folder, isolated: bool = False):
+    """A static file server on 127.0.0.1 for `folder` (python's own); yields its address.
+    `isolated`: it sends the cross-origin isolation headers of the folder's `_headers` file."""
+    class Quiet(http.server.SimpleHTTPRequestHandler):
+        def log_message(self, *args):
+            pass
+
+        def end_headers(self):
+            if isolated:
+                self.send_header("Cross-Origin-Opener-Policy", "same-origin")
+                self.send_header("Cross-Origin-Embedder-Policy", "require-corp")
+            super().end_headers()
+
+    handler = functools.partial(Quiet, directory=str(folder))
     server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
-    server.RequestHandlerClass.log_message = lambda *a: None
     thread = threading.Thread(target=server.serve_forever, daemon=True)
     thread.start()
     try:
@@ -228,3 +238,22 @@ def test_the_folder_holds_the_player_the_model_and_the_scene(model, tmp_path, fa
     got = np.array(scene["cameras"][1]["world_to_camera"])
     assert np.allclose(got, cameras[1].world_to_camera)
     assert "Cross-Origin-Embedder-Policy: require-corp" in (site / "_headers").read_text()
+
+
+@needs_browser
+@needs_libraries
+@pytest.mark.slow
+def test_served_with_the_isolation_headers_the_wasm_runs_threaded(model, tmp_path):
+    onnx, cams = model
+    site = build(tmp_path, onnx, cams)
+    browser = Browser(800, 600)
+    try:
+        with serve(site, isolated=True) as url:
+            open_player(browser, url)
+            assert browser.evaluate("window.nehad.error") is None
+            assert browser.evaluate("self.crossOriginIsolated") is True
+            assert "threads, cross-origin isolated" in browser.evaluate("window.nehad.stats.mode")
+            got = show(browser, 0.5, 0)
+            assert psnr(got, reference(onnx, load_view(cams)[0], 0.5)) >= 30.0
+    finally:
+        browser.close()

@@ -539,8 +539,9 @@ function bindControls(player) {
     player.setTime(t).catch(fail);
   });
   const select = $('camera');
-  player.scene.cameras.forEach((c, i) => select.add(new Option(c.name || `camera ${i}`, String(i))));
-  select.value = String(player.scene.default_camera || 0);
+  player.scene.cameras.forEach((c, i) => select.add(
+    new Option((c.name || `camera ${i}`).replace(/^\.\//, ''), String(i))));
+  select.value = String(Math.max(player.cameras.indexOf(player.camera), 0));
   select.addEventListener('change', (e) => {
     player.camera = player.cameras[Number(e.target.value)];
     player.draw();
