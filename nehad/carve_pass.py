@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from nehad.config import CarveConfig
 from nehad.curriculum import TimeWindow, eligible_frames
 from nehad.densify import DensifySchedule, DensifyState, append_gaussians, keep_gaussians
 
@@ -35,7 +36,7 @@ class ResidualCarving:
     from its equilibrium a carved Gaussian is put with `cfg.hold` false (the BED position mask
     then at its floor: `free_offset_of`)."""
 
-    cfg: object  # CarveConfig
+    cfg: CarveConfig
     seed: int
     canonical_time: float
     max_gaussians: int
