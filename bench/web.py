@@ -23,6 +23,7 @@ Prints the load average before and after; time it alone.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import tempfile
@@ -61,8 +62,6 @@ def page_figures(browser, url, frames: int, times, camera: int) -> dict:
                                       f"JSON.stringify([s, window.nehad.player.deformMs.at(-1), "
                                       f"window.nehad.player.drawMs.at(-1)]))")
         walls.append(time.perf_counter() - t0)
-        import json
-
         _, d, g = json.loads(res["result"]["value"])
         deform.append(d)
         draw.append(g)

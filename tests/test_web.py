@@ -85,6 +85,18 @@ def open_player(browser: Browser, url: str) -> None:
         "window.nehad && (window.nehad.ready || window.nehad.error)"), timeout=120)
 
 
+@contextlib.contextmanager
+def player(site, isolated: bool = False):
+    """(browser, address) with the player of `site` open in it; the browser is closed after."""
+    browser = Browser(800, 600)
+    try:
+        with serve(site, isolated) as url:
+            open_player(browser, url)
+            yield browser, url
+    finally:
+        browser.close()
+
+
 def show(browser: Browser, t: float, camera: int) -> np.ndarray:
     """The page's picture of `camera` at time t, float32 (H, W, 3) in [0, 1]."""
     import cv2
@@ -123,25 +135,20 @@ def test_the_page_draws_what_nehad_render_draws_at_each_time(model, tmp_path):
     onnx, cams = model
     site = build(tmp_path, onnx, cams)
     cameras = load_view(cams)
-    browser = Browser(800, 600)
-    try:
-        with serve(site) as url:
-            open_player(browser, url)
-            assert browser.evaluate("window.nehad.error") is None
-            for k, camera in enumerate(cameras):
-                refs = [reference(onnx, camera, t) for t in TIMES]
-                for i, t in enumerate(TIMES):
-                    got = show(browser, t, k)
-                    assert got.shape == (H, W, 3)
-                    scores = [psnr(got, r) for r in refs]
-                    print(f"camera {k} t {t}: {' / '.join(f'{s:.1f}' for s in scores)} dB "
-                          f"against nehad render at t = {TIMES}")
-                    assert scores[i] >= 30.0
-                    assert scores[i] == max(scores), "closer to another time's render"
-            text = browser.text()
-            assert "deform" in text and "1 thread: the page is not cross-origin isolated" in text
-    finally:
-        browser.close()
+    with player(site) as (browser, _):
+        assert browser.evaluate("window.nehad.error") is None
+        for k, camera in enumerate(cameras):
+            refs = [reference(onnx, camera, t) for t in TIMES]
+            for i, t in enumerate(TIMES):
+                got = show(browser, t, k)
+                assert got.shape == (H, W, 3)
+                scores = [psnr(got, r) for r in refs]
+                print(f"camera {k} t {t}: {' / '.join(f'{s:.1f}' for s in scores)} dB "
+                      f"against nehad render at t = {TIMES}")
+                assert scores[i] >= 30.0
+                assert scores[i] == max(scores), "closer to another time's render"
+        text = browser.text()
+        assert "deform" in text and "1 thread: the page is not cross-origin isolated" in text
 
 
 @needs_browser
@@ -181,15 +188,10 @@ def test_a_model_that_cannot_load_says_why_on_the_page(model, tmp_path):
     onnx, cams = model
     site = build(tmp_path, onnx, cams)
     (site / "model.onnx").write_bytes(b"not an onnx model")
-    browser = Browser(800, 600)
-    try:
-        with serve(site) as url:
-            open_player(browser, url)
-            error = browser.evaluate("window.nehad.error")
-            assert error and error.startswith("model.onnx: onnxruntime-web cannot load it")
-            assert "Error: model.onnx" in browser.text()
-    finally:
-        browser.close()
+    with player(site) as (browser, _):
+        error = browser.evaluate("window.nehad.error")
+        assert error and error.startswith("model.onnx: onnxruntime-web cannot load it")
+        assert "Error: model.onnx" in browser.text()
 
 
 def test_bad_inputs_end_in_one_error_and_write_nothing(model, tmp_path, fake_libraries):
@@ -246,14 +248,9 @@ def test_the_folder_holds_the_player_the_model_and_the_scene(model, tmp_path, fa
 def test_served_with_the_isolation_headers_the_wasm_runs_threaded(model, tmp_path):
     onnx, cams = model
     site = build(tmp_path, onnx, cams)
-    browser = Browser(800, 600)
-    try:
-        with serve(site, isolated=True) as url:
-            open_player(browser, url)
-            assert browser.evaluate("window.nehad.error") is None
-            assert browser.evaluate("self.crossOriginIsolated") is True
-            assert "threads, cross-origin isolated" in browser.evaluate("window.nehad.stats.mode")
-            got = show(browser, 0.5, 0)
-            assert psnr(got, reference(onnx, load_view(cams)[0], 0.5)) >= 30.0
-    finally:
-        browser.close()
+    with player(site, isolated=True) as (browser, _):
+        assert browser.evaluate("window.nehad.error") is None
+        assert browser.evaluate("self.crossOriginIsolated") is True
+        assert "threads, cross-origin isolated" in browser.evaluate("window.nehad.stats.mode")
+        got = show(browser, 0.5, 0)
+        assert psnr(got, reference(onnx, load_view(cams)[0], 0.5)) >= 30.0
