@@ -28,6 +28,7 @@ import click
 USER_ERROR_CLASSES = (
     ("nehad.runtime.errors", "InputProblem"),  # every runtime input error (runtime/errors.py)
     ("nehad.data.dnerf", "DatasetError"),
+    ("nehad.data.capture_inputs", "PrepareError"),  # nehad prepare (a DatasetError too)
     ("nehad.cli.errors", "InputError"),
     ("nehad.configtools", "ConfigError"),
     ("nehad.checkpoint", "RunError"),

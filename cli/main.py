@@ -21,6 +21,7 @@ from nehad import __version__
 
 from .batch import batch
 from .model import export_, info
+from .prepare import prepare
 from .render import ply, render
 from .synth import synth
 from .threads import apply_thread_defaults
@@ -90,7 +91,7 @@ def main():
     """
 
 
-for _command in (synth, train, eval_, demo, export_, info, render, ply, video, batch, view, web,
+for _command in (synth, prepare, train, eval_, demo, export_, info, render, ply, video, batch, view, web,
                  viz, report):
     main.add_command(_command)
 

@@ -45,9 +45,17 @@ from .errors import InputError, user_errors
               help="Dataset layout: dnerf (transforms_*.json, RGBA PNGs), hypernerf (nerfies "
                    "camera/, rgb/1x, rgb/2x, dataset.json, ...) or dynerf (camXX.mp4 videos and "
                    "poses_bounds.npy; --frames is then the frames per video).")
-@click.option("--cameras", type=click.IntRange(min=2), default=4, show_default=True,
-              help="dynerf: number of cameras (cam00 is the test camera).")
-def synth(out, scene, suite, resolution, frames, seed, fixed_time, num_gaussians, fmt, cameras):
+@click.option("--cameras", type=click.IntRange(min=2), default=None,
+              help="dynerf: number of cameras (cam00 is the test camera); --capture rig: number "
+                   "of fixed cameras  [default: 4; 12 for --capture rig]")
+@click.option("--capture", type=click.Choice(["rig", "orbit"]), default=None,
+              help="Write what a user films instead of a dataset, for `nehad prepare`: "
+                   "rig = OUT/videos/camNN.mp4 from fixed cameras, orbit = OUT/orbit.mp4 from a "
+                   "camera walking 120 degrees around, both in front of a textured ground and "
+                   "walls, with the true cameras in OUT/truth.json  [--resolution 400, --frames "
+                   "60 per video]")
+def synth(out, scene, suite, resolution, frames, seed, fixed_time, num_gaussians, fmt, cameras,
+          capture):
     """Write a synthetic dynamic scene to the folder OUT (D-NeRF layout unless --format).
 
     D-NeRF: OUT gets train/, val/, test/ (RGBA PNGs, label masks in */masks/),
@@ -59,6 +67,12 @@ def synth(out, scene, suite, resolution, frames, seed, fixed_time, num_gaussians
     from nehad.data.synth import SCENES, synthesize_scene
     from nehad.data.synth_stress import STRESS_SCENES
 
+    if capture is not None:
+        if scene not in SCENES:
+            raise click.BadParameter(f"unknown scene {scene!r}; a capture draws one of "
+                                     f"{', '.join(SCENES)}", param_hint="'--scene'")
+        return _synth_capture(out, capture, scene, resolution or 400, frames or 60, cameras or 12)
+    cameras = 4 if cameras is None else cameras
     if suite is not None or scene in STRESS_SCENES:
         if fmt != "dnerf" or fixed_time is not None:
             raise click.UsageError("stress scenes are written in the D-NeRF (MuJoCo) layout "
@@ -168,6 +182,32 @@ def _synth_stress(out, names, nested, resolution, frames, seed):
                f", {time.perf_counter() - start:.1f} s)")
     q = shlex.quote(str(out / names[0] if nested else out))
     click.echo(f"try: nehad train {q} -o run && nehad eval run   # scores every labelled object")
+
+
+def _synth_capture(out, kind, scene, resolution, frames, cameras):
+    from nehad.data.synth_capture import synthesize_capture
+
+    if resolution < 16 or frames < 2:
+        raise click.BadParameter("a capture needs --resolution >= 16 and --frames >= 2")
+    if out.exists() and not out.is_dir():
+        raise click.BadParameter(f"{out} exists and is not a folder", param_hint="'OUT'")
+    with user_errors():
+        check_synth_memory(resolution, frames)
+    start = time.perf_counter()
+    total = frames * (cameras if kind == "rig" else 1)
+    with user_errors(), _removed_on_failure(out):
+        from tqdm import tqdm
+
+        with tqdm(total=total, desc="synth", unit="frame", delay=1.0, disable=None,
+                  leave=False, file=sys.stderr) as bar:
+            synthesize_capture(out, kind, scene, resolution, frames, cameras,
+                               progress=lambda: bar.update(1))
+    what = (f"videos/cam00.mp4 .. cam{cameras - 1:02d}.mp4 ({frames} frames each)"
+            if kind == "rig" else f"orbit.mp4 ({frames} frames)")
+    click.echo(f"wrote {out}/ ({kind} capture of {scene!r}, {resolution}x{resolution}, "
+               f"{time.perf_counter() - start:.1f} s): {what}, truth.json (the true cameras)")
+    src = shlex.quote(str(out / "videos" if kind == "rig" else out / "orbit.mp4"))
+    click.echo(f"try: nehad prepare {src} -o {shlex.quote(str(out))}_scene")
 
 
 def _synth_other_format(out, fmt, scene, resolution, frames, seed, fixed_time, cameras):

@@ -20,5 +20,8 @@ DNERF_IMAGE_SUFFIXES = STILL_SUFFIXES + (".exr",)
 #: suffix and the stills' upper-case forms.
 CAMERA_IMAGE_SUFFIXES = IMAGE_SUFFIXES + tuple(s.upper() for s in STILL_SUFFIXES)
 
-__all__ = ["ALPHA_SUFFIXES", "CAMERA_IMAGE_SUFFIXES", "DNERF_IMAGE_SUFFIXES", "IMAGE_SUFFIXES",
-           "STILL_SUFFIXES"]
+#: Videos that `nehad prepare` decodes (PyAV reads each of them; matched lower-cased).
+CAPTURE_VIDEO_SUFFIXES = (".mp4", ".mov", ".m4v", ".mkv", ".avi", ".webm")
+
+__all__ = ["ALPHA_SUFFIXES", "CAMERA_IMAGE_SUFFIXES", "CAPTURE_VIDEO_SUFFIXES",
+           "DNERF_IMAGE_SUFFIXES", "IMAGE_SUFFIXES", "STILL_SUFFIXES"]

@@ -250,6 +250,20 @@ def _ply_colours(cols: dict, types: dict) -> np.ndarray | None:
     return None
 
 
+def points_ply_bytes(points: np.ndarray, colours: np.ndarray) -> bytes:
+    """A binary PLY of points with uint8 colours (``x y z red green blue``), as
+    :func:`read_ply_points` reads it back."""
+    header = ("ply\nformat binary_little_endian 1.0\n"
+              f"element vertex {len(points)}\n"
+              "property float x\nproperty float y\nproperty float z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+    rec = np.empty(len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                       ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    rec["x"], rec["y"], rec["z"] = points[:, 0], points[:, 1], points[:, 2]
+    rec["red"], rec["green"], rec["blue"] = colours[:, 0], colours[:, 1], colours[:, 2]
+    return header.encode("ascii") + rec.tobytes()
+
+
 def read_ply_points(path: Path) -> tuple[np.ndarray, np.ndarray | None]:
     """Vertices of an ascii or binary PLY file: (M, 3) float32 points, (M, 3) colours in [0, 1]."""
     data = path.read_bytes()

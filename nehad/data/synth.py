@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from nehad.data.common import points_ply_bytes
 from nehad.runtime.cameras import Camera
 from nehad.runtime.images import atomic_write_bytes, write_image
 
@@ -56,9 +57,11 @@ _NEAR = 1e-3
 class Surface:
     """How an object's surface looks: a flat colour, or a two-colour pattern fixed to the object.
 
-    `pattern` is None, ``"checker"`` or ``"stripes"``; `cells` the number of pattern cells around
-    the object (checker: `cells` around x `cells // 2` from pole to pole on a sphere, `cells` per
-    box edge; stripes: `cells` stripes around a sphere's local z axis, across a box's local x).
+    `pattern` is None, ``"checker"``, ``"stripes"`` or ``"noise"``; `cells` the number of pattern
+    cells around the object (checker: `cells` around x `cells // 2` from pole to pole on a sphere,
+    `cells` per box edge; stripes: `cells` stripes around a sphere's local z axis, across a box's
+    local x; noise: `cells` per box edge, each cell a random mix of the two colours, darkened by
+    a random factor per block of 5 x 5 cells: texture that structure from motion can match).
     `unlit` surfaces show their colour unshaded (a floor that looks like the background).
     """
 
@@ -231,6 +234,8 @@ def _surface_colour(obj, points: np.ndarray) -> np.ndarray:
     rot = obj.rotation if obj.rotation is not None else np.eye(3)
     local = (points - obj.centre) @ rot  # = rot.T (p - c), row-wise
     n = int(surf.cells)
+    if surf.pattern == "noise":
+        return _noise_colour(obj, local, n, base, np.asarray(surf.second_colour, dtype=np.float64))
     if isinstance(obj, Sphere):
         u = (np.arctan2(local[..., 1], local[..., 0]) + math.pi) / (2.0 * math.pi)  # [0, 1]
         v = np.arccos(np.clip(local[..., 2] / max(obj.radius, 1e-12), -1.0, 1.0)) / math.pi
@@ -246,6 +251,34 @@ def _surface_colour(obj, points: np.ndarray) -> np.ndarray:
             parity = np.floor(rel * n).sum(axis=-1)
     odd = (parity.astype(np.int64) % 2 == 1)[..., None]
     return np.where(odd, np.asarray(surf.second_colour, dtype=np.float64), base)
+
+
+def _cell_hash(cells: np.ndarray) -> np.ndarray:
+    """A value in [0, 1) per integer cell (..., 3), the same for the same cell (splitmix64)."""
+    c = cells.astype(np.int64).astype(np.uint64)
+    with np.errstate(over="ignore"):
+        x = (c[..., 0] * np.uint64(0x9E3779B97F4A7C15) ^ c[..., 1] * np.uint64(0xC2B2AE3D27D4EB4F)
+             ^ c[..., 2] * np.uint64(0x165667B19E3779F9))
+        x ^= x >> np.uint64(30)
+        x *= np.uint64(0xBF58476D1CE4E5B9)
+        x ^= x >> np.uint64(27)
+        x *= np.uint64(0x94D049BB133111EB)
+        x ^= x >> np.uint64(31)
+    return (x >> np.uint64(11)).astype(np.float64) / float(2 ** 53)
+
+
+def _noise_colour(obj, local: np.ndarray, n: int, base: np.ndarray,
+                  second: np.ndarray) -> np.ndarray:
+    """The ``"noise"`` pattern (see Surface) at object-frame points `local` (..., 3)."""
+    if isinstance(obj, Sphere):
+        size = np.full(3, 2.0 * obj.radius)
+    else:
+        size = 2.0 * np.asarray(obj.half_size, dtype=np.float64)
+    cell = np.max(size) / max(n, 1)  # square cells of one size on every face
+    fine = np.floor(local / cell)
+    mix = _cell_hash(fine)[..., None]
+    shade = 0.35 + 0.65 * _cell_hash(np.floor(fine / 5.0) + 7919.0)[..., None]
+    return shade * ((1.0 - mix) * base + mix * second)
 
 
 def label_mask(objects, coverage: np.ndarray) -> np.ndarray:
@@ -348,6 +381,51 @@ def _coverage(ids: np.ndarray, n_objects: int, h: int, w: int, s_: int) -> np.nd
     return coverage.astype(np.float32)
 
 
+def new_buffers(camera: Camera, supersample: int = 3):
+    """Empty supersample buffers (depth, colour, object ids) of a `camera` image, for
+    :func:`draw_objects`."""
+    s_ = int(supersample)
+    if s_ < 1:
+        raise ValueError(f"supersample: expected an integer >= 1, got {supersample!r}")
+    h, w = camera.height, camera.width
+    return (np.full((h * s_, w * s_), np.inf), np.zeros((h * s_, w * s_, 3), dtype=np.float32),
+            np.full((h * s_, w * s_), -1, dtype=np.int16))
+
+
+def copy_buffers(buffers):
+    """An independent copy of :func:`new_buffers`' tuple (a drawn backdrop reused per frame)."""
+    return tuple(b.copy() for b in buffers)
+
+
+def draw_objects(objects, camera: Camera, buffers, supersample: int = 3,
+                 first_id: int = 0) -> list[int]:
+    """Ray-cast `objects` into `buffers` (:func:`new_buffers`) where they are in front of what
+    is there; object k gets id ``first_id + k``. Returns the pixel rectangle [v0, v1, u0, u1]
+    they touched (empty when v0 >= v1)."""
+    s_ = int(supersample)
+    h, w = camera.height, camera.width
+    w2c = np.asarray(camera.world_to_camera, dtype=np.float64)
+    box = [h, 0, w, 0]
+    for k, obj in enumerate(objects):
+        drawn = _draw_object(first_id + k, obj, camera, w2c, s_, buffers)
+        if drawn is not None:
+            v0, v1, u0, u1 = drawn
+            box = [min(box[0], v0), max(box[1], v1), min(box[2], u0), max(box[3], u1)]
+    return box
+
+
+def resolve_buffers(buffers, camera: Camera, supersample: int = 3, n_objects: int = 0,
+                    box=None, return_coverage: bool = False):
+    """:func:`render_view`'s result from drawn `buffers`; `box` limits the averaging to the
+    rectangle something was drawn in (None: the whole image)."""
+    s_ = int(supersample)
+    h, w = camera.height, camera.width
+    rgba = _average_samples(buffers[1], buffers[2], box or (0, h, 0, w), h, w, s_)
+    if not return_coverage:
+        return rgba
+    return rgba, _coverage(buffers[2], n_objects, h, w, s_)
+
+
 def render_view(objects, camera: Camera, supersample: int = 3, return_coverage: bool = False):
     """Ray-cast `objects` from `camera` (a :class:`~nehad.runtime.cameras.Camera`, OpenCV axes).
 
@@ -360,24 +438,9 @@ def render_view(objects, camera: Camera, supersample: int = 3, return_coverage: 
     image is ``rgb + bg (1 - alpha)``. With ``return_coverage`` also returns float32
     (H, W, n_objects), the fraction of each pixel's samples in which object k is the front one.
     """
-    s_ = int(supersample)
-    if s_ < 1:
-        raise ValueError(f"supersample: expected an integer >= 1, got {supersample!r}")
-    h, w = camera.height, camera.width
-    w2c = np.asarray(camera.world_to_camera, dtype=np.float64)
-    buffers = (np.full((h * s_, w * s_), np.inf),
-               np.zeros((h * s_, w * s_, 3), dtype=np.float32),
-               np.full((h * s_, w * s_), -1, dtype=np.int16))
-    box = [h, 0, w, 0]  # pixel rectangle touched by some object
-    for k, obj in enumerate(objects):
-        drawn = _draw_object(k, obj, camera, w2c, s_, buffers)
-        if drawn is not None:
-            v0, v1, u0, u1 = drawn
-            box = [min(box[0], v0), max(box[1], v1), min(box[2], u0), max(box[3], u1)]
-    rgba = _average_samples(buffers[1], buffers[2], box, h, w, s_)
-    if not return_coverage:
-        return rgba
-    return rgba, _coverage(buffers[2], len(objects), h, w, s_)
+    buffers = new_buffers(camera, supersample)
+    box = draw_objects(objects, camera, buffers, supersample)
+    return resolve_buffers(buffers, camera, supersample, len(objects), box, return_coverage)
 
 
 def _surface_points(objects, n: int, rng: np.random.Generator):
@@ -405,18 +468,6 @@ def _surface_points(objects, n: int, rng: np.random.Generator):
         pts.append(p)
         cols.append(np.tile(np.round(np.asarray(obj.colour) * 255), (m, 1)))
     return np.concatenate(pts).astype(np.float32), np.concatenate(cols).astype(np.uint8)
-
-
-def _ply_bytes(points: np.ndarray, colours: np.ndarray) -> bytes:
-    header = ("ply\nformat binary_little_endian 1.0\n"
-              f"element vertex {len(points)}\n"
-              "property float x\nproperty float y\nproperty float z\n"
-              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
-    rec = np.empty(len(points), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                       ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-    rec["x"], rec["y"], rec["z"] = points[:, 0], points[:, 1], points[:, 2]
-    rec["red"], rec["green"], rec["blue"] = colours[:, 0], colours[:, 1], colours[:, 2]
-    return header.encode("ascii") + rec.tobytes()
 
 
 def write_frame(root: Path, split: str, name: str, objects, camera: Camera,
@@ -532,6 +583,6 @@ def synthesize_scene(out_dir, scene: str = "spheres", resolution: int = 64, fram
     if points > 0:
         t_pts = 0.5 if fixed_time is None else fixed_time
         pts, cols = _surface_points(scene_objects(scene, t_pts), int(points), rng_pts)
-        atomic_write_bytes(out / "points3d.ply", _ply_bytes(pts, cols))
+        atomic_write_bytes(out / "points3d.ply", points_ply_bytes(pts, cols))
     return out
 

@@ -35,9 +35,10 @@ from pathlib import Path
 import numpy as np
 
 from nehad.data.common import (area_downscale, atomic_write_bytes, atomic_write_json,
+                               points_ply_bytes,
                                undistort_normalized)
 from nehad.data.dynerf import camera_to_world_to_llff
-from nehad.data.synth import (SCENES, _ply_bytes, _surface_points, orbit_camera_to_world,
+from nehad.data.synth import (SCENES, _surface_points, orbit_camera_to_world,
                               render_view, scene_objects, synthesize_scene)
 from nehad.runtime.cameras import Camera
 from nehad.runtime.images import write_image
@@ -132,7 +133,7 @@ def write_dnerf_twin(out, views: dict[str, list[tuple[Camera, np.ndarray, str]]]
                           {"camera_angle_x": angle, "frames": records})
     if points is not None:
         cols = colours if colours is not None else np.full((len(points), 3), 128, np.uint8)
-        atomic_write_bytes(out / "points3d.ply", _ply_bytes(np.asarray(points, np.float32), cols))
+        atomic_write_bytes(out / "points3d.ply", points_ply_bytes(np.asarray(points, np.float32), cols))
     return out
 
 
@@ -330,7 +331,7 @@ def _write_dynerf(out: Path, scene, size, frames, seed, fixed_time, points, prog
     if points > 0:
         t_pts = 0.5 if fixed_time is None else fixed_time
         pts, cols = _surface_points(scene_objects(scene, t_pts), int(points), rng)
-        atomic_write_bytes(out / "points3D_downsample2.ply", _ply_bytes(pts, cols))
+        atomic_write_bytes(out / "points3D_downsample2.ply", points_ply_bytes(pts, cols))
     if twin is not None:
         write_dnerf_twin(twin, twin_views, pts, cols)
 

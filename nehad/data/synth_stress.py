@@ -42,10 +42,11 @@ from pathlib import Path
 
 import numpy as np
 
+from nehad.data.common import points_ply_bytes
 from nehad.runtime.cameras import Camera
 from nehad.runtime.images import atomic_write_bytes
 
-from .synth import (Box, Sphere, Surface, _axis_angle, _ply_bytes, class_mapping,
+from .synth import (Box, Sphere, Surface, _axis_angle, class_mapping,
                     orbit_camera_to_world, write_frame)
 
 __all__ = ["STRESS_SCENES", "stress_objects", "rig_cameras", "stress_plan",
@@ -244,7 +245,7 @@ def synthesize_stress_scene(out_dir, name: str, resolution: int = 400, frames: i
         rng = np.random.default_rng(int(seed))
         pts = rng.uniform(-2.0, 2.0, size=(int(points), 3)).astype(np.float32)
         cols = rng.integers(0, 256, size=(int(points), 3)).astype(np.uint8)
-        atomic_write_bytes(out / "fused.ply", _ply_bytes(pts, cols))
+        atomic_write_bytes(out / "fused.ply", points_ply_bytes(pts, cols))
     return out
 
 
