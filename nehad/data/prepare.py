@@ -207,6 +207,7 @@ def prepare_capture(input_path, scene, options: PrepareOptions = PrepareOptions(
         raise PrepareError(f"{scene}: exists and is not an empty folder; choose another -o")
     kind, sources, frames = find_sources(input_path, options.kind, options.trim)
     _check_test_cameras(kind, sources, options)
+    scene.parent.mkdir(parents=True, exist_ok=True)
     work = work_folder(scene)
     if work.exists() and not resume:
         shutil.rmtree(work)
@@ -221,8 +222,7 @@ def prepare_capture(input_path, scene, options: PrepareOptions = PrepareOptions(
     points = sparse_points(model)[0]
     cams = camera_poses_of(run, model, chosen,
                            lambda found: _check_parallax(found, points, options.min_parallax))
-    staging = Path(tempfile.mkdtemp(prefix=f".{scene.name}.", suffix=".tmp",
-                                    dir=scene.parent if str(scene.parent) else "."))
+    staging = Path(tempfile.mkdtemp(prefix=f".{scene.name}.", suffix=".tmp", dir=scene.parent))
     try:
         with _phase(run, "write", progress, sum(len(f) for f in run.files.values())) as tick:
             write_scene(run, cams, model, staging, tick)
