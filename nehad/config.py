@@ -54,6 +54,7 @@ class StageConfig:
     # only inside the densification window (so never at the stage's end); 0 = never
     prune_large_every: float = 0.4  # also prune oversized Gaussians every this fraction, after
     # the first opacity reset (D-NeRF: 8000 of 20000); 0 = never
+    prune_transparent: bool = True  # prune Gaussians under densify.min_opacity when densifying
     # Time curriculum (docs/training.md): a step draws only frames whose time lies within
     # `time_window` of train.canonical_time at the stage's start; the window widens linearly to
     # the whole time range by `window_growth` of the stage (0: it stays fixed). 1 = every frame.
@@ -156,6 +157,8 @@ class TrainConfig:
     # around it, the fine stage's time window grows from it, and the BED equilibrium times t_eq
     # start at it (paper Sec. "Boltzmann Equilibrium Decomposition").
     canonical_time: float = 0.5
+    revive_opacity: float = 0.0  # at the static -> deforming boundary, opacities under this are
+    # raised to it (0 = off; docs/training.md, "Objects that are never created")
     # While the fine stage's time window is narrower than the time range, hold the space-time
     # planes outside it at the window's edge values, so a time that enters the window starts
     # from the deformation of its nearest trained time instead of the planes' initial value.

@@ -68,6 +68,7 @@ class DensifySchedule:
     interval: int
     reset_every: int  # 0 = never
     prune_large_every: int  # 0 = never
+    prune_transparent: bool = True
 
     @classmethod
     def for_stage(cls, stage, length: int, interval: int) -> "DensifySchedule":
@@ -77,7 +78,8 @@ class DensifySchedule:
 
         every = lambda frac: max(at(frac), 1) if frac > 0 else 0
         return cls(at(stage.densify_from), at(stage.densify_until), int(interval),
-                   every(stage.opacity_reset_every), every(stage.prune_large_every))
+                   every(stage.opacity_reset_every), every(stage.prune_large_every),
+                   bool(getattr(stage, "prune_transparent", True)))
 
     def densifies(self, it: int) -> bool:
         return self.start <= it < self.stop and it > 0 and it % self.interval == 0
@@ -258,7 +260,8 @@ class DensifyStrategy:
         total = len(params)
         prune = torch.zeros(total, dtype=torch.bool)
         prune[:n][split] = True
-        prune |= torch.sigmoid(params.opacity_logits).detach() < cfg.min_opacity
+        if timing.prune_transparent:
+            prune |= torch.sigmoid(params.opacity_logits).detach() < cfg.min_opacity
         if timing.prunes_large(iteration):
             radii = torch.cat([state.max_radii, torch.zeros(total - n)])
             big_screen = radii > cfg.max_screen_size

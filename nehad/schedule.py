@@ -187,6 +187,10 @@ def start_deformation(trainer: Trainer) -> None:
     cfg = trainer.cfg.train
     g = trainer.model.gaussians
     g.reset_equilibrium(cfg.canonical_time)
+    if cfg.revive_opacity > 0:
+        with torch.no_grad():
+            floor = float(np.log(cfg.revive_opacity / (1.0 - cfg.revive_opacity)))
+            g.opacity_logits.clamp_(min=floor)
     if cfg.fit_box_to_gaussians:
         box = gaussian_bounds(g, cfg.fit_box_padding)
         if box is not None:
