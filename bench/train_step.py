@@ -18,7 +18,9 @@ as medians over --repeats calls after a warm-up:
   adam        one optimizer step over every parameter.
 
 Below each size, step, field and loss as multiples of the render (issue 27 states its targets
-that way, since machines of this kind differ about 2x in absolute speed).
+that way, since machines of this kind differ about 2x in absolute speed), and field and loss
+beside their compute floors (bench/floors.py: their multiply-adds at this machine's measured
+float32 matrix-multiply rate).
 The parts do not add up to the step exactly (the step also draws a frame, logs, densifies).
 It prints the thread counts and the load average it ran under; time it on a quiet machine.
 The script uses only calls that the earlier trainer also had, so the same file measures an
@@ -84,6 +86,19 @@ def build(scene: Path, downscale: int, n: int, extra: list[str], run: Path):
     return tr
 
 
+def floors(tr, rate: float) -> dict:
+    """The field's and the loss's floors in ms (bench/floors.py) for `tr`'s model and images."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from floors import field_macs, loss_macs
+
+    view = tr.train_views
+    _, field_both = field_macs(tr.model, view.times[0])
+    cam = view.cameras[0]
+    _, loss_both = loss_macs(cam.width, cam.height)
+    return {"field": 1e3 * field_both / rate, "loss": 1e3 * loss_both / rate,
+            "field_gmac": field_both / 1e9}
+
+
 def measure(tr, repeats: int) -> dict:
     import torch
 
@@ -147,9 +162,13 @@ def main() -> None:
     import numba
     import torch
 
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from floors import matmul_rate
+
     load = os.getloadavg()
+    rate = matmul_rate()
     print(f"threads: torch {torch.get_num_threads()}, numba {numba.get_num_threads()}; "
-          f"load average before {load[0]:.2f}")
+          f"load average before {load[0]:.2f}; float32 matmul {rate / 1e9:.1f} G multiply-adds/s")
     print(f"{'size':>9} {'N':>6} " + " ".join(f"{k:>10}" for k in
                                               ("step", "field", "render", "loss", "regularise",
                                                "adam")) + "   (ms)")
@@ -159,6 +178,7 @@ def main() -> None:
         try:
             tr = build(args.scene, downscale, args.gaussians, args.sets, run / "run")
             r = measure(tr, args.repeats)
+            floor = floors(tr, rate)
         finally:
             shutil.rmtree(run, ignore_errors=True)
         w = tr.train_views.cameras[0].width
@@ -168,6 +188,9 @@ def main() -> None:
         # issue 27's targets as ratios to the render of the same run (machines differ ~2x)
         print(f"{'':>16}x render: step {r['step'] / r['render']:.2f}, field "
               f"{r['field'] / r['render']:.2f}, loss {r['loss'] / r['render']:.2f}")
+        print(f"{'':>16}floor (ms): field {floor['field']:.1f} ({floor['field_gmac']:.3f} G "
+              f"multiply-adds; x floor {r['field'] / floor['field']:.1f}), loss "
+              f"{floor['loss']:.1f} (x floor {r['loss'] / floor['loss']:.1f})")
     print(f"load average after {os.getloadavg()[0]:.2f}")
 
 

@@ -1,0 +1,80 @@
+"""Compute floors for the training step and the frame (issue 27, item 4), as bench/raster.py has
+the rasterizer's: the work a part cannot avoid, at the best rate this machine does that work.
+
+- **Field**: its multiply-adds at the machine's measured float32 matrix-multiply rate (torch,
+  the threads in use, at the decoder's shape: N x 64 by 64 x 64). The dense layers (trunk, HNN,
+  its closed-form gradient, adapters) are counted by torch's FlopCounterMode while the field runs
+  (forward, and forward + backward); the hex-plane lookup, which that counter does not see (it
+  runs in a Numba kernel or in grid_sample), adds 4 bilinear taps x its feature width per plane,
+  scale and Gaussian forward, three times that backward (the features' and the coordinates'
+  gradients). Element-wise work (activations, BED masks, Verlet, quaternions) is not counted: a
+  floor, not an estimate.
+- **Loss** (L1 + D-SSIM): per pixel and channel, the SSIM's separable 11-tap Gaussian window on
+  five maps (two passes each) forward, twice that backward, plus the L1 and the SSIM formula, at
+  the same rate (a floor: a stencil runs slower than a matrix multiply).
+
+Used by bench/train_step.py and bench/render.py; run alone to print the rate.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+#: D-SSIM per pixel and channel: 5 maps (mu_x, mu_y, x^2, y^2, xy) x 2 separable passes x 11
+#: taps forward; the backward twice that; plus ~10 for the SSIM formula and the L1.
+LOSS_MACS_FORWARD = 5 * 2 * 11 + 10
+LOSS_MACS_BACKWARD = 2 * 5 * 2 * 11 + 10
+
+
+def matmul_rate(rows: int = 10000, width: int = 64, repeats: int = 30) -> float:
+    """Multiply-adds per second of torch's float32 (rows x width) @ (width x width), the
+    median of `repeats` after a warm-up, with torch's current threads."""
+    import torch
+
+    a = torch.randn(rows, width)
+    b = torch.randn(width, width)
+    torch.mm(a, b)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(10):
+            torch.mm(a, b)
+        times.append((time.perf_counter() - t0) / 10)
+    return rows * width * width / float(np.median(times))
+
+
+def hexplane_macs(field_cfg, n: int) -> int:
+    """Forward multiply-adds of the hex-plane lookup of `n` Gaussians (6 planes, each scale)."""
+    return int(n * 6 * len(field_cfg.multires) * field_cfg.out_dim * 4)
+
+
+def field_macs(model, t: float) -> tuple[int, int]:
+    """(forward, forward + backward) multiply-adds of the deformation of every Gaussian of
+    `model` (a NeHaDModel) at time `t` (module doc)."""
+    import torch
+    from torch.utils.flop_counter import FlopCounterMode
+
+    n = len(model.gaussians)
+    with torch.no_grad(), FlopCounterMode(display=False) as fwd:
+        model.gaussians_at(t, deform=True)
+    with FlopCounterMode(display=False) as both:
+        params = model.gaussians_at(t, deform=True)
+        sum(p.sum() for p in params).backward()
+    model.zero_grad(set_to_none=True) if hasattr(model, "zero_grad") else None
+    grid = hexplane_macs(model.field.cfg, n)
+    return (fwd.get_total_flops() // 2 + grid, both.get_total_flops() // 2 + 4 * grid)
+
+
+def loss_macs(width: int, height: int, channels: int = 3) -> tuple[int, int]:
+    """(forward, forward + backward) multiply-adds of the photometric loss of one image."""
+    px = width * height * channels
+    return px * LOSS_MACS_FORWARD, px * (LOSS_MACS_FORWARD + LOSS_MACS_BACKWARD)
+
+
+if __name__ == "__main__":
+    import torch
+
+    print(f"torch {torch.get_num_threads()} threads: float32 matmul "
+          f"{matmul_rate() / 1e9:.1f} G multiply-adds/s")
