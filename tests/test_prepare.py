@@ -115,8 +115,9 @@ def test_monocular_video_sampled_at_fps(tmp_path):
 
 
 def test_resume_reuses_frames_and_database(rig, tmp_path):
-    """A run stopped after matching (here: an error that the registration rule raises) keeps
-    its work folder; --resume skips decoding and feature extraction."""
+    """A work folder kept from an earlier run (--keep-work here; a failed run keeps it too,
+    test_a_camera_that_does_not_register) is reused by --resume: no decoding or feature
+    extraction again."""
     scene = tmp_path / "scene"
     res = _invoke(rig / "videos", "-o", scene, "--instants", "2", "--keep-work")
     assert res.exit_code == 0
@@ -125,6 +126,25 @@ def test_resume_reuses_frames_and_database(rig, tmp_path):
     assert res.exit_code == 0, (res.output, res.exception)
     record = json.loads((scene / "prepare.json").read_text())
     assert record["seconds"]["features"] < 0.5 and record["seconds"]["decode"] < 0.5, record
+
+
+def test_rig_of_image_folders(rig, tmp_path):
+    """The same rig as folders of JPEG images, one per camera: the same cameras posed."""
+    import cv2
+
+    folders = tmp_path / "images"
+    for video in sorted((rig / "videos").glob("*.mp4")):
+        (folders / video.stem).mkdir(parents=True)
+        for k, frame in enumerate(_frames_of(video)):
+            cv2.imwrite(str(folders / video.stem / f"frame{k}.jpg"), frame[:, :, ::-1],
+                        [cv2.IMWRITE_JPEG_QUALITY, 95])
+    scene = tmp_path / "scene"
+    res = _invoke(folders, "-o", scene, "--instants", "2")
+    assert res.exit_code == 0, (res.output, res.exception)
+    record = json.loads((scene / "prepare.json").read_text())
+    assert record["kind"] == "rig" and record["cameras"] == 8 and record["frames_per_camera"] == 5
+    err = pose_errors(scene, rig / "truth.json")
+    assert err["cameras"] == 8 and err["rotation_max_deg"] <= 0.5 and err["position_max"] <= 0.01
 
 
 # -- bad input: one `Error:` line each, nothing left in SCENE --------------------------------
