@@ -13,6 +13,14 @@ the rasterizer's: the work a part cannot avoid, at the best rate this machine do
   five maps (two passes each) forward, twice that backward, plus the L1 and the SSIM formula, at
   the same rate (a floor: a stencil runs slower than a matrix multiply).
 
+- **Deformation of an exported model** (bench/render.py): the multiply-adds of its graph's
+  Gemm/MatMul nodes per Gaussian (weights of shape K x N: K N each; counted from the ONNX file)
+  and of its GridSample nodes (4 taps x the plane's channels), times the Gaussians that go
+  through the field (all but the export's static ones), at onnxruntime's float32 matmul rate
+  with the threads the model runs with.
+- **Rasterization** (bench/render.py): the frame's contributing pairs at the forward inner
+  loop's rate (bench/raster.py, as its own floor).
+
 Used by bench/train_step.py and bench/render.py; run alone to print the rate.
 """
 
@@ -78,3 +86,56 @@ if __name__ == "__main__":
 
     print(f"torch {torch.get_num_threads()} threads: float32 matmul "
           f"{matmul_rate() / 1e9:.1f} G multiply-adds/s")
+
+
+def onnx_matmul_rate(threads: int | None = None, rows: int = 10000, width: int = 64,
+                     repeats: int = 30) -> float:
+    """Multiply-adds per second of onnxruntime's float32 (rows x width) @ (width x width) (a
+    one-node graph; `threads`: intra-op threads, None = onnxruntime's default)."""
+    import onnxruntime as ort
+    from onnx import TensorProto, helper, numpy_helper
+
+    w = np.random.default_rng(1).standard_normal((width, width)).astype(np.float32)
+    graph = helper.make_graph(
+        [helper.make_node("MatMul", ["x", "w"], ["y"])], "mm",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [rows, width])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [rows, width])],
+        [numpy_helper.from_array(w, "w")])
+    opts = ort.SessionOptions()
+    if threads:
+        opts.intra_op_num_threads = int(threads)
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
+    session = ort.InferenceSession(model.SerializeToString(), opts,
+                                   providers=["CPUExecutionProvider"])
+    x = {"x": np.random.default_rng(0).standard_normal((rows, width)).astype(np.float32)}
+    session.run(None, x)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(10):
+            session.run(None, x)
+        times.append((time.perf_counter() - t0) / 10)
+    return rows * width * width / float(np.median(times))
+
+
+def onnx_field_macs(path) -> tuple[int, int]:
+    """(multiply-adds per Gaussian through the field, Gaussians through it) of an exported
+    model (module doc)."""
+    import onnx
+
+    model = onnx.load(str(path))
+    inits = {i.name: list(i.dims) for i in model.graph.initializer}
+    made_by = {o: node for node in model.graph.node for o in node.output}
+    per_row = 0
+    for node in model.graph.node:
+        if node.op_type in ("Gemm", "MatMul"):
+            name = node.input[1]
+            if name not in inits and name in made_by and made_by[name].op_type == "Transpose":
+                name = made_by[name].input[0]
+            if len(inits.get(name, [])) == 2:
+                per_row += inits[name][0] * inits[name][1]
+        elif node.op_type == "GridSample" and len(inits.get(node.input[0], [])) == 4:
+            per_row += 4 * inits[node.input[0]][1]
+    meta = {p.key: p.value for p in model.metadata_props}
+    rows = int(meta.get("num_gaussians", 0)) - int(meta.get("static_gaussians", 0))
+    return per_row, rows

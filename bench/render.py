@@ -14,7 +14,9 @@ first). Threads: by default what a user gets (numba's pool and onnxruntime's def
 rasterizer's count following the load, runtime/threads.py); --threads N fixes both at N. Run
 with NUMBA_NUM_THREADS=1 OMP_NUM_THREADS=1 for the one-thread figure. --busy K starts K
 processes that spin on a core each after the warm-up frame (another user's job arriving while
-frames are drawn) and stops them at the end. Prints the load average before and after.
+frames are drawn) and stops them at the end. Prints the load average before and after, and
+each part beside its compute floor (bench/floors.py: the graph's multiply-adds at onnxruntime's
+matmul rate; the contributing pairs at the rasterizer's inner-loop rate).
 """
 
 from __future__ import annotations
@@ -73,6 +75,20 @@ def main() -> None:
         sys.exit(f"{path}: no default camera in the metadata")
     lo, hi = scene.time_range
     times = np.linspace(lo, hi, args.frames + 1)
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+    from bench.raster import contributing_pairs, inner_loop_rates
+    from floors import onnx_field_macs, onnx_matmul_rate
+
+    from nehad.runtime.raster import render as raster_render
+
+    per_row, rows = onnx_field_macs(path)
+    mac_rate = onnx_matmul_rate(args.threads)
+    pair_rate, _ = inner_loop_rates(5)
+    deform_floor = 1e3 * per_row * rows / mac_rate
+    print(f"floors: deformation {per_row} multiply-adds x {rows} Gaussians through the field "
+          f"at {mac_rate / 1e9:.1f} G/s (onnxruntime float32 matmul) = {deform_floor:.2f} ms; "
+          f"rasterization at {pair_rate / 1e9:.2f} G contributing pairs/s")
     print(f"{path.name}: {scene.num_gaussians} Gaussians; threads: onnxruntime "
           f"{args.threads or 'default'}, numba pool {numba.config.NUMBA_NUM_THREADS}"
           f"{'' if fixed else ' (count follows the load)'}; busy processes {args.busy}; "
@@ -99,10 +115,17 @@ def main() -> None:
                 rest_s += (t2 - t1) - view.seconds
             wall = time.perf_counter() - t_all
             n = len(times) - 1
+            pairs = contributing_pairs(raster_render(scene.gaussians(float(times[n // 2])), cam,
+                                                     adapt_threads=False))
+            raster_floor = 1e3 * pairs / pair_rate
             print(f"{cam.width}x{cam.height}: {n / wall:.1f} FPS: deformation "
                   f"{1e3 * deform_s / n:.1f} ms + rasterization {1e3 * raster_s / n:.1f} ms + "
                   f"the rest {1e3 * rest_s / n:.1f} ms per frame (numba threads at the end "
                   f"{numba.get_num_threads()})", flush=True)
+            print(f"{'':>9}x floor: deformation {1e3 * deform_s / n / deform_floor:.1f} "
+                  f"(floor {deform_floor:.2f} ms), rasterization "
+                  f"{1e3 * raster_s / n / raster_floor:.1f} (floor {raster_floor:.2f} ms, "
+                  f"{pairs / 1e6:.1f} M contributing pairs)", flush=True)
     finally:
         for p in busy:
             p.kill()
