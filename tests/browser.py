@@ -103,6 +103,20 @@ class Browser:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
         return img[:, :, ::-1].astype(np.float32) / 255.0
 
+    def settled_screenshot(self, timeout: float = 30.0, every: float = 0.5) -> np.ndarray:
+        """A screenshot once two taken `every` seconds apart are the same (the canvas has
+        finished drawing; on a loaded machine that can take seconds), or the last at the
+        timeout."""
+        deadline = time.monotonic() + timeout
+        last = self.screenshot()
+        while time.monotonic() < deadline:
+            time.sleep(every)
+            shot = self.screenshot()
+            if np.array_equal(shot, last):
+                return shot
+            last = shot
+        return last
+
     def wait_for(self, predicate, timeout: float = 30.0, every: float = 0.05):
         deadline = time.monotonic() + timeout
         while True:

@@ -71,7 +71,8 @@ def test_the_page_shows_the_render_at_each_slider_time(model, tmp_path, mode):
             browser.wait_for(lambda: f"t = {t:.3f}" in browser.text(), 30)  # read back
             time.sleep(1.0)  # the picture arrives with the text; let the canvas settle
             browser.hide_overlays()
-            shots[t] = browser.screenshot()
+            # until it stops changing: under load (CI beside a training run) 1 s was not enough
+            shots[t] = browser.settled_screenshot()
             client = next(iter(viewer.server.get_clients().values()))
             camera = viewer.view_camera(client)
             assert (camera.width, camera.height) == (W, H)
