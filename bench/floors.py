@@ -36,6 +36,18 @@ LOSS_MACS_FORWARD = 5 * 2 * 11 + 10
 LOSS_MACS_BACKWARD = 2 * 5 * 2 * 11 + 10
 
 
+def _seconds_per_call(fn, repeats: int) -> float:
+    """Median over `repeats` batches of 10 calls of `fn`, after one call to warm up."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        for _ in range(10):
+            fn()
+        times.append((time.perf_counter() - t0) / 10)
+    return float(np.median(times))
+
+
 def matmul_rate(rows: int = 10000, width: int = 64, repeats: int = 30) -> float:
     """Multiply-adds per second of torch's float32 (rows x width) @ (width x width), the
     median of `repeats` after a warm-up, with torch's current threads."""
@@ -43,14 +55,7 @@ def matmul_rate(rows: int = 10000, width: int = 64, repeats: int = 30) -> float:
 
     a = torch.randn(rows, width)
     b = torch.randn(width, width)
-    torch.mm(a, b)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        for _ in range(10):
-            torch.mm(a, b)
-        times.append((time.perf_counter() - t0) / 10)
-    return rows * width * width / float(np.median(times))
+    return rows * width * width / _seconds_per_call(lambda: torch.mm(a, b), repeats)
 
 
 def hexplane_macs(field_cfg, n: int) -> int:
@@ -70,7 +75,8 @@ def field_macs(model, t: float) -> tuple[int, int]:
     with FlopCounterMode(display=False) as both:
         params = model.gaussians_at(t, deform=True)
         sum(p.sum() for p in params).backward()
-    model.zero_grad(set_to_none=True) if hasattr(model, "zero_grad") else None
+    if hasattr(model, "zero_grad"):  # the counting pass leaves no gradient behind
+        model.zero_grad(set_to_none=True)
     grid = hexplane_macs(model.field.cfg, n)
     return (fwd.get_total_flops() // 2 + grid, both.get_total_flops() // 2 + 4 * grid)
 
@@ -108,14 +114,7 @@ def onnx_matmul_rate(threads: int | None = None, rows: int = 10000, width: int =
     session = ort.InferenceSession(model.SerializeToString(), opts,
                                    providers=["CPUExecutionProvider"])
     x = {"x": np.random.default_rng(0).standard_normal((rows, width)).astype(np.float32)}
-    session.run(None, x)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        for _ in range(10):
-            session.run(None, x)
-        times.append((time.perf_counter() - t0) / 10)
-    return rows * width * width / float(np.median(times))
+    return rows * width * width / _seconds_per_call(lambda: session.run(None, x), repeats)
 
 
 def onnx_field_macs(path) -> tuple[int, int]:

@@ -49,7 +49,7 @@ from .errors import InputProblem
 __all__ = ["PathError", "PathSpec", "TimeSpec", "PlannedFrame", "Reference", "OrbitParams",
            "parse_path_spec", "parse_time_spec", "look_at", "orbit_params_from_cameras",
            "orbit_cameras", "spiral_cameras", "plan_frames", "check_time", "DEFAULT_FRAMES",
-           "KINDS", "SPLITS"]
+           "KINDS", "SPLITS", "nearest_point_to_axes"]
 
 #: Frames of a generated path (orbit, spiral, a frozen camera) when --frames is not given.
 DEFAULT_FRAMES = 120
@@ -295,6 +295,20 @@ class OrbitParams:
     fy: float
 
 
+def nearest_point_to_axes(centres: np.ndarray, directions: np.ndarray) -> np.ndarray | None:
+    """The point nearest every line ``centre + s direction`` (unit directions; least squares):
+    where cameras look together. None when the lines are (nearly) parallel."""
+    a = np.zeros((3, 3))
+    b = np.zeros(3)
+    for c, d in zip(centres, directions):
+        p = np.eye(3) - np.outer(d, d)
+        a += p
+        b += p @ c
+    if not np.linalg.cond(a) < 1e6:
+        return None
+    return np.linalg.solve(a, b)
+
+
 def orbit_params_from_cameras(cameras: list[Camera], aabb=None) -> OrbitParams:
     """Orbit parameters derived from reference (training) cameras.
 
@@ -312,16 +326,7 @@ def orbit_params_from_cameras(cameras: list[Camera], aabb=None) -> OrbitParams:
     if len(cams) == 1 or np.linalg.norm(up) < 0.3:
         up = _snap_axis(_camera_up(cams[0]))
     up = up / np.linalg.norm(up)
-    centre = None
-    if len(cams) > 1:
-        a = np.zeros((3, 3))
-        b = np.zeros(3)
-        for c, d in zip(centres, dirs):
-            p = np.eye(3) - np.outer(d, d)
-            a += p
-            b += p @ c
-        if np.linalg.cond(a) < 1e6:
-            centre = np.linalg.solve(a, b)
+    centre = nearest_point_to_axes(centres, dirs) if len(cams) > 1 else None
     if centre is None:
         target = np.zeros(3) if aabb is None else np.asarray(aabb, np.float64).reshape(2, 3).mean(0)
         c, d = centres[0], dirs[0]

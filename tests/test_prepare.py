@@ -19,6 +19,7 @@ from click.testing import CliRunner
 
 pytest.importorskip("pycolmap")
 
+from clean_errors import one_error as _one_error  # noqa: E402
 from nehad.cli.main import main  # noqa: E402
 from nehad.data.synth import orbit_camera_to_world  # noqa: E402
 from nehad.data.synth_capture import pose_errors, synthesize_capture  # noqa: E402
@@ -29,16 +30,6 @@ pytestmark = pytest.mark.slow
 
 def _invoke(*args):
     return CliRunner().invoke(main, ["prepare", *map(str, args), "--threads", "1"])
-
-
-def _one_error(res, *needles) -> str:
-    assert res.exit_code == 1, (res.exit_code, res.output, res.exception)
-    assert res.exception is None or isinstance(res.exception, SystemExit), repr(res.exception)
-    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("Error: "), res.stderr
-    for n in needles:
-        assert n in lines[0], (n, lines[0])
-    return lines[0]
 
 
 def _nothing_left(scene: Path) -> None:

@@ -34,6 +34,7 @@ from nehad.runtime import tempfiles
 from nehad.runtime.images import atomic_path
 
 import stacks
+from clean_errors import one_error as _one_error
 from torch_blocker import blocked_torch_env
 from video_model import build_tiny_export
 
@@ -60,19 +61,6 @@ def static_ply(tmp_path_factory):
 
 def _invoke(args, **kw):
     return CliRunner().invoke(main, [str(a) for a in args], **kw)
-
-
-def _one_error(res, *needles) -> str:
-    """The result is a clean failure: exit 1, exactly one line `Error: ...` on stderr holding
-    every needle, no traceback, no escaped exception."""
-    assert res.exit_code == 1, (res.exit_code, res.output, res.exception)
-    assert res.exception is None or isinstance(res.exception, SystemExit), repr(res.exception)
-    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("Error: "), res.stderr
-    for n in needles:
-        assert n in lines[0], (n, lines[0])
-    assert "Traceback" not in res.output and "weights_only" not in res.output
-    return lines[0]
 
 
 def _run_cli(args, env=None, timeout=300, **kw):

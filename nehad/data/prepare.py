@@ -28,6 +28,7 @@ success unless `keep_work`.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
@@ -85,21 +86,18 @@ def work_folder(scene: Path) -> Path:
     return scene.parent / f".{scene.name}.prepare"
 
 
+@contextlib.contextmanager
 def _phase(run: _Run, name: str, progress, total: int):
-    """A progress bar of `total` steps for phase `name` (a no-op without `progress`)."""
+    """A progress bar of `total` steps for phase `name` (a no-op without `progress`); yields
+    its `tick(n=1)` and records the phase's seconds."""
     bar = progress(name, total) if progress is not None else None
     start = time.perf_counter()
-
-    class _Bar:
-        def __enter__(self):
-            return (lambda n=1: bar.update(n)) if bar is not None else (lambda n=1: None)
-
-        def __exit__(self, *exc):
-            if bar is not None:
-                bar.close()
-            run.seconds[name] = round(time.perf_counter() - start, 2)
-
-    return _Bar()
+    try:
+        yield (lambda n=1: bar.update(n)) if bar is not None else (lambda n=1: None)
+    finally:
+        if bar is not None:
+            bar.close()
+        run.seconds[name] = round(time.perf_counter() - start, 2)
 
 
 def _decode_all(run: _Run, progress) -> None:

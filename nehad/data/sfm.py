@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from nehad.runtime.paths import nearest_point_to_axes
+
 __all__ = ["CameraPose", "extract", "feature_counts", "image_pairs", "match", "reconstruct", "poses",
            "pair_geometries", "normalisation", "similarity", "TARGET_RADIUS"]
 
@@ -38,7 +40,7 @@ EXHAUSTIVE_MAX = 80
 SEQUENTIAL_OVERLAP = 12
 
 
-def _pycolmap(log_dir: Path = None):
+def _pycolmap():
     import pycolmap
 
     try:  # glog: nothing below FATAL on the terminal (the CLI reports what went wrong)
@@ -68,7 +70,7 @@ def extract(db: Path, image_dir: Path, names: list[str], camera_model: str, shar
     `max_features` per image (COLMAP's default 8192 makes matching 4x slower and posed the
     test captures no better); images already there are skipped (a resumed run).
     `progress(n)` after every `chunk` images."""
-    pycolmap = _pycolmap(db.parent)
+    pycolmap = _pycolmap()
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
     options = pycolmap.FeatureExtractionOptions()
@@ -107,7 +109,7 @@ def _extracted(pycolmap, db: Path) -> tuple[set[str], int | None]:
 
 def feature_counts(db: Path) -> dict[str, int]:
     """Keypoints per image name in the database."""
-    pycolmap = _pycolmap(db.parent)
+    pycolmap = _pycolmap()
     database = pycolmap.Database.open(str(db))
     try:
         return {im.name: int(database.num_keypoints_for_image(im.image_id))
@@ -138,7 +140,7 @@ def image_pairs(names: list[str], camera_of: dict[str, str] | None = None) -> li
 def match(db: Path, pairs: list[tuple], threads: int, progress=None, chunk: int = 48) -> None:
     """Match and verify `pairs` (image names) in `db`, `chunk` pairs at a time
     (`progress(n)` after each); pairs matched by an earlier run are skipped by COLMAP."""
-    pycolmap = _pycolmap(db.parent)
+    pycolmap = _pycolmap()
     options = pycolmap.FeatureMatchingOptions()
     options.num_threads = int(threads)
     pairing = pycolmap.ImportedPairingOptions()
@@ -156,7 +158,7 @@ def match(db: Path, pairs: list[tuple], threads: int, progress=None, chunk: int 
 def pair_geometries(db: Path) -> dict[str, int]:
     """How many verified image pairs have each two-view configuration (CALIBRATED,
     PANORAMIC, PLANAR_OR_PANORAMIC, ...): pure rotations between cameras show as PANORAMIC."""
-    pycolmap = _pycolmap(db.parent)
+    pycolmap = _pycolmap()
     database = pycolmap.Database.open(str(db))
     try:
         _, geometries = database.read_two_view_geometries()
@@ -178,7 +180,7 @@ def reconstruct(db: Path, image_dir: Path, out_dir: Path, threads: int, seed: in
                 progress=None):
     """Incremental mapping; the reconstruction with the most registered images, or None.
     `progress()` is called as each image is registered."""
-    pycolmap = _pycolmap(db.parent)
+    pycolmap = _pycolmap()
     options = pycolmap.IncrementalPipelineOptions()
     options.num_threads = int(threads)
     options.random_seed = int(seed)
@@ -212,20 +214,6 @@ def sparse_points(reconstruction) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros((0, 3)), np.zeros((0, 3), dtype=np.uint8)
     return (np.array([p for p, _ in pts], dtype=np.float64),
             np.array([c for _, c in pts], dtype=np.uint8))
-
-
-def _look_at_point(centres: np.ndarray, forwards: np.ndarray) -> np.ndarray | None:
-    """The point nearest every camera's optical axis (least squares); None when the axes are
-    (nearly) parallel."""
-    a = np.zeros((3, 3))
-    b = np.zeros(3)
-    for c, f in zip(centres, forwards):
-        p = np.eye(3) - np.outer(f, f)
-        a += p
-        b += p @ c
-    if np.linalg.cond(a) > 1e6:
-        return None
-    return np.linalg.solve(a, b)
 
 
 def _rotation_to_z(up: np.ndarray) -> np.ndarray:
@@ -266,7 +254,7 @@ def normalisation(centres: np.ndarray, rotations: np.ndarray,
     their axes are parallel), turns the world's up (:func:`_up_direction`) to +z and puts the
     cameras at a mean distance of TARGET_RADIUS."""
     forwards = rotations[:, :, 2]
-    centre = _look_at_point(centres, forwards)
+    centre = nearest_point_to_axes(centres, forwards)
     if centre is None or not np.all(np.isfinite(centre)):
         centre = np.median(points, axis=0) if len(points) else centres.mean(axis=0)
     rot = _rotation_to_z(_up_direction(rotations))
