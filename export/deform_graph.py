@@ -350,6 +350,7 @@ class FastDeform(nn.Module):
         super().__init__()
         field = model.field
         self.constant_means = constant_means
+        self.drift_window = float(model.gaussians.drift_window)  # GaussianParameters.drift
         self.cfg = cfg = field.cfg
         self.k = (int(sh_degree) + 1) ** 2
         self.hexplane = field.hexplane
@@ -438,7 +439,10 @@ class FastDeform(nn.Module):
         mu, log_s, quat = means.t(), log_scales.t(), quats.t()
         drift = None
         if velocity is not None:  # added after the field, as gaussians_at adds it
-            drift = velocity.t() * (t.reshape(1, 1) - t_eq.reshape(1, n))
+            dt = t.reshape(1, 1) - t_eq.reshape(1, n)
+            if self.drift_window > 0:
+                dt = dt.clamp(-self.drift_window, self.drift_window)
+            drift = velocity.t() * dt
         if self.mlp is not None:  # 4DGS: mu + dmu, s + ds, r + dr (normalised as gaussians_at)
             new_quats = quat + rows[6:10]
             moved = mu + rows[0:3]

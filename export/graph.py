@@ -83,6 +83,7 @@ class ExportGraph(nn.Module):
         part._modules = dict(model._modules)
         part._modules["gaussians"] = GaussianParameters(
             *(getattr(g, name).detach()[moving] for name in GaussianParameters.NAMES))
+        part._modules["gaussians"].drift_window = g.drift_window
         return part
 
     @property
@@ -95,7 +96,7 @@ class ExportGraph(nn.Module):
         out = self.deform(g.means, g.log_scales, g.quats, g.opacity_logits,
                           torch.cat([g.sh_dc, g.sh_rest], 1), g.mu_eq, g.t_eq, time,
                           g.life_rate if g.has_life() else None,
-                          g.drift_velocity() if g.has_life() else None)
+                          g.drift_velocity() if g.drifts() else None)
         if self.split:  # moving rows, then the frozen ones, put back in the model's order
             merged = [torch.cat([o, getattr(self, f"frozen_{name}")], 0)[self.inverse]
                       for name, o in zip(OUTPUT_NAMES[:4], out[:4])]

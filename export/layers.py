@@ -52,9 +52,10 @@ class SplitBaseGraph(nn.Module):
 
     def __init__(self, model, sh_degree: int, n0: int):
         super().__init__()
-        if model.gaussians.has_life():
-            raise ExportError("the split-layer export does not carry the finite lives of carved "
-                              "Gaussians (carve.every > 0); export the run as one file instead")
+        if model.gaussians.drifts():
+            raise ExportError("the split-layer export does not carry the finite lives and "
+                              "velocities of drifting Gaussians (carve.every > 0 or "
+                              "train.drift_window > 0); export the run as one file instead")
         self.model = model
         self.deform = FastDeform(model, sh_degree, constant_means=False)
         self.k = (int(sh_degree) + 1) ** 2

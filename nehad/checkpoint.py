@@ -53,7 +53,7 @@ def prepare_run_dir(run: Path, cfg, resume: bool) -> None:
         if not resume:
             raise RunError(f"{run}: already holds a run; pass --resume to continue it "
                            f"or choose another output folder")
-        changes = diff(saved, to_dict(cfg))
+        changes = diff(_with_defaults(saved), to_dict(cfg))
         if changes:
             raise RunError(f"{run}: --resume with a different config than the run's "
                            f"({'; '.join(changes[:6])}); use the same preset/--set values "
@@ -62,6 +62,19 @@ def prepare_run_dir(run: Path, cfg, resume: bool) -> None:
     if not cfg_path.exists():
         from nehad.runtime.images import atomic_write_bytes
         atomic_write_bytes(cfg_path, dump_yaml(cfg).encode())
+
+
+def _with_defaults(saved: dict) -> dict:
+    """A saved config with the keys added to the project since it was written at their
+    defaults (which is what the run trained with), so that resuming an older run is not refused
+    for a key it never had; as saved if it no longer reads as a config."""
+    from nehad.config import ConfigError, config_from_dict
+    from nehad.configtools import to_dict
+
+    try:
+        return to_dict(config_from_dict(saved))
+    except (ConfigError, TypeError, ValueError, KeyError):
+        return saved
 
 
 def atomic_torch_save(obj, path) -> Path:

@@ -8,7 +8,10 @@ k = 0 (it lives at every time, and the gradient of k is zero there, so it stays 
 carving (nehad.carve) gives the Gaussians it adds a finite life around the time they were seen,
 and a velocity v: over its life such a Gaussian moves in a straight line, mu + v (t - t_eq) after
 the deformation field (`drift`), so that it can follow its object into the times next to the one
-it was carved at (docs/training.md). A Gaussian with k = 0 never drifts.
+it was carved at (docs/training.md). A Gaussian with k = 0 never drifts, unless the run has a
+drift window W > 0 (`train.drift_window`): then every Gaussian moves v clamp(t - t_eq, -W, W),
+from the static stage on, so that an object moving across the static stage's time window is
+fitted where it is at each of its views instead of not at all.
 
 Every parameter's first dimension is the Gaussian index, so densification (nehad.densify) treats
 them all alike: clone, split and prune apply to each one, and children inherit mu_eq and t_eq."""
@@ -60,6 +63,8 @@ class GaussianParameters(nn.Module):
         self.t_eq = nn.Parameter(torch.full((n, 1), 0.5) if t_eq is None else f32(t_eq))
         self.life_rate = nn.Parameter(torch.zeros(n, 1) if life_rate is None else f32(life_rate))
         self.velocity = nn.Parameter(torch.zeros(n, 3) if velocity is None else f32(velocity))
+        #: train.drift_window (not a tensor: set from the run's config where the model is built)
+        self.drift_window = 0.0
 
     @classmethod
     def empty_like_state(cls, state: dict) -> "GaussianParameters":
@@ -137,17 +142,28 @@ class GaussianParameters(nn.Module):
         t = torch.as_tensor(t, dtype=self.t_eq.dtype).reshape(())
         return torch.exp(-0.5 * (self.life_rate * (t - self.t_eq)).square()).reshape(-1)
 
+    def drifts(self) -> bool:
+        """Whether any Gaussian can drift (a drift window, or a finite life)."""
+        return self.drift_window > 0 or self.has_life()
+
     def drift(self, t) -> torch.Tensor | None:
-        """(N, 3) the straight-line motion v (t - t_eq) of the Gaussians with a finite life (a
-        carved Gaussian follows its object over its life; nehad.carve), 0 for the others (their
-        velocity's gradient is masked, so it stays 0), or None when no Gaussian has a life."""
-        if t is None or not self.has_life():
+        """(N, 3) the straight-line motion after the field, or None when nothing drifts: with a
+        drift window W, v clamp(t - t_eq, -W, W) for every Gaussian; without, v (t - t_eq) for
+        the Gaussians with a finite life (a carved Gaussian follows its object over its life;
+        nehad.carve) and 0 for the others (their velocity's gradient is masked, so it stays 0)."""
+        if t is None or not self.drifts():
             return None
         t = torch.as_tensor(t, dtype=self.t_eq.dtype).reshape(())
-        return self.drift_velocity() * (t - self.t_eq)
+        dt = t - self.t_eq
+        if self.drift_window > 0:
+            dt = dt.clamp(-self.drift_window, self.drift_window)
+        return self.drift_velocity() * dt
 
     def drift_velocity(self) -> torch.Tensor:
-        """(N, 3) the velocities of the Gaussians with a finite life, 0 for the others."""
+        """(N, 3) the velocities that drift: every Gaussian's with a drift window, else those of
+        the Gaussians with a finite life and 0 for the others."""
+        if self.drift_window > 0:
+            return self.velocity
         return self.velocity * (self.life_rate.detach() != 0).to(self.velocity.dtype)
 
     def to_cloud(self) -> GaussianCloud:

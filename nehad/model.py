@@ -34,22 +34,21 @@ class NeHaDModel(torch.nn.Module):
         The opacities carry each Gaussian's life factor at t (GaussianParameters.life_factor)
         and the means its drift (GaussianParameters.drift), deformed or not."""
         g = self.gaussians
-        life = g.life_factor(t)
+        life, drift = g.life_factor(t), g.drift(t)
         if not deform or t is None:
             means, scales, quats, opacities, sh = g.activated()
-            if life is None:
-                return means, scales, quats, opacities, sh
-            return means + g.drift(t), scales, quats, opacities * life, sh
-        sh = torch.cat([g.sh_dc, g.sh_rest], 1)
-        out = self.field(g.means, g.log_scales, g.quats, t, g.mu_eq, g.t_eq,
-                         opacity_logits=g.opacity_logits, sh=sh)
-        quats = out.quats / out.quats.norm(dim=-1, keepdim=True)
-        opacities = torch.sigmoid(out.opacity_logits).reshape(g.means.shape[0])
-        means = out.means
+        else:
+            sh = torch.cat([g.sh_dc, g.sh_rest], 1)
+            out = self.field(g.means, g.log_scales, g.quats, t, g.mu_eq, g.t_eq,
+                             opacity_logits=g.opacity_logits, sh=sh)
+            quats = out.quats / out.quats.norm(dim=-1, keepdim=True)
+            opacities = torch.sigmoid(out.opacity_logits).reshape(g.means.shape[0])
+            means, scales, sh = out.means, torch.exp(out.log_scales), out.sh
         if life is not None:
             opacities = opacities * life
-            means = means + g.drift(t)
-        return means, torch.exp(out.log_scales), quats, opacities, out.sh
+        if drift is not None:
+            means = means + drift
+        return means, scales, quats, opacities, sh
 
 
 def cloud_at(model: NeHaDModel, t: float | None, sh_degree: int):
@@ -141,6 +140,7 @@ def model_from_state(state: dict) -> NeHaDModel:
     gaussians.load_state_dict(GaussianParameters.with_defaults(state["gaussians"]))
     field = DeformationField(cfg.field, state["field"]["aabb"], float(state["field"]["extent"]))
     field.load_state_dict(state["field"])
+    gaussians.drift_window = float(cfg.train.drift_window)
     return NeHaDModel(gaussians, field).eval()
 
 

@@ -248,6 +248,32 @@ def test_drift_moves_only_mortal_gaussians():
     assert torch.allclose(means, g.means + expect, atol=1e-5)
 
 
+def test_drift_window_moves_every_gaussian_clamped():
+    """With a drift window W (train.drift_window) every Gaussian drifts v clamp(t - t_eq, -W, W),
+    whatever its life, and every velocity learns; the model's means carry it."""
+    from nehad.field.config import FieldConfig
+    from nehad.field.deformation import DeformationField
+    from nehad.gaussians import GaussianParameters
+    from nehad.model import NeHaDModel
+
+    g = GaussianParameters.random_in_box(3, sh_degree=0)
+    g.drift_window = 0.1
+    with torch.no_grad():
+        g.velocity[:] = torch.tensor([[1.0, -2.0, 0.5], [3.0, 0.0, 0.0], [4.0, 4.0, 4.0]])
+        g.t_eq[:] = torch.tensor([[0.5], [0.75], [0.9]])
+    d = g.drift(0.8)  # t - t_eq = 0.3 (clamped to 0.1), 0.05, -0.1
+    expect = torch.tensor([[0.1, -0.2, 0.05], [0.15, 0.0, 0.0], [-0.4, -0.4, -0.4]])
+    assert torch.allclose(d, expect, atol=1e-6)
+    (d * torch.randn(3, 3)).sum().backward()
+    assert all(torch.any(g.velocity.grad[i] != 0) for i in range(3))
+    field = DeformationField(FieldConfig(), np.array([[-2.0] * 3, [2.0] * 3]), 4.0)
+    model = NeHaDModel(g, field)
+    with torch.no_grad():
+        assert torch.allclose(model.gaussians_at(0.8)[0], g.means + expect, atol=1e-5)
+        assert torch.allclose(model.gaussians_at(0.8, deform=False)[0], g.means + expect,
+                              atol=1e-6)  # the static stage's render drifts too
+
+
 def test_state_saved_before_life_rate_loads_immortal():
     """A checkpoint written before the life rate existed loads with k = 0 for every Gaussian."""
     from nehad.gaussians import GaussianParameters

@@ -309,3 +309,36 @@ def test_carved_gaussians_velocity_exports_with_parity(tmp_path):
         np.testing.assert_allclose(moving[: n // 2] - fixed[: n // 2], drift[: n // 2],
                                    atol=2e-5)
         np.testing.assert_array_equal(moving[n // 2:], fixed[n // 2:])
+
+
+def test_drift_window_exports_with_parity(tmp_path):
+    """With train.drift_window W every Gaussian's drift v clamp(t - t_eq, -W, W) is in the
+    exported means (nehad.gaussians.drift), times inside and outside the window."""
+    from nehad.checkpoint import atomic_torch_save, load_state
+
+    run, _ = make_run(tmp_path, "hnn")
+    state = load_state(run / "model.pt")
+    gs = state["gaussians"]
+    n = gs["means"].shape[0]
+    gs["velocity"] = torch.linspace(-2.0, 2.0, 3 * n).reshape(n, 3)
+    state["config"]["train"]["drift_window"] = 0.1
+    atomic_torch_save(state, run / "model.pt")
+    import shutil
+
+    still = tmp_path / "still"
+    shutil.copytree(run, still)
+    state["gaussians"] = {**gs, "velocity": torch.zeros(n, 3)}
+    atomic_torch_save(state, still / "model.pt")
+    paths = []
+    for r in (run, still):
+        paths.append(tmp_path / f"{r.name}.onnx")
+        res = CliRunner().invoke(main, ["export", str(r), "-o", str(paths[-1])])
+        assert res.exit_code == 0, res.output
+    sessions = [ort.InferenceSession(str(p), providers=["CPUExecutionProvider"]) for p in paths]
+    t_eq = gs["t_eq"].reshape(-1, 1).numpy()
+    for t in TIMES:
+        feed = {"time": np.array([t], np.float32)}
+        moving, fixed = (s.run(["means"], feed)[0] for s in sessions)
+        assert parity_error(moving, torch_reference(run, t)[0]) <= 1e-5
+        drift = gs["velocity"].numpy() * np.clip(t - t_eq, -0.1, 0.1)
+        np.testing.assert_allclose(moving - fixed, drift, atol=2e-5)

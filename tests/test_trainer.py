@@ -354,3 +354,25 @@ def test_static_stage_keeps_transparent_gaussians_and_the_boundary_revives_them(
     tr.train_step(tr.cfg.coarse.iterations)  # the boundary, then one deforming step
     opacity = torch.sigmoid(tr.model.gaussians.opacity_logits.detach())
     assert float(opacity.min()) > 0.04, float(opacity.min())
+
+
+def test_resume_of_a_run_older_than_a_config_key(tmp_path):
+    """A run whose config.yaml predates a key (here train.drift_window) resumes when the new
+    config holds that key at its default, the value the run trained with; a changed value is
+    still refused, naming the key."""
+    import yaml
+
+    from nehad.checkpoint import prepare_run_dir
+    from nehad.config import build_config
+    from nehad.configtools import to_dict
+
+    cfg = build_config("test")
+    run = tmp_path / "old"
+    run.mkdir()
+    saved = to_dict(cfg)
+    del saved["train"]["drift_window"]
+    (run / "config.yaml").write_text(yaml.safe_dump(saved, sort_keys=False))
+    prepare_run_dir(run, cfg, resume=True)
+    changed = build_config("test", overrides=["train.drift_window=0.1"])
+    with pytest.raises(RunError, match="train.drift_window"):
+        prepare_run_dir(run, changed, resume=True)
