@@ -97,8 +97,9 @@ class FieldConfig:
     `torch.inference_mode()` closed form is always used."""
     hexplane_kernel: str = "numba"
     """"numba": on the CPU (float32 points and planes, no mipmapping, outside export) the
-    hex-plane lookup and its backward run as Numba passes (nehad.field.hexplane_kernel, tested
-    against grid_sample); "torch": `F.grid_sample`, the reference and the GPU path."""
+    hex-plane lookup and its backward, and the spatial planes' total variation with its
+    gradient, run as Numba passes (nehad.field.hexplane_kernel, tested against grid_sample and
+    autograd); "torch": `F.grid_sample` and autograd, the reference and the GPU path."""
     use_hnn: bool = True
     """False = "HNN off" ablation: the two scalar networks and their input gradients are replaced
     by two direct MLPs of the same hidden width/depth mapping h -> R^W, whose outputs take the

@@ -164,9 +164,9 @@ class DeformationField(nn.Module):
 
     def regularization_terms(self) -> dict[str, torch.Tensor]:
         """Hex-plane regularisers of 4DGS (docs/design.md section 5), unweighted."""
+        smoothness, l1 = self.hexplane.time_terms()
         return {"plane_smoothness": self.hexplane.plane_smoothness(self.cfg.spatial_regularizer),
-                "time_smoothness": self.hexplane.time_smoothness(),
-                "time_l1": self.hexplane.time_l1()}
+                "time_smoothness": smoothness, "time_l1": l1}
 
     def regularization_loss(self) -> torch.Tensor:
         """Weighted sum of `regularization_terms()` with the cfg.reg_*_weight values."""

@@ -108,9 +108,16 @@ class HexPlane(nn.Module):
         self.sample_batches = 0
         #: docs/design.md section 8 mipmapping: the most pyramid levels per scale (0 = as many as the planes allow).
         self.mipmap_levels = 0
-        #: "numba": the lookup of float32 CPU points through nehad.field.hexplane_kernel (not
-        #: under export or mipmapping); "torch": grid_sample
+        #: "numba": the lookup of float32 CPU points and the spatial planes' total variation
+        #: through nehad.field.hexplane_kernel (not under export or mipmapping); "torch":
+        #: grid_sample and autograd
         self.kernel = "torch"
+
+    def _numba_ok(self) -> bool:
+        """Whether the Numba kernels serve (`kernel` "numba", float32 CPU planes, no capture)."""
+        return (self.kernel == "numba" and not is_capturing()
+                and all(p.dtype == torch.float32 and p.device.type == "cpu"
+                        for p in self.parameters()))
 
     @property
     def feature_dim(self) -> int:
@@ -145,9 +152,7 @@ class HexPlane(nn.Module):
             return self._forward_mipmap(x, t, sigma)
         n = x.shape[0]
         u = torch.cat([x, t.expand(n, 1).to(x.dtype)], dim=1)  # (N, 4)
-        if (self.kernel == "numba" and x.device.type == "cpu" and x.dtype == torch.float32
-                and not is_capturing() and n > 0
-                and all(p.dtype == torch.float32 for p in self.parameters())):
+        if self._numba_ok() and x.device.type == "cpu" and x.dtype == torch.float32 and n > 0:
             from nehad.field.hexplane_kernel import hexplane_lookup
 
             return hexplane_lookup(u, [p for scale in self.planes for p in scale], PLANE_AXES)
@@ -237,7 +242,21 @@ class HexPlane(nn.Module):
         """Smoothness of the spatial planes xy, xz, yz, summed over planes and scales: "tv" =
         K-Planes total variation; "second_order" = the 4DGS code's `_plane_regulation`."""
         fn = _tv if kind == "tv" else _second_order
+        if kind == "tv" and self._numba_ok():
+            from nehad.field.hexplane_kernel import plane_tv
+
+            fn = plane_tv  # the same function in one Numba pass
         return sum(fn(scale[k]) for scale in self.planes for k in SPACE_PLANES)
+
+    def time_terms(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(`time_smoothness()`, `time_l1()`); with the Numba kernels both in one pass per
+        plane (nehad.field.hexplane_kernel.time_regularisers)."""
+        if not self._numba_ok():
+            return self.time_smoothness(), self.time_l1()
+        from nehad.field.hexplane_kernel import time_regularisers
+
+        pairs = [time_regularisers(scale[k]) for scale in self.planes for k in TIME_PLANES]
+        return sum(a for a, _ in pairs), sum(b for _, b in pairs)
 
     def time_smoothness(self) -> torch.Tensor:
         """Second-order smoothness along t of the space-time planes xt, yt, zt (4DGS
