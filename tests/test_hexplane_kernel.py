@@ -26,8 +26,9 @@ def _points(n=300, seed=1):
     return x
 
 
+@pytest.mark.parametrize("layout", [torch.contiguous_format, torch.channels_last])
 @pytest.mark.parametrize("t", [-1.0, -0.31, 0.5, 1.0])
-def test_lookup_and_gradients_match_grid_sample(t):
+def test_lookup_and_gradients_match_grid_sample(t, layout):
     hp = _planes()
     x = _points()
     tt = torch.tensor([[t]], dtype=torch.float64)
@@ -37,7 +38,8 @@ def test_lookup_and_gradients_match_grid_sample(t):
                          dtype=torch.float64)
     (ref * weight).sum().backward()
     planes = [p for scale in hp.planes for p in scale]
-    planes32 = [p.detach().float().requires_grad_(True) for p in planes]
+    planes32 = [p.detach().float().contiguous(memory_format=layout).requires_grad_(True)
+                for p in planes]
     x32 = x.float().requires_grad_(True)
     out = hexplane_lookup(torch.cat([x32, tt.float().expand(len(x), 1)], 1), planes32,
                           PLANE_AXES)
@@ -46,6 +48,7 @@ def test_lookup_and_gradients_match_grid_sample(t):
     assert (x32.grad.double() - x_ref.grad).abs().max() <= 1e-5 * x_ref.grad.abs().max()
     for mine, p in zip(planes32, planes):
         assert mine.grad.shape == p.shape
+        assert mine.grad.is_contiguous(memory_format=layout)
         assert (mine.grad.double() - p.grad).abs().max() <= 1e-5 * p.grad.abs().max()
 
 
@@ -61,8 +64,12 @@ def test_hexplane_dispatches_to_the_kernel_on_cpu_float32():
     assert (out - ref).abs().max() <= 1e-5
 
 
+LAYOUTS = [torch.contiguous_format, torch.channels_last]
+
+
+@pytest.mark.parametrize("layout", LAYOUTS)
 @pytest.mark.parametrize("shape", [(1, 8, 6, 5), (1, 32, 64, 64), (1, 3, 2, 9)])
-def test_plane_tv_and_gradient_match_autograd(shape):
+def test_plane_tv_and_gradient_match_autograd(shape, layout):
     """The Numba total variation (nehad.field.hexplane_kernel.plane_tv) against the torch
     function (_tv) and its autograd gradient in float64, scaled by an upstream gradient."""
     from nehad.field.hexplane import _tv
@@ -72,7 +79,7 @@ def test_plane_tv_and_gradient_match_autograd(shape):
     p = torch.randn(shape, generator=g, dtype=torch.float64, requires_grad=True)
     ref = _tv(p)
     ref.backward()
-    q = p.detach().float().requires_grad_(True)
+    q = p.detach().float().contiguous(memory_format=layout).requires_grad_(True)
     value = plane_tv(q)
     (2.5 * value).backward()
     assert abs(float(value.detach()) - float(ref.detach())) <= 1e-6 * float(ref.detach())
@@ -89,8 +96,9 @@ def test_plane_smoothness_dispatches_to_the_kernel():
     assert abs(float(out.detach()) - float(ref.detach())) <= 1e-6 * float(ref.detach())
 
 
+@pytest.mark.parametrize("layout", LAYOUTS)
 @pytest.mark.parametrize("shape", [(1, 8, 6, 5), (1, 32, 25, 64), (1, 3, 3, 9), (1, 2, 2, 4)])
-def test_time_regularisers_and_gradients_match_autograd(shape):
+def test_time_regularisers_and_gradients_match_autograd(shape, layout):
     """The Numba space-time regularisers (second difference along t, mean |1 - p|) against the
     torch functions and their autograd gradients in float64, each with its own upstream
     gradient; a plane of two times has no second difference (0, and no gradient from it)."""
@@ -104,7 +112,7 @@ def test_time_regularisers_and_gradients_match_autograd(shape):
     l1 = (1.0 - p).abs().mean()
     second = _second_order(p) if shape[2] > 2 else p.sum() * 0.0
     (0.7 * second + 1.9 * l1).backward()
-    q = p.detach().float().requires_grad_(True)
+    q = p.detach().float().contiguous(memory_format=layout).requires_grad_(True)
     s2, s1 = time_regularisers(q)
     (0.7 * s2 + 1.9 * s1).backward()
     assert abs(float(s2.detach()) - float(second.detach())) <= 1e-6 * max(float(second.detach()), 1e-30) + 1e-12
@@ -130,3 +138,16 @@ def test_field_regularisers_match_the_torch_path():
     ref = {k: float(v.detach()) for k, v in field.regularization_terms().items()}
     for k in ref:
         assert abs(fast[k] - ref[k]) <= 1e-6 * abs(ref[k]), k
+
+
+def test_planes_are_stored_channel_last():
+    """HexPlane keeps its planes in channel-last memory (the kernels' layout), shape unchanged;
+    the layout survives a dtype change and a state dict round trip."""
+    hp = HexPlane(4, (5, 6, 7, 3), (1, 2))
+    for p in hp.parameters():
+        assert p.shape[0] == 1 and p.is_contiguous(memory_format=torch.channels_last)
+    other = HexPlane(4, (5, 6, 7, 3), (1, 2))
+    other.load_state_dict({k: v.contiguous() for k, v in hp.state_dict().items()})
+    for p, q in zip(other.parameters(), hp.parameters()):
+        assert torch.equal(p, q) and p.is_contiguous(memory_format=torch.channels_last)
+    assert all(p.is_contiguous(memory_format=torch.channels_last) for p in hp.double().parameters())

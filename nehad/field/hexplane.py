@@ -102,7 +102,9 @@ class HexPlane(nn.Module):
                     nn.init.constant_(p, time_init)
                 else:
                     nn.init.uniform_(p, init_low, init_high)
-                scale.append(nn.Parameter(p))
+                # channel-last memory (shape unchanged): the Numba kernels read and write the
+                # planes without reordering them (nehad.field.hexplane_kernel)
+                scale.append(nn.Parameter(p.contiguous(memory_format=torch.channels_last)))
             self.planes.append(scale)
         #: grid_sample point batches; 0 = automatic (see `_num_batches`), 1 = a single batch.
         self.sample_batches = 0

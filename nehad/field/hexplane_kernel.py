@@ -4,7 +4,10 @@ on the CPU (issue 27; `HexPlane`'s grid_sample path is the reference and the GPU
 For a point u = (x, y, z, t') and each scale, f_c = prod_k s_k,c with s_k the bilinear sample of
 plane k (align_corners=True, border padding: the pixel coordinate is clamped to the plane, and a
 clamped coordinate passes no gradient, as grid_sample's). The planes are read channel-last
-((H, W, C) tables, one C-vector per texel), so a tap is one contiguous read.
+((H, W, C) tables, one C-vector per texel), so a tap is one contiguous read. HexPlane stores
+its planes channel-last (torch.channels_last: shape (1, C, H, W), memory (H, W, C)), so the
+tables are a plain copy of the planes and the planes' gradients are views of the kernel's
+gradient tables (a plane in the contiguous layout is reordered both ways).
 
 Backward, with g = dL/df of one scale:
 
@@ -209,26 +212,30 @@ def _to_channel_first(flat, out):
 
 
 @numba.njit(fastmath=True, cache=True)
-def _tv_row(p, row, width, height, wh, ww, grad):
-    """TV terms of one plane row (c, y) of the flat (C, H, W) `p`: the sum of dH^2 between it
-    and the row below, the sum of its dW^2, and its gradient entries (weights wh = 4 / n_H,
-    ww = 4 / n_W). The loops run over views of single rows without a branch inside, so that
-    they vectorise (indexed through the whole arrays, they did not: 17 ns an element)."""
+def _tv_row(p, row, width, height, lag, wh, ww, grad):
+    """TV terms of one row of a plane stored as `height` rows of `width` floats (the flat
+    (H, W, C) of a channel-last plane: a row is y, neighbours along W are `lag` = C floats
+    apart; or the flat (C, H, W): a row is (c, y), `lag` = 1): the sum of dH^2 between the row
+    and the next, the sum of its dW^2, and its gradient entries (weights wh = 4 / n_H, ww =
+    4 / n_W). The loops run over views of single rows without a branch inside, so that they
+    vectorise (indexed through the whole arrays, they did not: 17 ns an element)."""
     y = row % height
     base = row * width
     v = p[base:base + width]
     g = grad[base:base + width]
     sum_w = 0.0
-    for x in range(width - 1):
-        d = v[x + 1] - v[x]
+    for x in range(width - lag):
+        d = v[x + lag] - v[x]
         sum_w += d * d
-    for x in range(1, width - 1):
-        g[x] = ww * (np.float32(2.0) * v[x] - v[x - 1] - v[x + 1])
-    if width > 1:
-        g[0] = ww * (v[0] - v[1])
-        g[width - 1] = ww * (v[width - 1] - v[width - 2])
+    for x in range(lag, width - lag):
+        g[x] = ww * (np.float32(2.0) * v[x] - v[x - lag] - v[x + lag])
+    if width > lag:
+        for x in range(lag):
+            g[x] = ww * (v[x] - v[x + lag])
+            g[width - lag + x] = ww * (v[width - lag + x] - v[width - 2 * lag + x])
     else:
-        g[0] = _ZERO
+        for x in range(width):
+            g[x] = _ZERO
     if y > 0:
         up = p[base - width:base]
         for x in range(width):
@@ -244,16 +251,28 @@ def _tv_row(p, row, width, height, wh, ww, grad):
 
 
 @numba.njit(parallel=True, cache=True)
-def _plane_tv(p, channels, height, width, grad, sums):
-    n_h = max(channels * (height - 1) * width, 1)
-    n_w = max(channels * height * (width - 1), 1)
-    wh = np.float32(4.0 / n_h)
-    ww = np.float32(4.0 / n_w)
-    for row in numba.prange(channels * height):
-        sh, sw = _tv_row(p, row, width, height, wh, ww, grad)
+def _plane_tv(p, rows, height, width, lag, n_h, n_w, grad, sums):
+    wh = np.float32(4.0 / max(n_h, 1))
+    ww = np.float32(4.0 / max(n_w, 1))
+    for row in numba.prange(rows):
+        sh, sw = _tv_row(p, row, width, height, lag, wh, ww, grad)
         sums[row, 0] = sh
         sums[row, 1] = sw
-    return 2.0 * (sums[:, 0].sum() / n_h + sums[:, 1].sum() / n_w)
+    return 2.0 * (sums[:, 0].sum() / max(n_h, 1) + sums[:, 1].sum() / max(n_w, 1))
+
+
+def _rows_of(plane: torch.Tensor):
+    """(flat float32 array, rows, rows per (c) block, row length, lag along W, and a function
+    that views a flat array of the same layout as a tensor shaped like `plane`) for a
+    (1, C, H, W) plane stored channel-last (the layout HexPlane keeps) or contiguous."""
+    _, c, h, w = plane.shape
+    data = plane.detach()[0]
+    if plane.is_contiguous(memory_format=torch.channels_last):
+        flat = data.permute(1, 2, 0).numpy().reshape(-1)  # (H, W, C), no copy
+        as_plane = lambda a: torch.from_numpy(a.reshape(h, w, c)).permute(2, 0, 1)[None]
+        return flat, h, h, w * c, c, as_plane
+    flat = np.ascontiguousarray(data.numpy(), np.float32).reshape(-1)
+    return flat, c * h, h, w, 1, lambda a: torch.from_numpy(a.reshape(1, c, h, w))
 
 
 class PlaneTV(torch.autograd.Function):
@@ -263,11 +282,12 @@ class PlaneTV(torch.autograd.Function):
     @staticmethod
     def forward(ctx, plane):
         _, c, h, w = plane.shape
-        flat = np.ascontiguousarray(plane.detach().numpy(), np.float32).reshape(-1)
+        flat, rows, height, width, lag, as_plane = _rows_of(plane)
         grad = np.empty_like(flat)
-        sums = np.empty((c * h, 2), np.float64)
-        value = _plane_tv(flat, c, h, w, grad, sums)
-        ctx.grad = torch.from_numpy(grad.reshape(plane.shape))
+        sums = np.empty((rows, 2), np.float64)
+        value = _plane_tv(flat, rows, height, width, lag, c * (h - 1) * w, c * h * (w - 1),
+                          grad, sums)
+        ctx.grad = as_plane(grad)
         return plane.new_tensor(value)
 
     @staticmethod
@@ -282,8 +302,8 @@ def plane_tv(plane: torch.Tensor) -> torch.Tensor:
 
 @numba.njit(fastmath=True, cache=True)
 def _time_row(p, row, width, height, w2, w1, grad_second, grad_l1):
-    """The space-time regularisers' terms of one plane row (c, y) of the flat (C, H, W) `p`
-    (H is t): the squared second differences dd(y) = p[y + 2] - 2 p[y + 1] + p[y] that start
+    """The space-time regularisers' terms of one row of a plane stored as rows (`_tv_row`; H
+    is t): the squared second differences dd(y) = p[y + 2] - 2 p[y + 1] + p[y] that start
     at it and |1 - p|, summed over the row, and their gradients (weights w2 = 2 / n_second,
     w1 = 1 / n_all); the gradient of row y gathers dd(y) - 2 dd(y - 1) + dd(y - 2). Loops over
     row views, as `_tv_row`."""
@@ -319,12 +339,10 @@ def _time_row(p, row, width, height, w2, w1, grad_second, grad_l1):
 
 
 @numba.njit(parallel=True, cache=True)
-def _time_regularisers(p, channels, height, width, grad_second, grad_l1, sums):
-    n_second = channels * max(height - 2, 0) * width
-    n_all = channels * height * width
+def _time_regularisers(p, rows, height, width, n_second, n_all, grad_second, grad_l1, sums):
     w2 = np.float32(2.0 / max(n_second, 1))
     w1 = np.float32(1.0 / n_all)
-    for row in numba.prange(channels * height):
+    for row in numba.prange(rows):
         sd, sl = _time_row(p, row, width, height, w2, w1, grad_second, grad_l1)
         sums[row, 0] = sd
         sums[row, 1] = sl
@@ -339,11 +357,12 @@ class TimeRegularisers(torch.autograd.Function):
     @staticmethod
     def forward(ctx, plane):
         _, c, h, w = plane.shape
-        flat = np.ascontiguousarray(plane.detach().numpy(), np.float32).reshape(-1)
+        flat, rows, height, width, _, as_plane = _rows_of(plane)
         grads = np.empty((2, flat.shape[0]), np.float32)
-        sums = np.empty((c * h, 2), np.float64)
-        second, l1 = _time_regularisers(flat, c, h, w, grads[0], grads[1], sums)
-        ctx.grads = torch.from_numpy(grads.reshape((2,) + tuple(plane.shape)))
+        sums = np.empty((rows, 2), np.float64)
+        second, l1 = _time_regularisers(flat, rows, height, width, c * max(h - 2, 0) * w,
+                                        c * h * w, grads[0], grads[1], sums)
+        ctx.grads = (as_plane(grads[0]), as_plane(grads[1]))
         return plane.new_tensor(second), plane.new_tensor(l1)
 
     @staticmethod
@@ -381,7 +400,10 @@ class HexPlaneLookup(torch.autograd.Function):
         offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
         flat = np.empty(int(offsets[-1]), np.float32)
         for p, lo, hi in zip(planes, offsets[:-1], offsets[1:]):  # each plane as (H, W, C)
-            _to_channel_last(np.ascontiguousarray(p.detach()[0].numpy()), flat[lo:hi])
+            if p.is_contiguous(memory_format=torch.channels_last):  # HexPlane's layout: a copy
+                flat[lo:hi] = p.detach()[0].permute(1, 2, 0).numpy().reshape(-1)
+            else:
+                _to_channel_last(np.ascontiguousarray(p.detach()[0].numpy()), flat[lo:hi])
         heights = np.array([p.shape[2] for p in planes], np.int64)
         widths = np.array([p.shape[3] for p in planes], np.int64)
         axis_a = np.array([a for a, _ in axes], np.int64)
@@ -392,13 +414,14 @@ class HexPlaneLookup(torch.autograd.Function):
         _forward(un, flat, offsets, heights, widths, axis_a, axis_b, n_scales, channels, out,
                  order, _chunks(len(un)))
         ctx.saved = (un, flat, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
-                     [tuple(p.shape) for p in planes], order)
+                     [tuple(p.shape) for p in planes], order,
+                     [p.is_contiguous(memory_format=torch.channels_last) for p in planes])
         return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, grad_out):
         (un, flat, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
-         shapes, order) = ctx.saved
+         shapes, order, channel_last) = ctx.saved
         g = np.ascontiguousarray(grad_out.detach().numpy(), np.float32)
         n = un.shape[0]
         grad_samples = np.empty((n, n_scales * 6, channels), np.float32)
@@ -409,9 +432,14 @@ class HexPlaneLookup(torch.autograd.Function):
         _plane_grads(un, offsets, heights, widths, axis_a, axis_b, channels, grad_samples,
                      grad_tables, order)
         plane_grads = []
-        for p, shape in enumerate(shapes):
+        for p, (shape, last) in enumerate(zip(shapes, channel_last)):
+            table = grad_tables[offsets[p]:offsets[p + 1]]
+            if last:  # the gradient in the plane's own layout, no copy
+                _, c, h, w = shape
+                plane_grads.append(torch.from_numpy(table.reshape(h, w, c)).permute(2, 0, 1)[None])
+                continue
             out = np.empty(shape[1:], np.float32)
-            _to_channel_first(grad_tables[offsets[p]:offsets[p + 1]], out)
+            _to_channel_first(table, out)
             plane_grads.append(torch.from_numpy(out).reshape(shape))
         return (torch.from_numpy(grad_u), None, *plane_grads)
 
