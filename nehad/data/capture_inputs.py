@@ -69,25 +69,16 @@ def _images(folder: Path) -> list[Path]:
 
 
 def _probe(video: Path) -> tuple[int, Fraction]:
-    """(frame count, frame rate) of a video; PrepareError when it cannot be read."""
-    import av
+    """(frame count, frame rate) of a video (nehad.data.dynerf.probe_video); PrepareError when
+    it cannot be read."""
+    from nehad.data.dynerf import probe_video
 
     try:
-        with av.open(str(video)) as container:
-            if not container.streams.video:
-                raise PrepareError(f"{video}: holds no video stream")
-            stream = container.streams.video[0]
-            rate = Fraction(stream.average_rate or stream.guessed_rate or 0)
-            n = int(stream.frames or 0)
-            if n <= 0:
-                n = sum(1 for pkt in container.demux(stream) if pkt.size)
+        return probe_video(video)
     except PrepareError:
         raise
-    except Exception as exc:  # av.error.FFmpegError and friends
-        raise PrepareError(f"{video}: cannot read the video ({type(exc).__name__}: {exc})") from None
-    if n <= 0:
-        raise PrepareError(f"{video}: holds no frames")
-    return n, rate
+    except DatasetError as exc:
+        raise PrepareError(str(exc)) from None
 
 
 def _layout(root: Path) -> tuple[str, list[Source]]:

@@ -41,6 +41,8 @@ frame) raises :class:`~nehad.data.dnerf.DatasetError` naming the file. Numpy and
 
 from __future__ import annotations
 
+from fractions import Fraction
+
 import os
 import re
 import shutil
@@ -119,8 +121,11 @@ def _video_error(video: Path, exc: Exception) -> DatasetError:
     return DatasetError(f"{video}: cannot decode video ({type(exc).__name__}: {exc})")
 
 
-def _video_frame_count(video: Path) -> int:
-    """Frames in the video from the container (packet count when the header does not say)."""
+def probe_video(video: Path) -> tuple[int, Fraction]:
+    """(frame count, frame rate) of a video from its container (the packet count when the
+    header does not say; rate 0 when it says none); DatasetError naming it when it cannot be
+    read, has no video stream or no frames. The DyNeRF reader and `nehad prepare` read videos
+    through it."""
     import av
 
     try:
@@ -128,6 +133,7 @@ def _video_frame_count(video: Path) -> int:
             if not container.streams.video:
                 raise DatasetError(f"{video}: holds no video stream")
             stream = container.streams.video[0]
+            rate = Fraction(stream.average_rate or stream.guessed_rate or 0)
             n = int(stream.frames or 0)
             if n <= 0:
                 n = sum(1 for pkt in container.demux(stream) if pkt.size)
@@ -137,7 +143,7 @@ def _video_frame_count(video: Path) -> int:
         raise _video_error(video, exc) from None
     if n <= 0:
         raise DatasetError(f"{video}: holds no frames")
-    return n
+    return n, rate
 
 
 def extract_frames(video: Path, dest: Path) -> list[Path]:
@@ -235,7 +241,7 @@ def _time_axis(cameras, max_frames: int, frame_stride: int):
     counts = []
     for name, video, images in cameras:
         counts.append(len(_frame_files(images)) if images is not None
-                      else _video_frame_count(video))
+                      else probe_video(video)[0])
     n = min(min(counts), int(max_frames))
     times = [k / (n - 1) if n > 1 else 0.0 for k in range(n)]
     return n, times, list(range(0, n, frame_stride))
