@@ -11,7 +11,8 @@ gradient tables (a plane in the contiguous layout is reordered both ways).
 
 Backward, with g = dL/df of one scale:
 
-- dL/ds_k,c = g_c prod_{j != k} s_j,c (written per point, plane and channel: `_point_grads`);
+- dL/ds_k,c = g_c prod_{j != k} s_j,c (written per plane, point and channel, the points in
+  the lookup's spatial order: `_point_grads`);
 - dL/dplane_k: each corner of each point's cell gets its bilinear weight times dL/ds_k
   (`_plane_grads`: one plane per task, so no two tasks write the same memory);
 - dL/du along the plane's two axes: sum_c dL/ds_k,c times the sample's slope in that axis
@@ -127,7 +128,7 @@ def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_sc
                     yk[c] = bottom - top
             g = grad_out[n, s * channels:(s + 1) * channels]
             for k in range(6):
-                gk = grad_samples[n, s * 6 + k]
+                gk = grad_samples[s * 6 + k, i]
                 for c in range(channels):
                     gk[c] = g[c]
                 for j in range(6):
@@ -163,7 +164,7 @@ def _scatter_plane(u, p, k, offsets, heights, widths, axis_a, axis_b, channels, 
         n = order[i]
         base, dx, dy, fx, fy, _, _ = _corners(u, n, p, k, offsets, heights, widths, axis_a,
                                               axis_b, channels)
-        gk = grad_samples[n, p]
+        gk = grad_samples[p, i]
         w00 = (_ONE - fx) * (_ONE - fy)
         w01 = fx * (_ONE - fy)
         w10 = (_ONE - fx) * fy
@@ -424,7 +425,8 @@ class HexPlaneLookup(torch.autograd.Function):
          shapes, order, channel_last) = ctx.saved
         g = np.ascontiguousarray(grad_out.detach().numpy(), np.float32)
         n = un.shape[0]
-        grad_samples = np.empty((n, n_scales * 6, channels), np.float32)
+        # plane-major, in the points' `order`: each plane's scatter then reads it front to back
+        grad_samples = np.empty((n_scales * 6, n, channels), np.float32)
         grad_u = np.zeros((n, 4), np.float32)
         _point_grads(un, flat, offsets, heights, widths, axis_a, axis_b, n_scales, channels, g,
                      grad_samples, grad_u, order, _chunks(n))
