@@ -160,8 +160,8 @@ class TrainConfig:
     revive_opacity: float = 0.0  # at the static -> deforming boundary, opacities under this are
     # raised to it (0 = off; docs/training.md, "Objects that are never created")
     drift_window: float = 0.0  # W > 0: every Gaussian has a velocity v from the static stage on
-    # and moves v clamp(t - t_eq, -W, W) after the field, so the static stage can fit an object
-    # that moves across its time window (0 = off: only carved Gaussians drift; docs/training.md)
+    # and moves v clamp(t - t_eq, -W, W) after the field (0 = off: only carved Gaussians drift);
+    # an experiment that did not create the objects the static stage misses (docs/training.md)
     # While the fine stage's time window is narrower than the time range, hold the space-time
     # planes outside it at the window's edge values, so a time that enters the window starts
     # from the deformation of its nearest trained time instead of the planes' initial value.

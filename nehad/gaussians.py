@@ -9,9 +9,9 @@ carving (nehad.carve) gives the Gaussians it adds a finite life around the time 
 and a velocity v: over its life such a Gaussian moves in a straight line, mu + v (t - t_eq) after
 the deformation field (`drift`), so that it can follow its object into the times next to the one
 it was carved at (docs/training.md). A Gaussian with k = 0 never drifts, unless the run has a
-drift window W > 0 (`train.drift_window`): then every Gaussian moves v clamp(t - t_eq, -W, W),
-from the static stage on, so that an object moving across the static stage's time window is
-fitted where it is at each of its views instead of not at all.
+drift window W > 0 (`train.drift_window`, off): then every Gaussian moves v clamp(t - t_eq,
+-W, W) from the static stage on, which was meant to let the static stage fit an object that
+moves across its time window; measured, it does not (docs/training.md).
 
 Every parameter's first dimension is the Gaussian index, so densification (nehad.densify) treats
 them all alike: clone, split and prune apply to each one, and children inherit mu_eq and t_eq."""
