@@ -157,8 +157,10 @@ class TrainConfig:
     # around it, the fine stage's time window grows from it, and the BED equilibrium times t_eq
     # start at it (paper Sec. "Boltzmann Equilibrium Decomposition").
     canonical_time: float = 0.5
-    revive_opacity: float = 0.0  # at the static -> deforming boundary, opacities under this are
-    # raised to it (0 = off; docs/training.md, "Objects that are never created")
+    revive_opacity: float = 0.02  # at the static -> deforming boundary, opacities under this
+    # are raised to it, so that the field can pull the static stage's half-seen Gaussians onto
+    # their object before the first pruning (0 = off; docs/training.md, "Objects that are never
+    # created")
     drift_window: float = 0.0  # W > 0: every Gaussian has a velocity v from the static stage on
     # and moves v clamp(t - t_eq, -W, W) after the field (0 = off: only carved Gaussians drift);
     # an experiment that did not create the objects the static stage misses (docs/training.md)
@@ -203,10 +205,13 @@ class LodConfig:
 def coarse_stage(iterations: int, **overrides) -> StageConfig:
     """The static stage of the recipe (docs/training.md): only the frames within 0.06 of the
     canonical time, densified throughout, no opacity reset (one at the stage's end would hand
-    the fine stage transparent Gaussians)."""
+    the fine stage transparent Gaussians), and no pruning of transparent Gaussians: what the
+    window half-sees (an object that moves across it) is kept for the deforming stage, which
+    starts with every opacity raised to train.revive_opacity."""
     return StageConfig(**{**dict(iterations=iterations, densify_from=0.0, densify_until=1.0,
                                  opacity_reset_every=0.0, prune_large_every=0.0,
-                                 time_window=0.06, window_growth=0.0), **overrides})
+                                 time_window=0.06, window_growth=0.0,
+                                 prune_transparent=False), **overrides})
 
 
 def fine_stage(iterations: int, **overrides) -> StageConfig:

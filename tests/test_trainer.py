@@ -331,11 +331,11 @@ def _run_resume(run, data):
 
 def test_static_stage_keeps_transparent_gaussians_and_the_boundary_revives_them(tmp_path,
                                                                                 tiny_scene):
-    """coarse.prune_transparent=false: no Gaussian of the static stage is pruned for its
-    opacity (the default prunes some on this scene); train.revive_opacity=0.05: at the first
+    """coarse.prune_transparent=false (the default): no Gaussian of the static stage is pruned
+    for its opacity (true prunes them on this scene); train.revive_opacity=0.05: at the first
     deforming step every opacity is at least 0.05 (docs/results.md, 2026-11-26)."""
     counts = {}
-    for name, over in (("default", {}), ("keep", {"coarse.prune_transparent": "false"})):
+    for name, over in (("prune", {"coarse.prune_transparent": "true"}), ("keep", {})):
         tr = _run(tmp_path, name, tiny_scene, **{"coarse.densify_from": 0.0, **over})
         with torch.no_grad():  # half the Gaussians transparent: the default prunes them
             tr.model.gaussians.opacity_logits[::2] = -9.0
@@ -343,9 +343,8 @@ def test_static_stage_keeps_transparent_gaussians_and_the_boundary_revives_them(
             tr.train_step(s)
         opacity = torch.sigmoid(tr.model.gaussians.opacity_logits.detach())
         counts[name] = int((opacity < 0.002).sum())  # the 150 set transparent, still there
-    assert counts["default"] <= 10 and counts["keep"] >= 140, counts
-    tr = _run(tmp_path, "revive", tiny_scene, **{"coarse.prune_transparent": "false",
-                                                 "train.revive_opacity": 0.05})
+    assert counts["prune"] <= 10 and counts["keep"] >= 140, counts
+    tr = _run(tmp_path, "revive", tiny_scene, **{"train.revive_opacity": 0.05})
     with torch.no_grad():
         tr.model.gaussians.opacity_logits[::2] = -9.0
     for s in range(tr.cfg.coarse.iterations):
