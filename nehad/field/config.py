@@ -97,8 +97,8 @@ class FieldConfig:
     `torch.inference_mode()` closed form is always used."""
     hexplane_kernel: str = "numba"
     """"numba": on the CPU (float32 points and planes, no mipmapping, outside export) the
-    hex-plane lookup and its backward, and the spatial planes' total variation with its
-    gradient, run as Numba passes (nehad.field.hexplane_kernel, tested against grid_sample and
+    hex-plane lookup and its backward, and the planes' regularisers (total variation, the
+    time planes' smoothness and L1) with their gradients, run as Numba passes (nehad.field.hexplane_kernel, tested against grid_sample and
     autograd); "torch": `F.grid_sample` and autograd, the reference and the GPU path."""
     use_hnn: bool = True
     """False = "HNN off" ablation: the two scalar networks and their input gradients are replaced

@@ -110,9 +110,9 @@ class HexPlane(nn.Module):
         self.sample_batches = 0
         #: docs/design.md section 8 mipmapping: the most pyramid levels per scale (0 = as many as the planes allow).
         self.mipmap_levels = 0
-        #: "numba": the lookup of float32 CPU points and the spatial planes' total variation
-        #: through nehad.field.hexplane_kernel (not under export or mipmapping); "torch":
-        #: grid_sample and autograd
+        #: "numba": the lookup of float32 CPU points and the planes' regularisers through
+        #: nehad.field.hexplane_kernel (not under export or mipmapping); "torch": grid_sample
+        #: and autograd
         self.kernel = "torch"
 
     def _numba_ok(self) -> bool:
