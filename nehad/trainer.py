@@ -85,9 +85,9 @@ class Trainer:
                                                      self.extent))
             with torch.no_grad():  # a drift is measured from t_eq from the static stage on
                 self.model.gaussians.t_eq.fill_(cfg.train.canonical_time)
-        else:  # a checkpoint: the one way a model is rebuilt from a saved state
-            self.model = model_from_state(state).train()
-        self.model.gaussians.drift_window = float(cfg.train.drift_window)
+            self.model.gaussians.drift_window = float(cfg.train.drift_window)
+        else:  # a checkpoint: the one way a model is rebuilt from a saved state (drift window
+            self.model = model_from_state(state).train()  # included)
         field = self.model.field
         self.optimizer = make_optimizer(self.model, cfg.optim, self.extent)
         self.strategy = DensifyStrategy(cfg.densify, self.extent)

@@ -273,10 +273,32 @@ def test_carved_gaussians_life_exports_with_parity(tmp_path):
         SplitBaseGraph(model, 0, n)
 
 
+def _exported_with_and_without_velocity(tmp_path, run, state):
+    """Sessions of `run` saved with `state` and of its twin with every velocity 0, each
+    exported by `nehad export`."""
+    import shutil
+
+    from nehad.checkpoint import atomic_torch_save
+
+    atomic_torch_save(state, run / "model.pt")
+    still = tmp_path / "still"  # the same model without velocities
+    shutil.copytree(run, still)
+    gs = state["gaussians"]
+    atomic_torch_save({**state, "gaussians": {**gs, "velocity": torch.zeros_like(gs["velocity"])}},
+                      still / "model.pt")
+    sessions = []
+    for r in (run, still):
+        path = tmp_path / f"{r.name}.onnx"
+        res = CliRunner().invoke(main, ["export", str(r), "-o", str(path)])
+        assert res.exit_code == 0, res.output
+        sessions.append(ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]))
+    return sessions
+
+
 def test_carved_gaussians_velocity_exports_with_parity(tmp_path):
     """A carved Gaussian's straight-line drift v (t - t_eq) (nehad.gaussians.drift) is in the
     exported means; Gaussians with k = 0 do not drift whatever their velocity holds."""
-    from nehad.checkpoint import atomic_torch_save, load_state
+    from nehad.checkpoint import load_state
 
     run, _ = make_run(tmp_path, "hnn")
     state = load_state(run / "model.pt")
@@ -286,19 +308,7 @@ def test_carved_gaussians_velocity_exports_with_parity(tmp_path):
     life[: n // 2] = 5.0
     gs["life_rate"] = life
     gs["velocity"] = torch.linspace(-2.0, 2.0, 3 * n).reshape(n, 3)
-    atomic_torch_save(state, run / "model.pt")
-    import shutil
-
-    still = tmp_path / "still"  # the same model without velocities
-    shutil.copytree(run, still)
-    state["gaussians"] = {**gs, "velocity": torch.zeros(n, 3)}
-    atomic_torch_save(state, still / "model.pt")
-    paths = []
-    for r in (run, still):
-        paths.append(tmp_path / f"{r.name}.onnx")
-        res = CliRunner().invoke(main, ["export", str(r), "-o", str(paths[-1])])
-        assert res.exit_code == 0, res.output
-    sessions = [ort.InferenceSession(str(p), providers=["CPUExecutionProvider"]) for p in paths]
+    sessions = _exported_with_and_without_velocity(tmp_path, run, state)
     t_eq = gs["t_eq"].reshape(-1, 1).numpy()
     for t in TIMES:
         feed = {"time": np.array([t], np.float32)}
@@ -314,7 +324,7 @@ def test_carved_gaussians_velocity_exports_with_parity(tmp_path):
 def test_drift_window_exports_with_parity(tmp_path):
     """With train.drift_window W every Gaussian's drift v clamp(t - t_eq, -W, W) is in the
     exported means (nehad.gaussians.drift), times inside and outside the window."""
-    from nehad.checkpoint import atomic_torch_save, load_state
+    from nehad.checkpoint import load_state
 
     run, _ = make_run(tmp_path, "hnn")
     state = load_state(run / "model.pt")
@@ -322,19 +332,7 @@ def test_drift_window_exports_with_parity(tmp_path):
     n = gs["means"].shape[0]
     gs["velocity"] = torch.linspace(-2.0, 2.0, 3 * n).reshape(n, 3)
     state["config"]["train"]["drift_window"] = 0.1
-    atomic_torch_save(state, run / "model.pt")
-    import shutil
-
-    still = tmp_path / "still"
-    shutil.copytree(run, still)
-    state["gaussians"] = {**gs, "velocity": torch.zeros(n, 3)}
-    atomic_torch_save(state, still / "model.pt")
-    paths = []
-    for r in (run, still):
-        paths.append(tmp_path / f"{r.name}.onnx")
-        res = CliRunner().invoke(main, ["export", str(r), "-o", str(paths[-1])])
-        assert res.exit_code == 0, res.output
-    sessions = [ort.InferenceSession(str(p), providers=["CPUExecutionProvider"]) for p in paths]
+    sessions = _exported_with_and_without_velocity(tmp_path, run, state)
     t_eq = gs["t_eq"].reshape(-1, 1).numpy()
     for t in TIMES:
         feed = {"time": np.array([t], np.float32)}

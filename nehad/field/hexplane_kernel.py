@@ -262,6 +262,13 @@ def _plane_tv(p, rows, height, width, lag, n_h, n_w, grad, sums):
     return 2.0 * (sums[:, 0].sum() / max(n_h, 1) + sums[:, 1].sum() / max(n_w, 1))
 
 
+def _channel_last_plane(flat: np.ndarray, shape) -> torch.Tensor:
+    """A flat (H, W, C) array viewed, without a copy, as a (1, C, H, W) tensor in channel-last
+    memory (HexPlane's layout)."""
+    _, c, h, w = shape
+    return torch.from_numpy(flat.reshape(h, w, c)).permute(2, 0, 1)[None]
+
+
 def _rows_of(plane: torch.Tensor):
     """(flat float32 array, rows, rows per (c) block, row length, lag along W, and a function
     that views a flat array of the same layout as a tensor shaped like `plane`) for a
@@ -270,8 +277,7 @@ def _rows_of(plane: torch.Tensor):
     data = plane.detach()[0]
     if plane.is_contiguous(memory_format=torch.channels_last):
         flat = data.permute(1, 2, 0).numpy().reshape(-1)  # (H, W, C), no copy
-        as_plane = lambda a: torch.from_numpy(a.reshape(h, w, c)).permute(2, 0, 1)[None]
-        return flat, h, h, w * c, c, as_plane
+        return flat, h, h, w * c, c, lambda a: _channel_last_plane(a, plane.shape)
     flat = np.ascontiguousarray(data.numpy(), np.float32).reshape(-1)
     return flat, c * h, h, w, 1, lambda a: torch.from_numpy(a.reshape(1, c, h, w))
 
@@ -324,13 +330,14 @@ def _time_row(p, row, width, height, w2, w1, grad_second, grad_l1):
         b = p[base - lag * width + width:base - lag * width + 2 * width]
         c = p[base - lag * width + 2 * width:base - lag * width + 3 * width]
         coef = w2 * (np.float32(-2.0) if lag == 1 else _ONE)
-        for x in range(width):
-            dd = c[x] - np.float32(2.0) * b[x] + a[x]
-            g2[x] += coef * dd
-        if lag == 0:
+        if lag == 0:  # the row's own second differences: also summed for the value
             for x in range(width):
                 dd = c[x] - np.float32(2.0) * b[x] + a[x]
+                g2[x] += coef * dd
                 sum_dd += dd * dd
+        else:
+            for x in range(width):
+                g2[x] += coef * (c[x] - np.float32(2.0) * b[x] + a[x])
     sum_l1 = 0.0
     for x in range(width):
         r = _ONE - v[x]
@@ -437,8 +444,7 @@ class HexPlaneLookup(torch.autograd.Function):
         for p, (shape, last) in enumerate(zip(shapes, channel_last)):
             table = grad_tables[offsets[p]:offsets[p + 1]]
             if last:  # the gradient in the plane's own layout, no copy
-                _, c, h, w = shape
-                plane_grads.append(torch.from_numpy(table.reshape(h, w, c)).permute(2, 0, 1)[None])
+                plane_grads.append(_channel_last_plane(table, shape))
                 continue
             out = np.empty(shape[1:], np.float32)
             _to_channel_first(table, out)
