@@ -15,7 +15,7 @@ from typing import Any, Mapping
 #: Smooth activations allowed in the scalar networks F1, F2 (docs/design.md section 4.3).
 SMOOTH_ACTIVATIONS = ("tanh", "softplus", "silu")
 DECODERS = ("hnn", "mlp")
-HNN_GRAD_MODES = ("autograd", "closed_form")
+HNN_GRAD_MODES = ("autograd", "closed_form", "fused")
 SPATIAL_REGULARIZERS = ("tv", "second_order")
 
 
@@ -90,11 +90,14 @@ class FieldConfig:
     out almost the same for every Gaussian (docs/training.md)."""
     hnn_grad: str = "closed_form"
     """How grad_h F is computed: "closed_form" (the explicit formula of docs/design.md section 4.4,
-    also what the ONNX export writes; ordinary first-order autograd trains through it) or
-    "autograd" (`torch.autograd.grad(..., create_graph=True)`, a double backward). The same
-    function and the same parameter gradients up to rounding (tests/test_field.py); closed form
-    took 26% less CPU per field forward+backward at 10k Gaussians (docs/performance.md). Under
-    `torch.inference_mode()` closed form is always used."""
+    also what the ONNX export writes; ordinary first-order autograd trains through it),
+    "fused" (the same formula and its hand-written backward as one autograd Function whose
+    element-wise work runs as Numba passes, `nehad.field.hnn_fused`; CPU float32/float64, once
+    differentiable; elsewhere and in graph capture the closed form is used) or "autograd"
+    (`torch.autograd.grad(..., create_graph=True)`, a double backward). The same function and
+    the same parameter gradients up to rounding (tests/test_field.py, tests/test_hnn_fused.py);
+    closed form took 26% less CPU per field forward+backward at 10k Gaussians than autograd
+    (docs/performance.md). Under `torch.inference_mode()` "autograd" uses the closed form."""
     hexplane_kernel: str = "numba"
     """"numba": on the CPU (float32 points and planes, no mipmapping, outside export) the
     hex-plane lookup and its backward, and the planes' regularisers (total variation, the

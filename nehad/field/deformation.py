@@ -17,7 +17,7 @@ from torch import nn
 from nehad.field._trace import is_capturing
 from nehad.field.adapters import Adapters
 from nehad.field.bed import position_mask, scale_mask
-from nehad.field.config import FieldConfig
+from nehad.field.config import HNN_GRAD_MODES, FieldConfig
 from nehad.field.hexplane import HexPlane, normalize_aabb
 from nehad.field.hnn import DirectFieldDecoder, HamiltonianDecoder
 from nehad.field.mlp_decoder import MLPHeads
@@ -119,9 +119,10 @@ class DeformationField(nn.Module):
         self.aabb.copy_(box)
 
     def set_grad_mode(self, mode: str) -> None:
-        """Switch the HNN input gradient between "autograd" and "closed_form" (export)."""
+        """Switch the HNN input gradient between "autograd", "closed_form" (export) and
+        "fused" (FieldConfig.hnn_grad)."""
         if isinstance(self.field, HamiltonianDecoder):
-            if mode not in ("autograd", "closed_form"):
+            if mode not in HNN_GRAD_MODES:
                 raise ValueError(f"DeformationField.set_grad_mode: unknown mode {mode!r}")
             self.field.grad_mode = mode
 

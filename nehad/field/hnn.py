@@ -5,10 +5,11 @@ Two scalar networks F1, F2: R^W -> R generate
     g = grad_h F2(h) = (g_q, g_p),  v_s = g M^T = (g_p, -g_q)   (solenoidal: trace of J = 0)
 with M = [[0, I], [-I, 0]] the symplectic matrix, d = W/2, and v = v_c + v_s.
 
-The input gradient is computed either by autograd (training, docs/design.md section 4.4: `torch.autograd.grad(
+The input gradient is computed either by autograd (docs/design.md section 4.4: `torch.autograd.grad(
 F.sum(), h, create_graph=True)`) or in closed form (`scalar_net_input_grad`, used by the ONNX
-export; for a tanh MLP grad = W1^T[(1 - a1^2) * W2^T[(1 - a2^2) * w3]]). Both are the same
-function.
+export; for a tanh MLP grad = W1^T[(1 - a1^2) * W2^T[(1 - a2^2) * w3]]), written with torch ops
+or, for training on the CPU, fused with its hand-written backward (`nehad.field.hnn_fused`).
+All are the same function.
 
 The activation must be smooth: with ReLU, grad_h F would be piecewise constant in h (the Hessian of
 F vanishes almost everywhere), so a loss on v would pass no gradient to h and the planes and the
@@ -25,6 +26,7 @@ from torch import nn
 
 from nehad.field._trace import is_capturing
 from nehad.field.config import SMOOTH_ACTIVATIONS
+from nehad.field.hnn_fused import fused_input_gradients, fused_supported
 
 
 def _softplus(z: torch.Tensor) -> torch.Tensor:
@@ -129,7 +131,11 @@ class HamiltonianDecoder(nn.Module):
     loss on v trains F1, F2 and everything upstream); under `torch.no_grad()` autograd is enabled
     locally and the result is detached. Under `torch.inference_mode()` (where autograd cannot be
     re-enabled), while a graph is being captured (ONNX export, jit trace, torch.compile) and in
-    "closed_form" mode the explicit gradient is used.
+    "closed_form" mode the explicit gradient is used. "fused": the explicit gradient and its
+    hand-written backward as one autograd Function with Numba passes
+    (`nehad.field.hnn_fused`; CPU, float32 or float64), in training, under `no_grad` and in
+    inference mode alike; while a graph is captured, or on another device or dtype, the
+    closed form.
     """
 
     def __init__(self, width: int = 64, hidden: int = 64, depth: int = 2,
@@ -143,8 +149,11 @@ class HamiltonianDecoder(nn.Module):
 
     def input_gradients(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(grad_h F1, grad_h F2), each (N, W)."""
-        if (self.grad_mode == "closed_form" or torch.is_inference_mode_enabled()
-                or is_capturing()):
+        if is_capturing():
+            return scalar_net_input_grad(self.f1, h), scalar_net_input_grad(self.f2, h)
+        if self.grad_mode == "fused" and fused_supported(self.f1, self.f2, h):
+            return fused_input_gradients(self.f1, self.f2, h)
+        if (self.grad_mode in ("closed_form", "fused") or torch.is_inference_mode_enabled()):
             return scalar_net_input_grad(self.f1, h), scalar_net_input_grad(self.f2, h)
         if self.grad_mode != "autograd":
             raise ValueError(f"HamiltonianDecoder.grad_mode {self.grad_mode!r}")

@@ -1,0 +1,320 @@
+"""The HNN decoder's input gradients (grad_h F1, grad_h F2) with a hand-written backward, as one
+autograd Function whose element-wise work runs as Numba passes (issue 27; `field.hnn_grad =
+"fused"`, docs/design.md section 4.4, docs/performance.md "The HNN decoder as one fused pass").
+
+The forward is the closed form of docs/design.md section 4.4. For one scalar net F of depth L
+(`nehad.field.hnn.ScalarNet`: L x [Linear, act], then Linear(hidden, 1, no bias) with weight
+w_out), rows being Gaussians:
+
+    z_k = a_{k-1} W_k^T + b_k,   a_0 = h,   a_k = act(z_k),  d_k = act'(z_k),  e_k = act''(z_k)
+    u_L = w_out,   u_k = delta_{k+1} W_{k+1} (k < L),   delta_k = d_k * u_k
+    g = grad_h F(h) = delta_1 W_1
+
+Backward, for G = dL/dg (each product below differentiated by the product rule):
+
+    dW_1 += delta_1^T G,   Ddelta_1 = G W_1^T
+    k = 1 .. L:   Du_k = Ddelta_k * d_k,   P_k = Ddelta_k * u_k * e_k
+                  k < L: dW_{k+1} += delta_{k+1}^T Du_k,   Ddelta_{k+1} = Du_k W_{k+1}^T
+                  k = L: dw_out = sum over rows of Du_L
+    Dz_L = P_L;   k = L .. 1:   dW_k += Dz_k^T a_{k-1},   db_k = sum over rows of Dz_k
+                  k > 1: Dz_{k-1} = P_{k-1} + (Dz_k W_k) * d_{k-1}
+    dh = Dz_1 W_1
+
+F1 and F2 run side by side: every per-row array is (2, N, H) (net, Gaussian, unit) and every
+per-unit vector (bias, w_out) is (2, H). The matrix products stay in torch (BLAS, batched over
+the two nets); the element-wise work between two products is one Numba pass over both nets
+(activation with its first and second derivative, the products, the row sums of the bias and
+output-weight gradients), where the closed form through torch's autograd made some twenty
+passes and as many autograd nodes. exp and log1p are `nehad.field.vecmath`'s, which LLVM
+vectorises. The kernels are dtype-generic: float32 in training, float64 in the tests (where
+they agree with autograd to rounding, tests/test_hnn_fused.py).
+
+The backward is not itself differentiable (no double backward through it): nothing in training
+needs one; `hnn_grad="closed_form"` is the differentiable-twice reference.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+import torch
+from torch.autograd.function import once_differentiable
+
+from nehad.field.vecmath import KERNEL_FASTMATH, exp_nonpositive, log1p_unit
+
+TANH, SOFTPLUS, SILU = 0, 1, 2
+ACTIVATION_CODES = {"tanh": TANH, "softplus": SOFTPLUS, "silu": SILU}
+
+
+# ----------------------------------------------------------------------------- element-wise
+@numba.njit(inline="always")
+def _activation(kind, z, one):
+    """(act(z), act'(z), act''(z)) for activation code `kind` (docs/design.md section 4.3):
+    tanh: a' = 1 - a^2, a'' = -2 a a';  softplus: a' = s = sigmoid(z), a'' = s (1 - s);
+    SiLU a = z s: a' = s (1 + z (1 - s)), a'' = s (1 - s) (2 + z (1 - 2 s)). Every exponential
+    is of -|z|, so nothing overflows."""
+    two = one + one
+    if kind == TANH:
+        t = exp_nonpositive(-two * abs(z))
+        a = (one - t) / (one + t)
+        if z < 0:
+            a = -a
+        d = one - a * a
+        return a, d, -two * a * d
+    t = exp_nonpositive(-abs(z))
+    s = (one if z >= 0 else t) / (one + t)
+    if kind == SOFTPLUS:
+        return max(z, one - one) + log1p_unit(t), s, s * (one - s)
+    return z * s, s * (one + z * (one - s)), s * (one - s) * (two + z * (one - two * s))
+
+
+def _chunks(n: int) -> int:
+    """Row ranges of the parallel loops: many per thread, so the threads stay balanced."""
+    return max(1, min(n, 64 * numba.get_num_threads()))
+
+
+@numba.njit(parallel=True, fastmath=KERNEL_FASTMATH, cache=True)
+def _hidden_layer(kind, z, bias, a, d, e, one, chunks):
+    """a, d, e = act, act', act'' of z + bias, for a hidden layer below the last."""
+    nets, n = z.shape[0], z.shape[1]
+    for c in numba.prange(chunks):
+        for i in range(nets):
+            b = bias[i]
+            for r in range(c * n // chunks, (c + 1) * n // chunks):
+                zr, ar, dr, er = z[i, r], a[i, r], d[i, r], e[i, r]
+                for j in range(zr.shape[0]):
+                    av, dv, ev = _activation(kind, zr[j] + b[j], one)
+                    ar[j] = av
+                    dr[j] = dv
+                    er[j] = ev
+
+
+@numba.njit(parallel=True, fastmath=KERNEL_FASTMATH, cache=True)
+def _last_layer(kind, z, bias, w_out, d, e, delta, one, chunks):
+    """d, e = act', act'' of z + bias and delta = d * w_out, for the last hidden layer (its
+    activation value is not needed: only grad_h F is used)."""
+    nets, n = z.shape[0], z.shape[1]
+    for c in numba.prange(chunks):
+        for i in range(nets):
+            b, w = bias[i], w_out[i]
+            for r in range(c * n // chunks, (c + 1) * n // chunks):
+                zr, dr, er, gr = z[i, r], d[i, r], e[i, r], delta[i, r]
+                for j in range(zr.shape[0]):
+                    _, dv, ev = _activation(kind, zr[j] + b[j], one)
+                    dr[j] = dv
+                    er[j] = ev
+                    gr[j] = dv * w[j]
+
+
+@numba.njit(parallel=True, fastmath=KERNEL_FASTMATH, cache=True)
+def _product(x, y, out, chunks):
+    """out = x * y (delta_k = d_k * u_k)."""
+    nets, n = x.shape[0], x.shape[1]
+    for c in numba.prange(chunks):
+        for i in range(nets):
+            for r in range(c * n // chunks, (c + 1) * n // chunks):
+                xr, yr, orow = x[i, r], y[i, r], out[i, r]
+                for j in range(xr.shape[0]):
+                    orow[j] = xr[j] * yr[j]
+
+
+@numba.njit(parallel=True, fastmath=KERNEL_FASTMATH, cache=True)
+def _delta_backward(ddelta, d, u, e, du, p, chunks):
+    """du = ddelta * d and p = ddelta * u * e, for a hidden layer below the last."""
+    nets, n = d.shape[0], d.shape[1]
+    for c in numba.prange(chunks):
+        for i in range(nets):
+            for r in range(c * n // chunks, (c + 1) * n // chunks):
+                gr, dr, ur, er, dur, pr = ddelta[i, r], d[i, r], u[i, r], e[i, r], du[i, r], p[i, r]
+                for j in range(gr.shape[0]):
+                    dur[j] = gr[j] * dr[j]
+                    pr[j] = gr[j] * ur[j] * er[j]
+
+
+@numba.njit(parallel=True, fastmath=KERNEL_FASTMATH, cache=True)
+def _last_backward(ddelta, d, e, w_out, dz, dw_parts, db_parts, chunks):
+    """For the last hidden layer: dw_parts[c] = the row sums of ddelta * d over row range c
+    (dL/dw_out), dz = ddelta * w_out * e and db_parts[c] its row sums (dL/db_L)."""
+    nets, n = d.shape[0], d.shape[1]
+    for c in numba.prange(chunks):
+        for i in range(nets):
+            w, sw, sb = w_out[i], dw_parts[c, i], db_parts[c, i]
+            for j in range(sw.shape[0]):
+                sw[j] = 0.0
+                sb[j] = 0.0
+            for r in range(c * n // chunks, (c + 1) * n // chunks):
+                gr, dr, er, zr = ddelta[i, r], d[i, r], e[i, r], dz[i, r]
+                for j in range(gr.shape[0]):
+                    sw[j] += gr[j] * dr[j]
+                for j in range(gr.shape[0]):
+                    zr[j] = gr[j] * w[j] * er[j]
+                for j in range(gr.shape[0]):
+                    sb[j] += zr[j]
+
+
+@numba.njit(parallel=True, fastmath=KERNEL_FASTMATH, cache=True)
+def _hidden_backward(p, da, d, dz, db_parts, chunks):
+    """dz = p + da * d and db_parts[c] its row sums over row range c (dL/db_k)."""
+    nets, n = d.shape[0], d.shape[1]
+    for c in numba.prange(chunks):
+        for i in range(nets):
+            sb = db_parts[c, i]
+            for j in range(sb.shape[0]):
+                sb[j] = 0.0
+            for r in range(c * n // chunks, (c + 1) * n // chunks):
+                pr, ar, dr, zr = p[i, r], da[i, r], d[i, r], dz[i, r]
+                for j in range(pr.shape[0]):
+                    zr[j] = pr[j] + ar[j] * dr[j]
+                for j in range(pr.shape[0]):
+                    sb[j] += zr[j]
+
+
+# ----------------------------------------------------------------------------- the Function
+def _np(t: torch.Tensor) -> np.ndarray:
+    """The numpy view of a contiguous CPU tensor (no copy)."""
+    return t.detach().numpy()
+
+
+def _per_net(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """(2, ., .) = x[i] @ y[i] for both nets, one torch.mm each (torch.bmm was slower than two
+    torch.mm here, with transposed operands especially)."""
+    out = torch.empty((2, x.shape[1], y.shape[2]), dtype=x.dtype)
+    for i in range(2):
+        torch.mm(x[i], y[i], out=out[i])
+    return out
+
+
+def _row_sums(parts: np.ndarray) -> torch.Tensor:
+    """(nets, H) = the sum over row ranges of (chunks, nets, H) partial sums."""
+    return torch.from_numpy(parts.sum(axis=0))
+
+
+class FusedInputGradients(torch.autograd.Function):
+    """(grad_h F1, grad_h F2), each (N, W), of the two scalar nets given by their parameters
+    (module docstring). Inputs: h (N, W), the activation code, whether to keep what the
+    backward needs, then each net's W_1, b_1, ..., W_L, b_L, w_out (F1's, then F2's)."""
+
+    @staticmethod
+    def forward(ctx, h, kind, keep, *params):
+        depth = (len(params) // 2 - 1) // 2
+        per_net = 2 * depth + 1
+        nets = (params[:per_net], params[per_net:])
+        weights = [torch.stack([net[2 * k].detach() for net in nets]) for k in range(depth)]
+        biases = [np.ascontiguousarray(np.stack([_np(net[2 * k + 1]) for net in nets]))
+                  for k in range(depth)]
+        w_out = np.ascontiguousarray(np.stack([_np(net[-1]).reshape(-1) for net in nets]))
+        hd = h.detach().contiguous()
+        n, hidden = hd.shape[0], weights[0].shape[1]
+        one = hd.numpy().dtype.type(1.0)
+        chunks = _chunks(n)
+        acts, derivs, curvs, us, deltas = [hd], [], [], [], []
+        for k in range(depth):
+            z = torch.empty((2, n, hidden), dtype=hd.dtype)
+            for i in range(2):
+                torch.mm(hd if k == 0 else acts[k][i], weights[k][i].T, out=z[i])
+            d, e = torch.empty_like(z), torch.empty_like(z)
+            if k < depth - 1:
+                a = torch.empty_like(z)
+                _hidden_layer(kind, _np(z), biases[k], _np(a), _np(d), _np(e), one, chunks)
+                acts.append(a)
+            else:
+                delta = torch.empty_like(z)
+                _last_layer(kind, _np(z), biases[k], w_out, _np(d), _np(e), _np(delta), one,
+                            chunks)
+            derivs.append(d)
+            curvs.append(e)
+        deltas = [None] * depth
+        deltas[-1] = delta
+        us = [None] * depth
+        for k in range(depth - 2, -1, -1):
+            us[k] = _per_net(deltas[k + 1], weights[k + 1])
+            deltas[k] = torch.empty_like(us[k])
+            _product(_np(derivs[k]), _np(us[k]), _np(deltas[k]), chunks)
+        g = _per_net(deltas[0], weights[0])
+        if keep:
+            ctx.save_for_backward(h, *params)
+            ctx.kept = (weights, w_out, acts, derivs, curvs, us, deltas, one, depth)
+        return g[0], g[1]
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_g1, grad_g2):
+        ctx.saved_tensors  # raises if h or a parameter was modified in place since the forward
+        weights, w_out, acts, derivs, curvs, us, deltas, one, depth = ctx.kept
+        h = acts[0]
+        n, hidden = h.shape[0], weights[0].shape[1]
+        chunks = _chunks(n)
+        grads = (grad_g1.contiguous(), grad_g2.contiguous())
+        d_weights = [None] * depth
+        d_biases = [None] * depth
+        d_delta = torch.empty((2, n, hidden), dtype=h.dtype)
+        d_weights[0] = torch.empty_like(weights[0])
+        for i in range(2):
+            torch.mm(grads[i], weights[0][i].T, out=d_delta[i])
+            torch.mm(deltas[0][i].T, grads[i], out=d_weights[0][i])
+        partial = [None] * depth  # P_k
+        parts = np.empty((chunks, 2, hidden), dtype=w_out.dtype)
+        for k in range(depth - 1):
+            du, p = torch.empty_like(d_delta), torch.empty_like(d_delta)
+            _delta_backward(_np(d_delta), _np(derivs[k]), _np(us[k]), _np(curvs[k]), _np(du),
+                            _np(p), chunks)
+            partial[k] = p
+            d_weights[k + 1] = _per_net(deltas[k + 1].transpose(1, 2), du)
+            d_delta = _per_net(du, weights[k + 1].transpose(1, 2))
+        dz = torch.empty_like(d_delta)
+        dw_parts = np.empty_like(parts)
+        _last_backward(_np(d_delta), _np(derivs[-1]), _np(curvs[-1]), w_out, _np(dz), dw_parts,
+                       parts, chunks)
+        d_w_out = _row_sums(dw_parts)
+        for k in range(depth - 1, -1, -1):
+            d_biases[k] = _row_sums(parts)
+            if k == 0:
+                for i in range(2):
+                    d_weights[0][i].addmm_(dz[i].T, h)
+                break
+            for i in range(2):
+                d_weights[k][i].addmm_(dz[i].T, acts[k][i])
+            da = _per_net(dz, weights[k])
+            dz_below = torch.empty_like(dz)
+            _hidden_backward(_np(partial[k - 1]), _np(da), _np(derivs[k - 1]), _np(dz_below),
+                             parts, chunks)
+            dz = dz_below
+        grad_h = torch.mm(dz[0], weights[0][0])
+        grad_h.addmm_(dz[1], weights[0][1])
+        net_grads = []
+        for i in range(2):
+            for k in range(depth):
+                net_grads += [d_weights[k][i], d_biases[k][i]]
+            net_grads.append(d_w_out[i].reshape(1, -1))
+        return (grad_h, None, None, *net_grads)
+
+
+# ----------------------------------------------------------------------------- entry points
+def net_parameters(net) -> list[torch.Tensor]:
+    """A `ScalarNet`'s W_1, b_1, ..., W_L, b_L, w_out, in `FusedInputGradients`' order."""
+    params = []
+    for lin in net.hidden_layers:
+        params += [lin.weight, lin.bias]
+    return params + [net.out.weight]
+
+
+def fused_supported(f1, f2, h: torch.Tensor) -> bool:
+    """Whether `fused_input_gradients` can run: CPU float32 or float64 input, the same dtype
+    for every parameter, the same depth and activation in both nets."""
+    params = net_parameters(f1) + net_parameters(f2)
+    return (h.device.type == "cpu" and h.dtype in (torch.float32, torch.float64)
+            and f1.activation == f2.activation and f1.activation in ACTIVATION_CODES
+            and len(f1.hidden_layers) == len(f2.hidden_layers)
+            and all(p.dtype == h.dtype and p.device.type == "cpu" for p in params))
+
+
+def fused_input_gradients(f1, f2, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """(grad_h f1(h), grad_h f2(h)) of two `ScalarNet`s by `FusedInputGradients`: differentiable
+    (once) in h and every parameter of both nets. Check `fused_supported` first."""
+    params = net_parameters(f1) + net_parameters(f2)
+    keep = torch.is_grad_enabled() and (h.requires_grad or any(p.requires_grad for p in params))
+    return FusedInputGradients.apply(h, ACTIVATION_CODES[f1.activation], keep, *params)
+
+
+__all__ = ["ACTIVATION_CODES", "FusedInputGradients", "fused_input_gradients", "fused_supported",
+           "net_parameters"]

@@ -1,0 +1,182 @@
+"""The fused HNN input gradients (nehad.field.hnn_fused, `field.hnn_grad="fused"`) against the
+closed form written with torch ops (nehad.field.hnn.scalar_net_input_grad) and torch's
+autograd through it, and the vectorised exp / log1p of nehad.field.vecmath against numpy."""
+
+import numba
+import numpy as np
+import pytest
+import torch
+
+from nehad.field.config import FieldConfig
+from nehad.field.hnn import HamiltonianDecoder, ScalarNet, scalar_net_input_grad
+from nehad.field.hnn_fused import FusedInputGradients, fused_input_gradients, net_parameters
+from nehad.field.vecmath import KERNEL_FASTMATH, exp_nonpositive, log1p_unit
+
+ACTIVATIONS = ["tanh", "softplus", "silu"]
+
+
+def _nets(activation, depth, width=10, hidden=7, dtype=torch.float64, seed=0):
+    """Two ScalarNets with weights large enough (gain 3) that the activations are curved and
+    some pre-activations reach |z| > 10, so both signs' branches and the tails are exercised."""
+    torch.manual_seed(seed)
+    return tuple(ScalarNet(width, hidden, depth, activation, init_gain=3.0).to(dtype)
+                 for _ in range(2))
+
+
+def _inputs(n=64, width=10, dtype=torch.float64, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.randn(n, width, generator=g, dtype=dtype) * 1.5).requires_grad_(True)
+
+
+def _loss_grads(outputs, h, nets, seed=2):
+    """Gradients of a random linear loss on (g1, g2) w.r.t. h and every parameter of both nets."""
+    g = torch.Generator().manual_seed(seed)
+    weights = [torch.randn(o.shape, generator=g, dtype=torch.float64).to(o.dtype)
+               for o in outputs]
+    loss = sum((o * w).sum() for o, w in zip(outputs, weights))
+    params = [h] + net_parameters(nets[0]) + net_parameters(nets[1])
+    return torch.autograd.grad(loss, params, allow_unused=True)
+
+
+def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
+    """max |a - b| relative to max |b|."""
+    return ((a - b).abs().max() / b.abs().max()).item()
+
+
+@pytest.mark.parametrize("activation", ACTIVATIONS)
+@pytest.mark.parametrize("depth", [1, 2, 3])
+def test_fused_equals_closed_form_and_its_autograd_in_float64(activation, depth):
+    nets = _nets(activation, depth)
+    h = _inputs()
+    ref = [scalar_net_input_grad(net, h) for net in nets]
+    fused = fused_input_gradients(*nets, h)
+    for r, f in zip(ref, fused):
+        assert _rel(f, r) < 1e-6
+        assert _rel(f, r) < 1e-12  # in fact the same float64 arithmetic up to rounding
+    ref_grads = _loss_grads(ref, h, nets)
+    fused_grads = _loss_grads(fused, h, nets)
+    assert len(fused_grads) == 1 + 2 * (2 * depth + 1)  # h, and W_k, b_k, w_out of both nets
+    for r, f in zip(ref_grads, fused_grads):
+        assert r.abs().max() > 0
+        assert _rel(f, r) < 1e-6
+        assert _rel(f, r) < 1e-12
+
+
+@pytest.mark.parametrize("activation", ACTIVATIONS)
+def test_gradcheck_on_a_tiny_case(activation):
+    nets = _nets(activation, 2, width=4, hidden=3, seed=3)
+    h = _inputs(n=5, width=4, seed=4)
+    params = [p.detach().clone().requires_grad_(True)
+              for net in nets for p in net_parameters(net)]
+
+    def fn(h, *params):
+        return FusedInputGradients.apply(h, {"tanh": 0, "softplus": 1, "silu": 2}[activation],
+                                         True, *params)
+
+    assert torch.autograd.gradcheck(fn, (h, *params), eps=1e-6, atol=1e-7, rtol=1e-5)
+
+
+def test_one_output_unused_and_depth_one_single_row():
+    """A loss on g2 alone (g1's upstream gradient is zero) and a single Gaussian."""
+    nets = _nets("softplus", 1, seed=5)
+    h = _inputs(n=1, seed=6)
+    ref = _loss_grads([scalar_net_input_grad(nets[1], h)], h, nets)
+    fused = _loss_grads([fused_input_gradients(*nets, h)[1]], h, nets)
+    assert all(r is None for r in ref[1:4])  # the reference never touches F1
+    assert all(f.abs().max() == 0 for f in fused[1:4])  # the fused backward gives F1 zeros
+    for r, f in zip(ref[4:] + ref[:1], fused[4:] + fused[:1]):
+        assert r.abs().max() > 0 and torch.allclose(f, r, rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("activation", ACTIVATIONS)
+def test_float32_kernels_against_float64(activation):
+    """The float32 kernels (vecmath's polynomials, float32 products and sums over 64 units)
+    against the float64 closed form: float32 rounding (6e-8 per operation) accumulates over the
+    64-term sums and the two layers to about 1e-6 of the largest entry (torch's own float32
+    closed form is off by the same 0.3e-6 .. 1.2e-6 here); 1e-5 leaves room, and any wrong term
+    of the formula is off by O(1)."""
+    nets64 = _nets(activation, 2, width=64, hidden=64, seed=7)
+    h64 = _inputs(n=500, width=64, seed=8)
+    nets32 = tuple(ScalarNet(64, 64, 2, activation).float() for _ in range(2))
+    for n32, n64 in zip(nets32, nets64):
+        n32.load_state_dict({k: v.float() for k, v in n64.state_dict().items()})
+    h32 = h64.detach().float().requires_grad_(True)
+    ref = [scalar_net_input_grad(net, h64) for net in nets64]
+    fused = fused_input_gradients(*nets32, h32)
+    for r, f in zip(ref, fused):
+        assert f.dtype == torch.float32
+        assert _rel(f.double(), r) < 1e-5
+    for r, f in zip(_loss_grads(ref, h64, nets64), _loss_grads(fused, h32, nets32)):
+        assert _rel(f.double(), r) < 1e-5
+
+
+@numba.njit(fastmath=KERNEL_FASTMATH)
+def _special(x, exp_out, log_out):
+    for i in range(x.shape[0]):
+        t = exp_nonpositive(-abs(x[i]))
+        exp_out[i] = t
+        log_out[i] = log1p_unit(t)
+
+
+def test_vectorised_exp_and_log1p():
+    x = np.concatenate([np.linspace(0.0, 87.3, 200001), [0.0, 1e-30, 1e-7, 1e-3, 20.0, 87.33]])
+    for dtype, tol in ((np.float32, 3e-7), (np.float64, 0.0)):  # float32: a few ulp (6e-8)
+        xs = x.astype(dtype)
+        e, lg = np.empty_like(xs), np.empty_like(xs)
+        _special(xs, e, lg)
+        exact_e = np.exp(-xs.astype(np.float64))
+        exact_lg = np.log1p(e.astype(np.float64))
+        assert np.max(np.abs(e / exact_e - 1.0)) <= tol
+        assert np.max(np.abs(lg / exact_lg - 1.0)) <= tol
+    big = np.array([88.0, 100.0, 1e30], np.float32)  # clamped at exp(-87.33): no 0, no denormal
+    e, lg = np.empty_like(big), np.empty_like(big)
+    _special(big, e, lg)
+    assert np.all(e >= np.finfo(np.float32).tiny) and np.all(e < 1.2e-38)
+
+
+def _decoders(activation="softplus"):
+    torch.manual_seed(9)
+    fused = HamiltonianDecoder(12, 8, 2, activation, "fused", init_gain=3.0)
+    closed = HamiltonianDecoder(12, 8, 2, activation, "closed_form", init_gain=3.0)
+    closed.load_state_dict(fused.state_dict())
+    return fused, closed
+
+
+def test_decoder_fused_mode_in_training_no_grad_and_inference():
+    fused, closed = _decoders()
+    h = torch.randn(40, 12)
+    ref = closed(h)
+    out = fused(h)
+    assert out.v.requires_grad
+    assert out.v.grad_fn is not None and "Fused" in type(out.v_c.grad_fn).__name__
+    for a, b in zip(out, ref):
+        assert torch.allclose(a, b, atol=1e-6)
+    (out.v.square().sum() + out.v_c.sum()).backward()
+    (ref.v.square().sum() + ref.v_c.sum()).backward()
+    for (name, p), q in zip(fused.named_parameters(), closed.parameters()):
+        assert torch.allclose(p.grad, q.grad, rtol=1e-4, atol=1e-6), name
+    with torch.no_grad():
+        ng = fused(h)
+    with torch.inference_mode():
+        inf = fused(h)
+    assert not ng.v.requires_grad and torch.allclose(ng.v, ref.v, atol=1e-6)
+    assert torch.allclose(inf.v.clone(), ref.v, atol=1e-6)
+
+
+def test_capture_and_unsupported_inputs_take_the_closed_form():
+    fused, closed = _decoders()
+    h = torch.randn(10, 12)
+    traced = torch.jit.trace(fused, h, check_trace=False)
+    kinds = {node.kind() for node in traced.graph.nodes()}
+    assert "prim::PythonOp" not in kinds  # no autograd Function in the captured graph
+    assert "aten::sigmoid" in kinds
+    assert torch.allclose(traced(h)[0], closed(h).v, atol=1e-6)
+    half = HamiltonianDecoder(12, 8, 2, "softplus", "fused").bfloat16()
+    out = half(torch.randn(10, 12, dtype=torch.bfloat16))
+    assert out.v.dtype == torch.bfloat16 and "Fused" not in type(out.v_c.grad_fn).__name__
+
+
+def test_config_accepts_fused():
+    assert FieldConfig(hnn_grad="fused").validate().hnn_grad == "fused"
+    with pytest.raises(ValueError, match="hnn_grad"):
+        FieldConfig(hnn_grad="fast").validate()
