@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from nehad.field import hnn_fused
 from nehad.field.config import FieldConfig
 from nehad.field.hnn import HamiltonianDecoder, ScalarNet, scalar_net_input_grad
 from nehad.field.hnn_fused import FusedInputGradients, fused_input_gradients, net_parameters
@@ -59,6 +60,19 @@ def test_fused_equals_closed_form_and_its_autograd_in_float64(activation, depth)
     for r, f in zip(ref_grads, fused_grads):
         assert r.abs().max() > 0
         assert _rel(f, r) < 1e-6
+        assert _rel(f, r) < 1e-12
+
+
+def test_rows_in_several_blocks(monkeypatch):
+    """Blocks of 7 rows over 30 (the last one short): the same values and gradients."""
+    nets = _nets("silu", 2, seed=10)
+    h = _inputs(n=30, seed=11)
+    ref = fused_input_gradients(*nets, h)
+    ref_grads = _loss_grads(ref, h, nets)
+    monkeypatch.setattr(hnn_fused, "BLOCK_ROWS", 7)
+    assert len(hnn_fused._blocks(30)) == 5
+    blocked = fused_input_gradients(*nets, h)
+    for r, f in zip(list(ref) + list(ref_grads), list(blocked) + list(_loss_grads(blocked, h, nets))):
         assert _rel(f, r) < 1e-12
 
 
