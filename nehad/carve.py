@@ -288,14 +288,17 @@ def seed_rays(cameras, targets, alphas, renders, box: np.ndarray, *, residual: f
     return (np.concatenate(pts_out), np.concatenate(cols_out), np.concatenate(width_out), n_bad)
 
 
-def new_gaussians(points: np.ndarray, colours: np.ndarray, widths: np.ndarray, t_eq: float,
+def new_gaussians(points: np.ndarray, colours: np.ndarray, widths: np.ndarray, t_eq,
                   like, opacity: float, life_sigma: float = 0.0,
-                  free_offset: float = 0.0) -> dict:
+                  free_offset: float = 0.0, velocities: np.ndarray | None = None) -> dict:
     """Parameter tensors (a dict per GaussianParameters.NAMES) for Gaussians at `points`, living
-    around `t_eq` with a temporal standard deviation `life_sigma` (0: at every time). Their
+    around `t_eq` (one time, or one per point) with a temporal standard deviation `life_sigma`
+    (0: at every time), moving with `velocities` (M, 3) over their life (None: still). Their
     equilibrium mu_eq is their position, or, with `free_offset` > 0, that far from it along +x
     (out of the position mask's reach: the field moves them from the start)."""
     n = len(points)
+    t_eq = np.broadcast_to(np.asarray(t_eq, np.float64), (n,))
+    velocities = np.zeros((n, 3)) if velocities is None else velocities
     f32 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)
     means = f32(points)
     sh_rest = torch.zeros((n,) + tuple(like.sh_rest.shape[1:]))
@@ -309,10 +312,10 @@ def new_gaussians(points: np.ndarray, colours: np.ndarray, widths: np.ndarray, t
                                          math.log(opacity / (1.0 - opacity))),
             "sh_dc": sh_dc, "sh_rest": sh_rest,
             "mu_eq": means + torch.tensor([float(free_offset), 0.0, 0.0]),
-            "t_eq": torch.full((n,) + tuple(like.t_eq.shape[1:]), float(t_eq)),
+            "t_eq": f32(t_eq).reshape((n,) + tuple(like.t_eq.shape[1:])),
             "life_rate": torch.full((n,) + tuple(like.life_rate.shape[1:]),
                                     1.0 / life_sigma if life_sigma > 0 else 0.0),
-            "velocity": torch.zeros((n,) + tuple(like.velocity.shape[1:]))}
+            "velocity": f32(velocities).reshape((n,) + tuple(like.velocity.shape[1:]))}
 
 
 __all__ = ["carve_points", "new_gaussians", "seed_rays", "unexplained_mask"]

@@ -49,10 +49,12 @@ class ResidualCarving:
         densification window, never while opacities recover from a reset, never in streaming
         layers above the base."""
         c = self.cfg
+        if c.mode == "tracks" and timing.recovering(it, 0.5):
+            return False  # every view is rendered: not while opacities grow back
         return not (c.every <= 0 or c.max_new <= 0 or layer > 0
                     or (not deforms and not c.static_stage)
                     or not timing.start <= it < timing.stop or it % c.every
-                    or timing.recovering(it))
+                    or it < c.start * timing.length or timing.recovering(it))
 
     def step_post_update(self, model, optimizer, state: DensifyState, *, deforms: bool,
                          layer: int, it: int, step: int, window: TimeWindow, views,
@@ -64,6 +66,8 @@ class ResidualCarving:
         if not self.due(deforms, layer, it, timing):
             return {}
         rng = np.random.default_rng([self.seed, step, 7])
+        if self.cfg.mode == "tracks":
+            return self._track_pass(model, optimizer, state, deforms, window, views, degree)
         t_c, nearest = self._pass_views(deforms, it, window, views)
         pts, cols, widths, n_bad = self._find_points(model, deforms, nearest, views, degree, rng)
         cap = self.max_gaussians
@@ -119,8 +123,46 @@ class ResidualCarving:
             min_views=c.min_views, agree=c.agree, colour_tol=c.colour_tol, motion=c.motion,
             rng=rng)
 
-    def _add(self, g, optimizer, state: DensifyState, pts, cols, widths, t_c: float,
-             deforms: bool, views) -> dict:
+    def _track_pass(self, model, optimizer, state: DensifyState, deforms: bool,
+                    window: TimeWindow, views, degree: int) -> dict:
+        """`carve.mode=tracks` (nehad.tracks): every view of the window rendered at its own
+        time; the tracks of its unexplained blobs become chains of Gaussians, one every frame
+        spacing along each track, living around their own time and moving with the track."""
+        from nehad.model import cloud_at
+        from nehad.runtime.raster import render
+        from nehad.tracks import find_blobs, fit_tracks, seeds_along
+
+        c = self.cfg
+        pool = eligible_frames(views.times, window)
+        times = np.asarray(views.times, np.float64)
+        canonical = None if deforms else cloud_at(model, None, degree)
+        cams, targets, alphas, drawn = [], [], [], []
+        for k in pool:
+            cloud = canonical if canonical is not None else cloud_at(model, times[k], degree)
+            cams.append(views.cameras[k])
+            drawn.append(render(cloud, views.cameras[k], self.background).rgb)
+            targets.append(views.images[k].numpy())
+            a = views.alphas[k]
+            alphas.append(None if a is None else a.numpy()[:, :, 0])
+        blobs = find_blobs(cams, times[pool], targets, alphas, drawn, residual=c.residual)
+        tracks = fit_tracks(cams, blobs)
+        spacing = float(np.median(np.diff(np.unique(times)))) if len(np.unique(times)) > 1 \
+            else 1.0
+        out = {"carve_blobs": len(blobs), "carve_tracks": len(tracks), "carved": 0}
+        seeds = [seeds_along(tr, cams, spacing, window.lo, window.hi) for tr in tracks]
+        if not seeds:
+            return out
+        pts, vel, t_eq, cols, widths = (np.concatenate(x) for x in zip(*seeds))
+        cap = self.max_gaussians
+        most = min(c.max_new, cap) if cap > 0 else c.max_new
+        pts, vel, t_eq, cols, widths = (x[:most] for x in (pts, vel, t_eq, cols, widths))
+        out["carved"] = len(pts)
+        out.update(self._add(model.gaussians, optimizer, state, pts, cols, widths, t_eq,
+                             deforms, views, velocities=vel))
+        return out
+
+    def _add(self, g, optimizer, state: DensifyState, pts, cols, widths, t_c,
+             deforms: bool, views, velocities=None) -> dict:
         """Append the carved Gaussians; at the cap the least opaque ones make room first (they
         are relocated, nehad.carve)."""
         from nehad.carve import new_gaussians
@@ -138,7 +180,8 @@ class ResidualCarving:
         life = self.cfg.life * spacing if deforms else 0.0
         append_gaussians(g, optimizer,
                          new_gaussians(pts, cols, widths, t_c, g, self.cfg.opacity, life,
-                                       0.0 if self.cfg.hold else self.free_offset))
+                                       0.0 if self.cfg.hold else self.free_offset,
+                                       velocities))
         if state.grad_accum.shape[0] == len(keep):  # statistics follow
             state.keep(keep, len(pts))
         return out

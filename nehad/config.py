@@ -114,7 +114,8 @@ class CarveConfig:
     views: int = 6  # training views nearest in time to the pass's time
     mode: str = "vote"  # "vote": a point where the views agree (nehad.carve.carve_points);
     # "rays": seeds along every unexplained pixel's ray, the optimisation picks the depth
-    # (nehad.carve.seed_rays)
+    # (nehad.carve.seed_rays); "tracks": chains of Gaussians along the 3D paths of the
+    # unexplained blobs through all the window's views (nehad.tracks)
     seed_views: int = 1  # "rays": the views nearest the pass's time that are seeded
     static_stage: bool = True  # passes in the static (coarse) stage too, at the canonical
     # time (their Gaussians live at every time); false: only in the deforming stage
@@ -131,6 +132,8 @@ class CarveConfig:
     # mask holds it still around the pass's time); false: its equilibrium is put out of reach
     # (M_pos = gamma), so the deformation field moves it from the start, as it moves anything
     # that is out of equilibrium
+    start: float = 0.0  # no pass before this fraction of a stage's iterations ("tracks":
+    # the model should first draw what it can, or its own errors make blobs)
     life: float = 3.0  # a carved Gaussian lives around the pass's time: its opacity is scaled
     # by exp(-((t - t_c) / sigma)^2 / 2), sigma = life x the median spacing of the training
     # times (learnt after); 0 = it lives at every time
@@ -291,8 +294,9 @@ class Config:
             raise ConfigError("train.canonical_time: must lie in [0, 1]")
         if self.loss.kernel not in ("numba", "torch"):
             raise ConfigError(f"loss.kernel: {self.loss.kernel!r}; expected numba or torch")
-        if self.carve.mode not in ("vote", "rays"):
-            raise ConfigError(f"carve.mode: must be 'vote' or 'rays', got {self.carve.mode!r}")
+        if self.carve.mode not in ("vote", "rays", "tracks"):
+            raise ConfigError(f"carve.mode: must be 'vote', 'rays' or 'tracks', got "
+                              f"{self.carve.mode!r}")
 
     def _validate_resolution_schedule(self) -> None:
         """Increasing fractions in [0, 1), factors >= 1."""

@@ -69,6 +69,7 @@ class DensifySchedule:
     reset_every: int  # 0 = never
     prune_large_every: int  # 0 = never
     prune_transparent: bool = True
+    length: int = 0  # the stage's iterations
 
     @classmethod
     def for_stage(cls, stage, length: int, interval: int) -> "DensifySchedule":
@@ -79,7 +80,7 @@ class DensifySchedule:
         every = lambda frac: max(at(frac), 1) if frac > 0 else 0
         return cls(at(stage.densify_from), at(stage.densify_until), int(interval),
                    every(stage.opacity_reset_every), every(stage.prune_large_every),
-                   bool(getattr(stage, "prune_transparent", True)))
+                   bool(getattr(stage, "prune_transparent", True)), int(length))
 
     def densifies(self, it: int) -> bool:
         return self.start <= it < self.stop and it > 0 and it % self.interval == 0
@@ -88,13 +89,13 @@ class DensifySchedule:
         return (self.reset_every > 0 and it > 0 and it < self.stop
                 and it % self.reset_every == 0)
 
-    def recovering(self, it: int) -> bool:
-        """Whether iteration `it` lies in the first quarter of the period after an opacity reset
+    def recovering(self, it: int, part: float = 0.25) -> bool:
+        """Whether iteration `it` lies in the first `part` of the period after an opacity reset
         (the opacities are still growing back: a render then misses what the model holds)."""
         if self.reset_every <= 0:
             return False
         last = (it // self.reset_every) * self.reset_every  # resets at 0 < last < stop
-        return 0 < last < self.stop and it - last < max(self.reset_every // 4, 1)
+        return 0 < last < self.stop and it - last < max(int(self.reset_every * part), 1)
 
     def prunes_large(self, it: int) -> bool:
         return (self.prune_large_every > 0 and self.reset_every > 0 and it > self.reset_every
@@ -272,8 +273,14 @@ class DensifyStrategy:
 
     @staticmethod
     def _reset_opacity(params, optimizer, frozen: int) -> None:
+        """Opacities to at most 0.01, except the frozen ones and those of Gaussians with a
+        finite life (nehad.carve): a reset clears floaters that are drawn at every time, while
+        a Gaussian that lives around one time is seen by a few views only and would be pruned
+        before they could bring it back."""
         capped = torch.minimum(params.opacity_logits.detach(),
                                torch.logit(torch.tensor(0.01)))
         capped[:frozen] = params.opacity_logits.detach()[:frozen]
+        short = params.life_rate.detach().reshape(-1) != 0
+        capped[short] = params.opacity_logits.detach()[short]
         _replace_parameter(params, optimizer, "opacity_logits", capped,
                            lambda v: torch.zeros_like(v))

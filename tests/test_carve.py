@@ -154,11 +154,12 @@ def test_unexplained_mask_and_new_gaussians_shapes():
                                                                           new["means"])
 
 
-@pytest.mark.parametrize("mode", ["vote", "rays"])
+@pytest.mark.parametrize("mode", ["vote", "rays", "tracks"])
 def test_a_training_run_carves_and_stays_consistent(tmp_path, mode):
-    """carve.every > 0 in a run (either carve.mode): passes are logged, Gaussians are added (the
-    test scene's cloud is random and sparse), the densification statistics keep the Gaussians'
-    count, and the run finishes and reloads."""
+    """carve.every > 0 in a run (any carve.mode): passes are logged, Gaussians are added (the
+    test scene's cloud is random and sparse; "tracks": blobs are found, Gaussians added when
+    they make a track), the densification statistics keep the Gaussians' count, and the run
+    finishes and reloads."""
     import json
 
     from nehad.config import build_config
@@ -174,7 +175,11 @@ def test_a_training_run_carves_and_stays_consistent(tmp_path, mode):
     trainer.train()
     log = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
     passes = [r for r in log if "carved" in r]
-    assert passes and sum(r["carved"] for r in passes) > 0
+    if mode == "tracks":
+        assert passes and sum(r["carve_blobs"] for r in passes) > 0
+        assert all(r["carved"] == 0 or r["carve_tracks"] > 0 for r in passes)
+    else:
+        assert passes and sum(r["carved"] for r in passes) > 0
     assert all(r["gaussians"] <= 900 for r in log)
     assert len(trainer.densify_state.grad_accum) in (0, len(trainer.model.gaussians))
     model, _ = load_run(tmp_path / "run")
@@ -293,3 +298,20 @@ def test_van_der_corput_passes_cover_the_window_evenly():
         pts = np.sort([0.0, 1.0] + [van_der_corput(i) for i in range(1, n + 1)])
         assert np.diff(pts).max() <= 2.0 / n + 1e-12
     assert [van_der_corput(i) for i in (1, 2, 3, 4)] == [0.5, 0.25, 0.75, 0.125]
+
+
+def test_opacity_reset_spares_gaussians_with_a_finite_life():
+    """An opacity reset caps every opacity at 0.01 except those of Gaussians that live around
+    one time (nehad.densify: a few views see them; a reset would have them pruned)."""
+    from nehad.densify import DensifyStrategy
+    from nehad.gaussians import GaussianParameters
+
+    g = GaussianParameters(torch.zeros(4, 3), torch.zeros(4, 3), torch.tensor([[1.0, 0, 0, 0]] * 4),
+                           torch.full((4, 1), 2.0), torch.zeros(4, 1, 3), torch.zeros(4, 0, 3))
+    with torch.no_grad():
+        g.life_rate[2] = 50.0
+    opt = torch.optim.Adam(g.parameters())
+    DensifyStrategy._reset_opacity(g, opt, frozen=1)
+    alpha = torch.sigmoid(g.opacity_logits.detach()).reshape(-1)
+    assert torch.allclose(alpha[[1, 3]], torch.tensor(0.01))
+    assert torch.allclose(alpha[[0, 2]], torch.sigmoid(torch.tensor(2.0)))  # frozen; mortal

@@ -1,0 +1,358 @@
+"""Tracks of unexplained blobs: where an object that no Gaussian draws moves through the views
+(docs/training.md, "Objects that are never created").
+
+A small object that moves fast is seen by one camera per time in a MuJoCo rig, so no static
+point explains it in two views and voting across views (nehad.carve) finds it only near one
+time. Its residual does have a structure a static vote cannot use: in every view the object is
+one *blob* of unexplained pixels, and the rays through the blobs of the views in time order pass
+through one smooth 3D path x(t). A ray (origin c, unit direction d) constrains the point at its
+time through the two equations of (I - d d^T)(x(t) - c) = 0, linear in x(t); a motion
+x(t) = sum_k a_k (t - t0)^k is then a linear least-squares fit to the rays (`fit_motion`), and
+views from different cameras fix the depth that one view leaves open.
+
+`find_blobs` labels each view's unexplained pixels (the render misses the target by more than
+`residual` in some channel, on the target's foreground) into connected blobs. `fit_tracks`
+follows blobs through the views in time order: a straight-line motion fitted to a blob and
+blobs of compatible colour in the nearest views (every combination of them) is kept when it
+reprojects within `gate_px` onto blobs in enough nearby views; the best-supported one is grown
+view by view in both directions, each next view's blob taken where the motion fitted to the
+track's last blobs predicts it (the object may be hidden for up to `max_gap` of time), and its
+blobs are removed before the next track is sought. A track is a list of (time, point, velocity)
+from local straight-line fits around each of its blobs (`Track.at` interpolates between them).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from nehad.carve import unexplained_mask
+
+
+@dataclass(frozen=True)
+class Blob:
+    """One connected region of unexplained pixels in one view."""
+
+    view: int
+    time: float
+    centre: np.ndarray  # (2,) its centroid (u, v), in the coordinates Camera.project returns
+    area: int  # pixels
+    colour: np.ndarray  # (3,) the target's mean rgb over it
+    origin: np.ndarray  # (3,) the camera centre
+    direction: np.ndarray  # (3,) unit ray through the centroid
+
+
+def _chroma(rgb: np.ndarray) -> np.ndarray:
+    return rgb / max(float(rgb.sum()), 1e-3)
+
+
+def find_blobs(cameras, times, targets, alphas, renders, *, residual: float = 0.25,
+               min_area: int = 3, max_area_fraction: float = 0.05) -> list[Blob]:
+    """The blobs of every view: 8-connected regions of `nehad.carve.unexplained_mask` of at
+    least `min_area` pixels and at most `max_area_fraction` of the image (a larger region is
+    a badly drawn backdrop, not a missing object)."""
+    import cv2
+
+    blobs = []
+    for k, (cam, t, target, alpha, drawn) in enumerate(zip(cameras, times, targets, alphas,
+                                                             renders)):
+        bad = unexplained_mask(drawn, target, alpha, residual)
+        n, labels, stats, centres = cv2.connectedComponentsWithStats(bad.astype(np.uint8),
+                                                                     connectivity=8)
+        most = max_area_fraction * bad.size
+        c2w = cam.camera_to_world
+        for i in range(1, n):
+            area = int(stats[i, cv2.CC_STAT_AREA])
+            if area < min_area or area > most:
+                continue
+            u, v = centres[i] + 0.5  # pixel i spans [i, i + 1) (docs/design.md section 3)
+            d = np.array([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, 1.0]) @ c2w[:3, :3].T
+            blobs.append(Blob(k, float(t), np.array([u, v]), area,
+                              target[labels == i].reshape(-1, 3).mean(axis=0),
+                              c2w[:3, 3].copy(), d / np.linalg.norm(d)))
+    return blobs
+
+
+def fit_motion(blobs, t0: float, degree: int = 1) -> np.ndarray | None:
+    """Coefficients (degree + 1, 3) of x(t) = sum_k a_k (t - t0)^k nearest, in least squares,
+    to the blobs' rays (module docstring), or None when the rays leave it undetermined (too
+    few, or all through one point of view)."""
+    rows, rhs = [], []
+    for b in blobs:
+        p = np.eye(3) - np.outer(b.direction, b.direction)
+        powers = (b.time - t0) ** np.arange(degree + 1)
+        rows.append(np.kron(powers[None, :], p))  # (3, 3 (degree + 1))
+        rhs.append(p @ b.origin)
+    a = np.concatenate(rows)
+    sv = np.linalg.svd(a, compute_uv=False)
+    if len(sv) < a.shape[1] or sv[-1] < 1e-6 * sv[0]:
+        return None
+    coef = np.linalg.lstsq(a, np.concatenate(rhs), rcond=None)[0]
+    return coef.reshape(degree + 1, 3)
+
+
+def motion_at(coef: np.ndarray, t0: float, t) -> np.ndarray:
+    """x(t) of `fit_motion`'s coefficients, (3,) or (T, 3) for an array of times."""
+    powers = (np.asarray(t, np.float64)[..., None] - t0) ** np.arange(len(coef))
+    return powers @ coef
+
+
+def _reprojection(cameras, coef, t0: float, blob: Blob) -> float:
+    """Pixels between the blob's centroid and the motion's point at the blob's time."""
+    uv, z = cameras[blob.view].project(motion_at(coef, t0, blob.time)[None, :])
+    if z[0] <= 1e-6:
+        return np.inf
+    return float(np.linalg.norm(uv[0] - blob.centre))
+
+
+@dataclass
+class Track:
+    """An object's path through the views: its blobs and, at each blob's time, the point and
+    velocity of a straight-line motion fitted to the track's blobs around it."""
+
+    blobs: list
+    times: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    velocities: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+
+    def at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(points (T, 3), velocities (T, 3)) at times t: linearly interpolated between the
+        track's samples inside its span, along the end samples' velocities outside it."""
+        t = np.asarray(t, np.float64)
+        inside = np.clip(t, self.times[0], self.times[-1])
+        pts = np.stack([np.interp(inside, self.times, self.points[:, i]) for i in range(3)], 1)
+        vel = np.stack([np.interp(inside, self.times, self.velocities[:, i])
+                        for i in range(3)], 1)
+        return pts + vel * (t - inside)[:, None], vel
+
+    def colour(self) -> np.ndarray:
+        return np.average([b.colour for b in self.blobs], axis=0,
+                          weights=[b.area for b in self.blobs])
+
+
+@dataclass(frozen=True)
+class TrackSettings:
+    """The tracker's tolerances (`fit_tracks`)."""
+
+    gate_px: float = 3.0  # largest reprojection error of a track's blob, in pixels (plus
+    # half the blob's own radius)
+    colour_tol: float = 0.08  # largest chromaticity difference between blobs of one object
+    neighbours: int = 4  # views on each side (in time) a hypothesis is fitted and scored on
+    min_support: int = 5  # views a hypothesis must land on to be grown into a track
+    min_blobs: int = 6  # blobs a grown track must have to be kept
+    max_gap: float = 0.08  # the longest time without a blob (hidden, out of frame) a track
+    # is followed through
+    fit_blobs: int = 6  # the track's last blobs the prediction of the next view is fitted to
+    max_tracks: int = 8
+    samples: int = 30  # random draws per anchor blob
+    join_blobs: int = 5  # blobs from each end two tracks are joined on (`_join`)
+
+
+def _gate(s: TrackSettings, blob: Blob) -> float:
+    return s.gate_px + 0.5 * np.sqrt(blob.area / np.pi)
+
+
+def _compatible(a: Blob, b: Blob, tol: float) -> bool:
+    return float(np.abs(_chroma(a.colour) - _chroma(b.colour)).max()) <= tol
+
+
+class _Views:
+    """The blobs grouped by view, the views in time order."""
+
+    def __init__(self, blobs):
+        self.order = sorted({(b.time, b.view) for b in blobs})
+        self.rank = {v: i for i, (_, v) in enumerate(self.order)}
+        self.of = {v: [] for _, v in self.order}
+        for b in blobs:
+            self.of[b.view].append(b)
+
+    def near(self, view: int, n: int) -> list[int]:
+        """The views up to n ranks before and after `view`, nearest first."""
+        r = self.rank[view]
+        out = []
+        for d in range(1, n + 1):
+            for q in (r - d, r + d):
+                if 0 <= q < len(self.order):
+                    out.append(self.order[q][1])
+        return out
+
+
+def _best_match(cameras, coef, t0, candidates, s: TrackSettings):
+    """The candidate blob nearest to the motion's point at its time, within its gate."""
+    best, best_d = None, np.inf
+    for b in candidates:
+        d = _reprojection(cameras, coef, t0, b)
+        if d <= _gate(s, b) and d < best_d:
+            best, best_d = b, d
+    return best
+
+
+def _hypothesis(cameras, views: _Views, anchor: Blob, free, s: TrackSettings,
+                rng: np.random.Generator):
+    """The best-supported straight-line motion through `anchor` and compatible free blobs of
+    three of its neighbouring views (`samples` random draws): the blobs it lands on, or
+    None."""
+    near = views.near(anchor.view, s.neighbours)
+    options = [[b for b in views.of[v] if id(b) in free and _compatible(anchor, b, s.colour_tol)]
+               for v in near]
+    options = [o for o in options if o]
+    if len(options) < 3:
+        return None
+    best = None
+    for _ in range(s.samples):
+        chosen = rng.choice(len(options), 3, replace=False)
+        sample = [anchor, *(options[i][rng.integers(len(options[i]))] for i in chosen)]
+        coef = fit_motion(sample, anchor.time)
+        if coef is None or max(_reprojection(cameras, coef, anchor.time, b)
+                               for b in sample) > s.gate_px:
+            continue
+        support = [anchor]
+        for v in near:
+            m = _best_match(cameras, coef, anchor.time,
+                            [b for b in views.of[v] if id(b) in free], s)
+            if m is not None:
+                support.append(m)
+        if best is None or len(support) > len(best):
+            best = support
+            if len(best) == len(near) + 1:
+                break
+    return best
+
+
+def _grow(cameras, views: _Views, blobs: list, free, s: TrackSettings, step: int) -> list:
+    """Follow the track `blobs` view by view in time order (`step` +1 forward, -1 back)."""
+    blobs = sorted(blobs, key=lambda b: b.time)
+    end = blobs[-1] if step > 0 else blobs[0]
+    r = views.rank[end.view] + step
+    while 0 <= r < len(views.order):
+        t, v = views.order[r]
+        last = blobs[-1] if step > 0 else blobs[0]
+        if abs(t - last.time) > s.max_gap:
+            break
+        recent = blobs[-s.fit_blobs:] if step > 0 else blobs[:s.fit_blobs]
+        coef = fit_motion(recent, last.time)
+        if coef is None:
+            break
+        m = _best_match(cameras, coef, last.time, [b for b in views.of[v] if id(b) in free],
+                        s)
+        if m is not None and _compatible(m, last, s.colour_tol):
+            free.discard(id(m))
+            blobs = blobs + [m] if step > 0 else [m] + blobs
+        r += step
+    return blobs
+
+
+def _samples(cameras, track: Track, s: TrackSettings) -> Track:
+    """The track's point and velocity at each blob's time (a quadratic motion fitted to the
+    `fit_blobs` + 1 blobs nearest in time, a straight line where they leave it undetermined:
+    a straight line over an arc cuts its corner); blobs that land outside their gate are
+    dropped."""
+    times, points, vels, kept = [], [], [], []
+    blobs = track.blobs
+    for b in blobs:
+        near = sorted(blobs, key=lambda o: abs(o.time - b.time))[:s.fit_blobs + 1]
+        coef = fit_motion(near, b.time, degree=2) if len(near) >= 5 else None
+        if coef is None:
+            coef = fit_motion(near, b.time)
+        if coef is None or _reprojection(cameras, coef, b.time, b) > _gate(s, b):
+            continue
+        times.append(b.time)
+        points.append(coef[0])
+        vels.append(coef[1])
+        kept.append(b)
+    return Track(kept, np.array(times), np.array(points).reshape(-1, 3),
+                 np.array(vels).reshape(-1, 3))
+
+
+def _join(cameras, tracks: list, s: TrackSettings) -> list:
+    """Join tracks that are one object seen across a stretch of time with no view (a gap in
+    the training times) or where it was hidden: a track that ends within `max_gap` of another's
+    start (or overlaps it by less) is joined to it when a quadratic motion through the
+    `join_blobs` blobs at each side lands on all of them (within their gates) and their colours agree."""
+    tracks = sorted(tracks, key=lambda tr: tr.times[0])
+    joined = True
+    while joined:
+        joined = False
+        for i, a in enumerate(tracks):
+            for j, b in enumerate(tracks):
+                gap = b.times[0] - a.times[-1]
+                if i == j or not -s.max_gap < gap <= s.max_gap or not _compatible(
+                        a.blobs[-1], b.blobs[0], s.colour_tol):
+                    continue
+                ends = a.blobs[-s.join_blobs:] + b.blobs[:s.join_blobs]
+                t0 = 0.5 * (a.times[-1] + b.times[0])
+                coef = fit_motion(ends, t0, degree=2)
+                if coef is None or any(_reprojection(cameras, coef, t0, o) > _gate(s, o)
+                                       for o in ends):
+                    continue
+                both = sorted(a.blobs + b.blobs, key=lambda o: o.time)
+                merged = _samples(cameras, Track(both), s)
+                tracks = [tr for k, tr in enumerate(tracks) if k not in (i, j)] + [merged]
+                tracks.sort(key=lambda tr: tr.times[0])
+                joined = True
+                break
+            if joined:
+                break
+    return tracks
+
+
+def fit_tracks(cameras, blobs, settings: TrackSettings | None = None,
+               seed: int = 0) -> list[Track]:
+    """The tracks through `blobs` (module docstring), longest first: the anchors' hypotheses
+    are drawn once and re-drawn only when a track has taken one of their blobs."""
+    import heapq
+
+    s = settings or TrackSettings()
+    rng = np.random.default_rng(seed)
+    views = _Views(blobs)
+    free = {id(b) for b in blobs}
+    heap = []  # (-support, order, anchor index, blobs)
+    for i, anchor in enumerate(blobs):
+        h = _hypothesis(cameras, views, anchor, free, s, rng)
+        if h is not None and len(h) >= s.min_support:
+            heapq.heappush(heap, (-len(h), i, i, h))
+    tracks = []
+    while heap and len(tracks) < s.max_tracks:
+        _, _, i, h = heapq.heappop(heap)
+        if id(blobs[i]) not in free:
+            continue
+        if any(id(b) not in free for b in h):  # taken by a track since: draw again
+            h = _hypothesis(cameras, views, blobs[i], free, s, rng)
+            if h is not None and len(h) >= s.min_support:
+                heapq.heappush(heap, (-len(h), i, i, h))
+            continue
+        for b in h:
+            free.discard(id(b))
+        grown = _grow(cameras, views, h, free, s, +1)
+        grown = _grow(cameras, views, grown, free, s, -1)
+        track = _samples(cameras, Track(grown), s)
+        if len(track.blobs) >= s.min_blobs:
+            tracks.append(track)
+    return sorted(_join(cameras, tracks, s), key=lambda tr: -len(tr.blobs))
+
+
+def seeds_along(track: Track, cameras, spacing: float, lo: float, hi: float):
+    """Gaussians for a track: one every `spacing` of time over its span (and half a `max_gap`
+    of the default settings beyond its ends, inside [lo, hi]), each at the track's point and
+    with its velocity at its time. Returns (points, velocities, times, colours, widths): the
+    width is half the object's radius (the blobs' radius in pixels at their depth, median)."""
+    reach = 0.5 * TrackSettings().max_gap
+    start = max(lo, track.times[0] - reach)
+    stop = min(hi, track.times[-1] + reach)
+    taus = np.arange(start, stop + 1e-9, spacing)
+    pts, vel = track.at(taus)
+    radii = []
+    for b, p in zip(track.blobs, track.points):
+        cam = cameras[b.view]
+        _, z = cam.project(p[None, :])
+        radii.append(np.sqrt(b.area / np.pi) * z[0] / cam.fx)
+    width = 0.5 * float(np.median(radii))
+    n = len(taus)
+    return (pts, vel, taus, np.repeat(track.colour()[None, :], n, axis=0),
+            np.full(n, width))
+
+
+__all__ = ["Blob", "Track", "TrackSettings", "find_blobs", "fit_motion", "fit_tracks",
+           "motion_at", "seeds_along"]
