@@ -9,8 +9,9 @@ import torch
 
 from nehad.field import hnn_fused
 from nehad.field.config import FieldConfig
-from nehad.field.hnn import HamiltonianDecoder, ScalarNet, scalar_net_input_grad
-from nehad.field.hnn_fused import FusedInputGradients, fused_input_gradients, net_parameters
+from nehad.field.hnn import HamiltonianDecoder, ScalarNet, scalar_net_input_grad, symplectic
+from nehad.field.hnn_fused import (FusedInputGradients, fused_field, fused_input_gradients,
+                                   net_parameters)
 from nehad.field.vecmath import KERNEL_FASTMATH, exp_nonpositive, log1p_unit
 
 ACTIVATIONS = ["tanh", "softplus", "silu"]
@@ -63,6 +64,21 @@ def test_fused_equals_closed_form_and_its_autograd_in_float64(activation, depth)
         assert _rel(f, r) < 1e-12
 
 
+@pytest.mark.parametrize("activation", ACTIVATIONS)
+@pytest.mark.parametrize("depth", [1, 2])
+def test_fused_field_outputs_equal_the_decoders_in_float64(activation, depth):
+    """(v, v_c, v_s) straight from the Function: values and gradients of a loss on all three."""
+    nets = _nets(activation, depth, seed=12)
+    h = _inputs(seed=13)
+    g1, g2 = (scalar_net_input_grad(net, h) for net in nets)
+    ref = (g1 + symplectic(g2), g1, symplectic(g2))
+    fused = fused_field(*nets, h)
+    for r, f in zip(ref, fused):
+        assert _rel(f, r) < 1e-12
+    for r, f in zip(_loss_grads(ref, h, nets), _loss_grads(fused, h, nets)):
+        assert r.abs().max() > 0 and _rel(f, r) < 1e-12
+
+
 def test_rows_in_several_blocks(monkeypatch):
     """Blocks of 7 rows over 30 (the last one short): the same values and gradients."""
     nets = _nets("silu", 2, seed=10)
@@ -74,6 +90,10 @@ def test_rows_in_several_blocks(monkeypatch):
     blocked = fused_input_gradients(*nets, h)
     for r, f in zip(list(ref) + list(ref_grads), list(blocked) + list(_loss_grads(blocked, h, nets))):
         assert _rel(f, r) < 1e-12
+    field_ref = fused_field(*nets, h.detach())
+    monkeypatch.setattr(hnn_fused, "BLOCK_ROWS", 4096)
+    for r, f in zip(fused_field(*nets, h.detach()), field_ref):
+        assert _rel(f, r) < 1e-12
 
 
 @pytest.mark.parametrize("activation", ACTIVATIONS)
@@ -83,11 +103,12 @@ def test_gradcheck_on_a_tiny_case(activation):
     params = [p.detach().clone().requires_grad_(True)
               for net in nets for p in net_parameters(net)]
 
-    def fn(h, *params):
-        return FusedInputGradients.apply(h, {"tanh": 0, "softplus": 1, "silu": 2}[activation],
-                                         True, *params)
+    for field in (False, True):
+        def fn(h, *params):
+            return FusedInputGradients.apply(h, {"tanh": 0, "softplus": 1, "silu": 2}[activation],
+                                             True, field, *params)
 
-    assert torch.autograd.gradcheck(fn, (h, *params), eps=1e-6, atol=1e-7, rtol=1e-5)
+        assert torch.autograd.gradcheck(fn, (h, *params), eps=1e-6, atol=1e-7, rtol=1e-5)
 
 
 def test_one_output_unused_and_depth_one_single_row():

@@ -26,7 +26,7 @@ from torch import nn
 
 from nehad.field._trace import is_capturing
 from nehad.field.config import SMOOTH_ACTIVATIONS
-from nehad.field.hnn_fused import fused_input_gradients, fused_supported
+from nehad.field.hnn_fused import fused_field, fused_input_gradients, fused_supported
 
 
 def _softplus(z: torch.Tensor) -> torch.Tensor:
@@ -149,11 +149,10 @@ class HamiltonianDecoder(nn.Module):
 
     def input_gradients(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(grad_h F1, grad_h F2), each (N, W)."""
-        if is_capturing():
-            return scalar_net_input_grad(self.f1, h), scalar_net_input_grad(self.f2, h)
-        if self.grad_mode == "fused" and fused_supported(self.f1, self.f2, h):
+        if self._fused(h):
             return fused_input_gradients(self.f1, self.f2, h)
-        if (self.grad_mode in ("closed_form", "fused") or torch.is_inference_mode_enabled()):
+        if (self.grad_mode in ("closed_form", "fused") or torch.is_inference_mode_enabled()
+                or is_capturing()):
             return scalar_net_input_grad(self.f1, h), scalar_net_input_grad(self.f2, h)
         if self.grad_mode != "autograd":
             raise ValueError(f"HamiltonianDecoder.grad_mode {self.grad_mode!r}")
@@ -168,7 +167,15 @@ class HamiltonianDecoder(nn.Module):
             g1, g2 = g1.detach(), g2.detach()
         return g1, g2
 
+    def _fused(self, h: torch.Tensor) -> bool:
+        """Whether the fused Function computes this call (`grad_mode` "fused", not capturing a
+        graph, CPU float32/float64)."""
+        return (self.grad_mode == "fused" and not is_capturing()
+                and fused_supported(self.f1, self.f2, h))
+
     def forward(self, h: torch.Tensor) -> FieldOutput:
+        if self._fused(h):
+            return FieldOutput(*fused_field(self.f1, self.f2, h))
         g1, g2 = self.input_gradients(h)
         v_s = symplectic(g2)
         return FieldOutput(g1 + v_s, g1, v_s)

@@ -176,6 +176,37 @@ def _hidden_backward(p, da, d, dz, db_parts, chunks):
                     sb[j] += zr[j]
 
 
+@numba.njit(parallel=True, fastmath=KERNEL_FASTMATH, cache=True)
+def _field_rows(g, v, v_s, chunks):
+    """v_s = g2 M^T = (g2_p, -g2_q) and v = g1 + v_s (paper Eq. (field)), g = (g1, g2) of a
+    block (2, b, W)."""
+    n, half = g.shape[1], g.shape[2] // 2
+    for c in numba.prange(chunks):
+        for r in range(c * n // chunks, (c + 1) * n // chunks):
+            g1, g2, vr, sr = g[0, r], g[1, r], v[r], v_s[r]
+            for j in range(half):
+                sr[j] = g2[half + j]
+                sr[half + j] = -g2[j]
+            for j in range(2 * half):
+                vr[j] = g1[j] + sr[j]
+
+
+@numba.njit(parallel=True, fastmath=KERNEL_FASTMATH, cache=True)
+def _field_grads(grad_v, grad_c, grad_s, grads, chunks):
+    """grads = (dL/dg1, dL/dg2) of a block from the upstream gradients of v = v_c + v_s,
+    v_c = g1 and v_s = g2 M^T: dL/dg1 = G_v + G_c, dL/dg2 = (G_v + G_s) M = (-G_p, G_q) for
+    G = G_v + G_s = (G_q, G_p)."""
+    n, half = grads.shape[1], grads.shape[2] // 2
+    for c in numba.prange(chunks):
+        for r in range(c * n // chunks, (c + 1) * n // chunks):
+            gv, gc, gs, g1, g2 = grad_v[r], grad_c[r], grad_s[r], grads[0, r], grads[1, r]
+            for j in range(2 * half):
+                g1[j] = gv[j] + gc[j]
+            for j in range(half):
+                g2[j] = -(gv[half + j] + gs[half + j])
+                g2[half + j] = gv[j] + gs[j]
+
+
 # ----------------------------------------------------------------------------- the Function
 def _np(t: torch.Tensor) -> np.ndarray:
     """The numpy view of a contiguous CPU tensor (no copy)."""
@@ -310,43 +341,56 @@ def _blocks(n: int):
 
 class FusedInputGradients(torch.autograd.Function):
     """(grad_h F1, grad_h F2), each (N, W), of the two scalar nets given by their parameters
-    (module docstring). Inputs: h (N, W), the activation code, whether to keep what the
-    backward needs, then each net's W_1, b_1, ..., W_L, b_L, w_out (F1's, then F2's).
+    (module docstring); with `field` the decoder's outputs (v, v_c, v_s) instead (v_c = g1,
+    v_s = g2 M^T, v = v_c + v_s; paper Eq. (field)), so that no torch op (and no autograd node)
+    follows. Inputs: h (N, W), the activation code, whether to keep what the backward needs,
+    `field`, then each net's W_1, b_1, ..., W_L, b_L, w_out (F1's, then F2's).
 
     Forward and backward run block by block (`BLOCK_ROWS` rows), so that the temporaries of a
     block stay in the cache between the products and the element-wise passes."""
 
     @staticmethod
-    def forward(ctx, h, kind, keep, *params):
+    def forward(ctx, h, kind, keep, field, *params):
         nets = _Nets.stack(params, kind)
         hd = h.detach().contiguous()
-        g = torch.empty((2, hd.shape[0], hd.shape[1]), dtype=hd.dtype)
-        saved = [_forward_block(nets, hd[lo:hi], g[:, lo:hi]) for lo, hi in _blocks(len(hd))]
+        n, width = hd.shape
+        g = torch.empty((2, n, width), dtype=hd.dtype)
+        if field:
+            v, v_s = torch.empty((n, width), dtype=hd.dtype), torch.empty((n, width), dtype=hd.dtype)
+        saved = []
+        for lo, hi in _blocks(n):
+            saved.append(_forward_block(nets, hd[lo:hi], g[:, lo:hi]))
+            if field:
+                _field_rows(_np(g[:, lo:hi]), _np(v[lo:hi]), _np(v_s[lo:hi]), _chunks(hi - lo))
         if keep:
             ctx.save_for_backward(h, *params)
-            ctx.kept = (nets, saved)
-        return g[0], g[1]
+            ctx.kept = (nets, saved, field)
+        return (v, g[0], v_s) if field else (g[0], g[1])
 
     @staticmethod
     @once_differentiable
-    def backward(ctx, grad_g1, grad_g2):
+    def backward(ctx, *upstream):
         ctx.saved_tensors  # raises if h or a parameter was modified in place since the forward
-        nets, saved = ctx.kept
-        grads = (grad_g1.contiguous(), grad_g2.contiguous())
-        n, width = grads[0].shape
-        grad_h = torch.empty((n, width), dtype=grads[0].dtype)
+        nets, saved, field = ctx.kept
+        upstream = [u.contiguous() for u in upstream]
+        n, width = upstream[0].shape
+        grad_h = torch.empty((n, width), dtype=upstream[0].dtype)
         d_weights = [torch.zeros_like(w) for w in nets.weights]
         d_biases = np.zeros((nets.depth, *nets.w_out.shape), dtype=nets.w_out.dtype)
         d_w_out = np.zeros_like(nets.w_out)
         for (lo, hi), block in zip(_blocks(n), saved):
-            _backward_block(nets, block, (grads[0][lo:hi], grads[1][lo:hi]), grad_h[lo:hi],
-                            d_weights, d_biases, d_w_out)
+            if field:
+                grads = torch.empty((2, hi - lo, width), dtype=grad_h.dtype)
+                _field_grads(*[_np(u[lo:hi]) for u in upstream], _np(grads), _chunks(hi - lo))
+            else:
+                grads = [u[lo:hi] for u in upstream]
+            _backward_block(nets, block, grads, grad_h[lo:hi], d_weights, d_biases, d_w_out)
         net_grads = []
         for i in range(2):
             for k in range(nets.depth):
                 net_grads += [d_weights[k][i], torch.from_numpy(d_biases[k, i].copy())]
             net_grads.append(torch.from_numpy(d_w_out[i].copy()).reshape(1, -1))
-        return (grad_h, None, None, *net_grads)
+        return (grad_h, None, None, None, *net_grads)
 
 
 # ----------------------------------------------------------------------------- entry points
@@ -368,13 +412,23 @@ def fused_supported(f1, f2, h: torch.Tensor) -> bool:
             and all(p.dtype == h.dtype and p.device.type == "cpu" for p in params))
 
 
+def _apply(f1, f2, h: torch.Tensor, field: bool):
+    params = net_parameters(f1) + net_parameters(f2)
+    keep = torch.is_grad_enabled() and (h.requires_grad or any(p.requires_grad for p in params))
+    return FusedInputGradients.apply(h, ACTIVATION_CODES[f1.activation], keep, field, *params)
+
+
 def fused_input_gradients(f1, f2, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(grad_h f1(h), grad_h f2(h)) of two `ScalarNet`s by `FusedInputGradients`: differentiable
     (once) in h and every parameter of both nets. Check `fused_supported` first."""
-    params = net_parameters(f1) + net_parameters(f2)
-    keep = torch.is_grad_enabled() and (h.requires_grad or any(p.requires_grad for p in params))
-    return FusedInputGradients.apply(h, ACTIVATION_CODES[f1.activation], keep, *params)
+    return _apply(f1, f2, h, field=False)
 
 
-__all__ = ["ACTIVATION_CODES", "FusedInputGradients", "fused_input_gradients", "fused_supported",
-           "net_parameters"]
+def fused_field(f1, f2, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(v, v_c, v_s) of the Hamiltonian decoder with scalar nets f1, f2 (paper Eq. (field)) by
+    `FusedInputGradients`; differentiable once. Check `fused_supported` first."""
+    return _apply(f1, f2, h, field=True)
+
+
+__all__ = ["ACTIVATION_CODES", "BLOCK_ROWS", "FusedInputGradients", "fused_field",
+           "fused_input_gradients", "fused_supported", "net_parameters"]
