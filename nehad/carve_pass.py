@@ -149,7 +149,8 @@ class ResidualCarving:
         spacing = float(np.median(np.diff(np.unique(times)))) if len(np.unique(times)) > 1 \
             else 1.0
         out = {"carve_blobs": len(blobs), "carve_tracks": len(tracks), "carved": 0}
-        seeds = [seeds_along(tr, cams, spacing, window.lo, window.hi) for tr in tracks]
+        seeds = [seeds_along(tr, cams, spacing, window.lo, window.hi, c.track_width)
+                 for tr in tracks]
         if not seeds:
             return out
         pts, vel, t_eq, cols, widths = (np.concatenate(x) for x in zip(*seeds))

@@ -132,6 +132,7 @@ class CarveConfig:
     # mask holds it still around the pass's time); false: its equilibrium is put out of reach
     # (M_pos = gamma), so the deformation field moves it from the start, as it moves anything
     # that is out of equilibrium
+    track_width: float = 0.5  # "tracks": a seeded Gaussian's scale, in object radii
     start: float = 0.0  # no pass before this fraction of a stage's iterations ("tracks":
     # the model should first draw what it can, or its own errors make blobs)
     life: float = 3.0  # a carved Gaussian lives around the pass's time: its opacity is scaled

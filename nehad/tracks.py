@@ -23,7 +23,6 @@ from local straight-line fits around each of its blobs (`Track.at` interpolates 
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -78,19 +77,25 @@ def find_blobs(cameras, times, targets, alphas, renders, *, residual: float = 0.
 def fit_motion(blobs, t0: float, degree: int = 1) -> np.ndarray | None:
     """Coefficients (degree + 1, 3) of x(t) = sum_k a_k (t - t0)^k nearest, in least squares,
     to the blobs' rays (module docstring), or None when the rays leave it undetermined (too
-    few, or all through one point of view)."""
-    rows, rhs = [], []
+    few, or all through one point of view). Solved by its normal equations: with P_i the
+    projection off ray i and tau_i = t_i - t0, block (j, k) of the matrix is
+    sum_i tau_i^(j+k) P_i and block j of the right side sum_i tau_i^j P_i c_i."""
+    m = degree + 1
+    a = np.zeros((m, 3, m, 3))
+    rhs = np.zeros((m, 3))
     for b in blobs:
         p = np.eye(3) - np.outer(b.direction, b.direction)
-        powers = (b.time - t0) ** np.arange(degree + 1)
-        rows.append(np.kron(powers[None, :], p))  # (3, 3 (degree + 1))
-        rhs.append(p @ b.origin)
-    a = np.concatenate(rows)
-    sv = np.linalg.svd(a, compute_uv=False)
-    if len(sv) < a.shape[1] or sv[-1] < 1e-6 * sv[0]:
+        pc = p @ b.origin
+        powers = (b.time - t0) ** np.arange(2 * m - 1)
+        for j in range(m):
+            rhs[j] += powers[j] * pc
+            for k in range(m):
+                a[j, :, k, :] += powers[j + k] * p
+    a = a.reshape(3 * m, 3 * m)
+    eig = np.linalg.eigvalsh(a)
+    if eig[0] <= 1e-9 * max(eig[-1], 1e-300):
         return None
-    coef = np.linalg.lstsq(a, np.concatenate(rhs), rcond=None)[0]
-    return coef.reshape(degree + 1, 3)
+    return np.linalg.solve(a, rhs.reshape(-1)).reshape(m, 3)
 
 
 def motion_at(coef: np.ndarray, t0: float, t) -> np.ndarray:
@@ -101,10 +106,14 @@ def motion_at(coef: np.ndarray, t0: float, t) -> np.ndarray:
 
 def _reprojection(cameras, coef, t0: float, blob: Blob) -> float:
     """Pixels between the blob's centroid and the motion's point at the blob's time."""
-    uv, z = cameras[blob.view].project(motion_at(coef, t0, blob.time)[None, :])
-    if z[0] <= 1e-6:
+    cam = cameras[blob.view]
+    w2c = cam.world_to_camera
+    x = w2c[:3, :3] @ motion_at(coef, t0, blob.time) + w2c[:3, 3]
+    if x[2] <= 1e-6:
         return np.inf
-    return float(np.linalg.norm(uv[0] - blob.centre))
+    du = cam.fx * x[0] / x[2] + cam.cx - blob.centre[0]
+    dv = cam.fy * x[1] / x[2] + cam.cy - blob.centre[1]
+    return float(np.hypot(du, dv))
 
 
 @dataclass
@@ -270,7 +279,8 @@ def _join(cameras, tracks: list, s: TrackSettings) -> list:
     """Join tracks that are one object seen across a stretch of time with no view (a gap in
     the training times) or where it was hidden: a track that ends within `max_gap` of another's
     start (or overlaps it by less) is joined to it when a quadratic motion through the
-    `join_blobs` blobs at each side lands on all of them (within their gates) and their colours agree."""
+    `join_blobs` blobs at each side lands on all of them (within their gates) and their
+    colours agree."""
     tracks = sorted(tracks, key=lambda tr: tr.times[0])
     joined = True
     while joined:
@@ -309,10 +319,14 @@ def fit_tracks(cameras, blobs, settings: TrackSettings | None = None,
     views = _Views(blobs)
     free = {id(b) for b in blobs}
     heap = []  # (-support, order, anchor index, blobs)
-    for i, anchor in enumerate(blobs):
-        h = _hypothesis(cameras, views, anchor, free, s, rng)
+    supported = set()  # blobs a found hypothesis lands on: not drawn again as anchors
+    for i in sorted(range(len(blobs)), key=lambda i: -blobs[i].area):
+        if id(blobs[i]) in supported:
+            continue
+        h = _hypothesis(cameras, views, blobs[i], free, s, rng)
         if h is not None and len(h) >= s.min_support:
             heapq.heappush(heap, (-len(h), i, i, h))
+            supported.update(id(b) for b in h)
     tracks = []
     while heap and len(tracks) < s.max_tracks:
         _, _, i, h = heapq.heappop(heap)
@@ -333,11 +347,13 @@ def fit_tracks(cameras, blobs, settings: TrackSettings | None = None,
     return sorted(_join(cameras, tracks, s), key=lambda tr: -len(tr.blobs))
 
 
-def seeds_along(track: Track, cameras, spacing: float, lo: float, hi: float):
+def seeds_along(track: Track, cameras, spacing: float, lo: float, hi: float,
+                width: float = 0.5):
     """Gaussians for a track: one every `spacing` of time over its span (and half a `max_gap`
     of the default settings beyond its ends, inside [lo, hi]), each at the track's point and
     with its velocity at its time. Returns (points, velocities, times, colours, widths): the
-    width is half the object's radius (the blobs' radius in pixels at their depth, median)."""
+    width is `width` times the object's radius (the blobs' radius in pixels at their depth,
+    median)."""
     reach = 0.5 * TrackSettings().max_gap
     start = max(lo, track.times[0] - reach)
     stop = min(hi, track.times[-1] + reach)
@@ -348,10 +364,10 @@ def seeds_along(track: Track, cameras, spacing: float, lo: float, hi: float):
         cam = cameras[b.view]
         _, z = cam.project(p[None, :])
         radii.append(np.sqrt(b.area / np.pi) * z[0] / cam.fx)
-    width = 0.5 * float(np.median(radii))
+    size = width * float(np.median(radii))
     n = len(taus)
     return (pts, vel, taus, np.repeat(track.colour()[None, :], n, axis=0),
-            np.full(n, width))
+            np.full(n, size))
 
 
 __all__ = ["Blob", "Track", "TrackSettings", "find_blobs", "fit_motion", "fit_tracks",
