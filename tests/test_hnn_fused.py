@@ -96,6 +96,26 @@ def test_rows_in_several_blocks(monkeypatch):
         assert _rel(f, r) < 1e-12
 
 
+def test_bits_do_not_depend_on_the_number_of_threads():
+    """The row ranges of the kernels (and so the order of the bias gradients' sums) are fixed:
+    float32 results are bit for bit the same on 1 and 2 Numba threads."""
+    if numba.config.NUMBA_NUM_THREADS < 2:
+        pytest.skip("Numba was started with 1 thread")
+    nets = tuple(net.float() for net in _nets("softplus", 2, width=16, hidden=16, seed=14))
+    h = _inputs(n=3000, width=16, dtype=torch.float32, seed=15)
+    before = numba.get_num_threads()
+    results = []
+    try:
+        for threads in (1, 2):
+            numba.set_num_threads(threads)
+            out = fused_field(*nets, h)
+            results.append(list(out) + list(_loss_grads(out, h, nets)))
+    finally:
+        numba.set_num_threads(before)
+    for a, b in zip(*results):
+        assert torch.equal(a, b)
+
+
 @pytest.mark.parametrize("activation", ACTIVATIONS)
 def test_gradcheck_on_a_tiny_case(activation):
     nets = _nets(activation, 2, width=4, hidden=3, seed=3)

@@ -75,9 +75,16 @@ def _activation(kind, z, one):
     return z * s, s * (one + z * (one - s)), s * (one - s) * (two + z * (one - two * s))
 
 
+#: Rows per range of the parallel loops. Fixed, not a share of the threads: the bias gradients
+#: are summed per range and then over the ranges, so with the ranges set by the thread count
+#: training would compute other last bits on another number of threads.
+ROWS_PER_RANGE = 16
+
+
 def _chunks(n: int) -> int:
-    """Row ranges of the parallel loops: many per thread, so the threads stay balanced."""
-    return max(1, min(n, 64 * numba.get_num_threads()))
+    """The number of row ranges of the parallel loops over n rows (128 for a 2048-row block:
+    many per thread, so the threads stay balanced)."""
+    return max(1, -(-n // ROWS_PER_RANGE))
 
 
 @numba.njit(parallel=True, fastmath=KERNEL_FASTMATH, cache=True)

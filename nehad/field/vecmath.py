@@ -4,8 +4,8 @@
 Numba without Intel's SVML calls libm's scalar expf and log1pf one element at a time: a softplus
 pass (value, first and second derivative) over 10,000 x 128 float32 took 11.8 ms on this
 project's 2-core machine, three times torch's vectorised softplus and sigmoid (docs/performance.md,
-"The HNN decoder as one fused pass"). Written with plain arithmetic, as here, the loops vectorise
-and the same pass takes about 1 ms.
+"The HNN decoder as one fused pass"). Written with plain arithmetic, as here, the loops vectorise:
+0.6 ns an element for each function on one thread, against 3.2 ns for libm's expf.
 
 Both functions are dtype-generic: on float32 they are the polynomials below (a few ulp from the
 correctly rounded result, tested against float64 in tests/test_hnn_fused.py); on float64 they are
