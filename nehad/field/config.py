@@ -88,12 +88,14 @@ class FieldConfig:
     default initialisation). v = grad_h F varies with h only through the curvature of the
     activations; with the default scale their inputs stay in the near-linear range, so v starts
     out almost the same for every Gaussian (docs/training.md)."""
-    hnn_grad: str = "closed_form"
-    """How grad_h F is computed: "closed_form" (the explicit formula of docs/design.md section 4.4,
-    also what the ONNX export writes; ordinary first-order autograd trains through it),
-    "fused" (the same formula and its hand-written backward as one autograd Function whose
+    hnn_grad: str = "fused"
+    """How grad_h F is computed: "fused" (default since 2026-11-26: the explicit formula of
+    docs/design.md section 4.4 and its hand-written backward as one autograd Function whose
     element-wise work runs as Numba passes, `nehad.field.hnn_fused`; CPU float32/float64, once
-    differentiable; elsewhere and in graph capture the closed form is used) or "autograd"
+    differentiable; elsewhere and in graph capture the closed form is used; the training step
+    took some 40 ms less than with "closed_form", docs/performance.md), "closed_form" (the same
+    formula written with torch ops, also what the ONNX export writes; ordinary first-order
+    autograd trains through it) or "autograd"
     (`torch.autograd.grad(..., create_graph=True)`, a double backward). The same function and
     the same parameter gradients up to rounding (tests/test_field.py, tests/test_hnn_fused.py);
     closed form took 26% less CPU per field forward+backward at 10k Gaussians than autograd
