@@ -188,10 +188,26 @@ class ResidualCarving:
         return out
 
 
+def pin_mortal(g) -> None:
+    """`carve.pin`: zero the gradients of the place, motion, time and life of the Gaussians with
+    a finite life (call between backward and the optimizer step). A track's Gaussian is seen by
+    one or two training views, which can slide it along their rays at no cost while every other
+    camera sees it move; its place and motion from the track are a fit to the rays of many views
+    (nehad.tracks). Their colour, opacity, scale and rotation are still learnt; with Adam's moments
+    at zero from the start, a parameter whose gradient is always zero does not move."""
+    mortal = g.life_rate.detach().reshape(-1) != 0
+    if not bool(mortal.any()):
+        return
+    for name in ("means", "velocity", "t_eq", "life_rate", "mu_eq"):
+        grad = getattr(g, name).grad
+        if grad is not None:
+            grad[mortal] = 0.0
+
+
 def free_offset_of(field_cfg, extent: float) -> float:
     """A distance from a Gaussian to its equilibrium at which the BED position mask is at its
     floor gamma to float32 precision (dd = 12 sigma_s: exp(-72) ~ 1e-31)."""
     return 12.0 * field_cfg.sigma_s_fraction * float(extent)
 
 
-__all__ = ["ResidualCarving", "free_offset_of", "van_der_corput"]
+__all__ = ["ResidualCarving", "free_offset_of", "pin_mortal", "van_der_corput"]

@@ -133,6 +133,9 @@ class CarveConfig:
     # (M_pos = gamma), so the deformation field moves it from the start, as it moves anything
     # that is out of equilibrium
     track_width: float = 0.5  # "tracks": a seeded Gaussian's scale, in object radii
+    pin: bool = False  # Gaussians with a finite life keep the place, motion, time and life they
+    # were given (nehad.carve_pass.pin_mortal: a view or two see each, which cannot place it
+    # in depth); colour, opacity and shape are still learnt
     start: float = 0.0  # no pass before this fraction of a stage's iterations ("tracks":
     # the model should first draw what it can, or its own errors make blobs)
     life: float = 3.0  # a carved Gaussian lives around the pass's time: its opacity is scaled

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from nehad.carve_pass import ResidualCarving, free_offset_of
+from nehad.carve_pass import ResidualCarving, free_offset_of, pin_mortal
 from nehad.checkpoint import (append_metrics, atomic_torch_save, list_checkpoints, load_state,
                               prepare_run_dir, save_checkpoint)
 from nehad.config import Config
@@ -223,6 +223,8 @@ class Trainer:
     def _update(self, total, phase: Phase, window) -> None:
         self.optimizer.zero_grad(set_to_none=True)
         total.backward()
+        if self.cfg.carve.pin:
+            pin_mortal(self.model.gaussians)
         self.schedule.before_update(self)
         self.optimizer.step()
         self.schedule.after_update(self, phase, window)

@@ -315,3 +315,29 @@ def test_opacity_reset_spares_gaussians_with_a_finite_life():
     alpha = torch.sigmoid(g.opacity_logits.detach()).reshape(-1)
     assert torch.allclose(alpha[[1, 3]], torch.tensor(0.01))
     assert torch.allclose(alpha[[0, 2]], torch.sigmoid(torch.tensor(2.0)))  # frozen; mortal
+
+
+def test_pinned_gaussians_keep_place_motion_time_and_life():
+    """carve.pin (nehad.carve_pass.pin_mortal): after backward, the Gaussians with a finite life
+    get no gradient on their place, velocity, time and life, so Adam leaves them where the
+    track put them, while their colour and opacity still learn and the others move."""
+    from nehad.carve_pass import pin_mortal
+    from nehad.gaussians import GaussianParameters
+
+    g = GaussianParameters(torch.randn(3, 3), torch.zeros(3, 3), torch.tensor([[1.0, 0, 0, 0]] * 3),
+                           torch.zeros(3, 1), torch.zeros(3, 1, 3), torch.zeros(3, 0, 3))
+    with torch.no_grad():
+        g.life_rate[1] = 20.0
+    before = {n: getattr(g, n).detach().clone() for n in g.NAMES}
+    opt = torch.optim.Adam(g.parameters(), lr=0.1)
+    for _ in range(3):
+        opt.zero_grad()
+        loss = sum((getattr(g, n) - 1.0).square().sum() for n in g.NAMES)
+        loss.backward()
+        pin_mortal(g)
+        opt.step()
+    for n in ("means", "velocity", "t_eq", "life_rate", "mu_eq"):
+        assert torch.equal(getattr(g, n).detach()[1], before[n][1]), n
+        assert not torch.equal(getattr(g, n).detach()[0], before[n][0]), n
+    for n in ("sh_dc", "opacity_logits", "log_scales"):
+        assert not torch.equal(getattr(g, n).detach()[1], before[n][1]), n
