@@ -320,7 +320,7 @@ def test_opacity_reset_spares_gaussians_with_a_finite_life():
 def test_pinned_gaussians_keep_place_motion_time_and_life():
     """carve.pin (nehad.carve_pass.pin_mortal): after backward, the Gaussians with a finite life
     get no gradient on their place, velocity, time and life, so Adam leaves them where the
-    track put them, while their colour and opacity still learn and the others move."""
+    track put them, while their colour, opacity and shape still learn and the others move."""
     from nehad.carve_pass import pin_mortal
     from nehad.gaussians import GaussianParameters
 
