@@ -70,8 +70,7 @@ class ResidualCarving:
             return self._track_pass(model, optimizer, state, deforms, window, views, degree)
         t_c, nearest = self._pass_views(deforms, it, window, views)
         pts, cols, widths, n_bad = self._find_points(model, deforms, nearest, views, degree, rng)
-        cap = self.max_gaussians
-        most = min(self.cfg.max_new, cap) if cap > 0 else self.cfg.max_new  # never overfills
+        most = self._most_new()
         if len(pts) > most:
             pick = rng.choice(len(pts), most, replace=False)
             pts, cols, widths = pts[pick], cols[pick], widths[pick]
@@ -98,20 +97,10 @@ class ResidualCarving:
         """Points, colours and widths where the views disagree with the model
         (`nehad.carve.seed_rays` or `carve_points`), and the number of unexplained pixels."""
         from nehad.carve import carve_points, seed_rays
-        from nehad.model import cloud_at
-        from nehad.runtime.raster import render
 
         c = self.cfg
         times = np.asarray(views.times, np.float64)
-        cams, targets, alphas, drawn = [], [], [], []
-        canonical = None if deforms else cloud_at(model, None, degree)
-        for k in nearest:
-            cloud = canonical if canonical is not None else cloud_at(model, times[k], degree)
-            cams.append(views.cameras[k])
-            drawn.append(render(cloud, views.cameras[k], self.background))
-            targets.append(views.images[k].numpy())
-            a = views.alphas[k]
-            alphas.append(None if a is None else a.numpy()[:, :, 0])
+        cams, targets, alphas, drawn = self._render_views(model, deforms, nearest, views, degree)
         if c.mode == "rays":
             return seed_rays(cams, targets, alphas, [d.rgb for d in drawn], self.box,
                              residual=c.residual, stride=c.stride,
@@ -128,38 +117,50 @@ class ResidualCarving:
         """`carve.mode=tracks` (nehad.tracks): every view of the window rendered at its own
         time; the tracks of its unexplained blobs become chains of Gaussians, one every frame
         spacing along each track, living around their own time and moving with the track."""
-        from nehad.model import cloud_at
-        from nehad.runtime.raster import render
         from nehad.tracks import find_blobs, fit_tracks, seeds_along
 
         c = self.cfg
         pool = eligible_frames(views.times, window)
         times = np.asarray(views.times, np.float64)
-        canonical = None if deforms else cloud_at(model, None, degree)
-        cams, targets, alphas, drawn = [], [], [], []
-        for k in pool:
-            cloud = canonical if canonical is not None else cloud_at(model, times[k], degree)
-            cams.append(views.cameras[k])
-            drawn.append(render(cloud, views.cameras[k], self.background).rgb)
-            targets.append(views.images[k].numpy())
-            a = views.alphas[k]
-            alphas.append(None if a is None else a.numpy()[:, :, 0])
-        blobs = find_blobs(cams, times[pool], targets, alphas, drawn, residual=c.residual)
+        cams, targets, alphas, drawn = self._render_views(model, deforms, pool, views, degree)
+        blobs = find_blobs(cams, times[pool], targets, alphas, [d.rgb for d in drawn],
+                           residual=c.residual)
         tracks = fit_tracks(cams, blobs)
-        spacing = float(np.median(np.diff(np.unique(times)))) if len(np.unique(times)) > 1 \
-            else 1.0
+        spacing = frame_spacing(times) or 1.0
         out = {"carve_blobs": len(blobs), "carve_tracks": len(tracks), "carved": 0}
         seeds = [seeds_along(tr, cams, spacing, 0.0, 1.0, c.track_width) for tr in tracks]
         if not seeds:
             return out
         pts, vel, t_eq, cols, widths = (np.concatenate(x) for x in zip(*seeds))
-        cap = self.max_gaussians
-        most = min(c.max_new, cap) if cap > 0 else c.max_new
+        most = self._most_new()
         pts, vel, t_eq, cols, widths = (x[:most] for x in (pts, vel, t_eq, cols, widths))
         out["carved"] = len(pts)
         out.update(self._add(model.gaussians, optimizer, state, pts, cols, widths, t_eq,
                              deforms, views, velocities=vel))
         return out
+
+    def _render_views(self, model, deforms: bool, indices, views, degree: int):
+        """(cameras, targets, alphas or None, renders) of the views `indices`, each rendered
+        at its own time (the canonical Gaussians in a static stage)."""
+        from nehad.model import cloud_at
+        from nehad.runtime.raster import render
+
+        times = np.asarray(views.times, np.float64)
+        canonical = None if deforms else cloud_at(model, None, degree)
+        cams, targets, alphas, drawn = [], [], [], []
+        for k in indices:
+            cloud = canonical if canonical is not None else cloud_at(model, times[k], degree)
+            cams.append(views.cameras[k])
+            drawn.append(render(cloud, views.cameras[k], self.background))
+            targets.append(views.images[k].numpy())
+            a = views.alphas[k]
+            alphas.append(None if a is None else a.numpy()[:, :, 0])
+        return cams, targets, alphas, drawn
+
+    def _most_new(self) -> int:
+        """Gaussians one pass may add: `max_new`, and never more than the cap."""
+        cap = self.max_gaussians
+        return min(self.cfg.max_new, cap) if cap > 0 else self.cfg.max_new
 
     def _add(self, g, optimizer, state: DensifyState, pts, cols, widths, t_c,
              deforms: bool, views, velocities=None) -> dict:
@@ -175,9 +176,7 @@ class ResidualCarving:
             keep[torch.argsort(g.opacity_logits.detach().reshape(-1))[:min(over, len(g))]] = False
             keep_gaussians(g, optimizer, keep)
             out["relocated"] = int((~keep).sum())
-        times = np.asarray(views.times, np.float64)
-        spacing = float(np.median(np.diff(np.unique(times)))) if len(np.unique(times)) > 1 else 0.0
-        life = self.cfg.life * spacing if deforms else 0.0
+        life = self.cfg.life * frame_spacing(views.times) if deforms else 0.0
         append_gaussians(g, optimizer,
                          new_gaussians(pts, cols, widths, t_c, g, self.cfg.opacity, life,
                                        0.0 if self.cfg.hold else self.free_offset,
@@ -185,6 +184,12 @@ class ResidualCarving:
         if state.grad_accum.shape[0] == len(keep):  # statistics follow
             state.keep(keep, len(pts))
         return out
+
+
+def frame_spacing(times) -> float:
+    """The median spacing of the distinct training times (0 with a single time)."""
+    distinct = np.unique(np.asarray(times, np.float64))
+    return float(np.median(np.diff(distinct))) if len(distinct) > 1 else 0.0
 
 
 def pin_mortal(g) -> None:
@@ -210,4 +215,5 @@ def free_offset_of(field_cfg, extent: float) -> float:
     return 12.0 * field_cfg.sigma_s_fraction * float(extent)
 
 
-__all__ = ["ResidualCarving", "free_offset_of", "pin_mortal", "van_der_corput"]
+__all__ = ["ResidualCarving", "frame_spacing", "free_offset_of", "pin_mortal",
+           "van_der_corput"]

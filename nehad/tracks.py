@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from nehad.carve import unexplained_mask
+from nehad.carve import _chroma, unexplained_mask
 
 
 @dataclass(frozen=True)
@@ -41,10 +41,6 @@ class Blob:
     colour: np.ndarray  # (3,) the target's mean rgb over it
     origin: np.ndarray  # (3,) the camera centre
     direction: np.ndarray  # (3,) unit ray through the centroid
-
-
-def _chroma(rgb: np.ndarray) -> np.ndarray:
-    return rgb / max(float(rgb.sum()), 1e-3)
 
 
 def find_blobs(cameras, times, targets, alphas, renders, *, residual: float = 0.25,
@@ -318,24 +314,24 @@ def fit_tracks(cameras, blobs, settings: TrackSettings | None = None,
     rng = np.random.default_rng(seed)
     views = _Views(blobs)
     free = {id(b) for b in blobs}
-    heap = []  # (-support, order, anchor index, blobs)
+    heap = []  # (-support, anchor index, blobs)
     supported = set()  # blobs a found hypothesis lands on: not drawn again as anchors
     for i in sorted(range(len(blobs)), key=lambda i: -blobs[i].area):
         if id(blobs[i]) in supported:
             continue
         h = _hypothesis(cameras, views, blobs[i], free, s, rng)
         if h is not None and len(h) >= s.min_support:
-            heapq.heappush(heap, (-len(h), i, i, h))
+            heapq.heappush(heap, (-len(h), i, h))
             supported.update(id(b) for b in h)
     tracks = []
     while heap and len(tracks) < s.max_tracks:
-        _, _, i, h = heapq.heappop(heap)
+        _, i, h = heapq.heappop(heap)
         if id(blobs[i]) not in free:
             continue
         if any(id(b) not in free for b in h):  # taken by a track since: draw again
             h = _hypothesis(cameras, views, blobs[i], free, s, rng)
             if h is not None and len(h) >= s.min_support:
-                heapq.heappush(heap, (-len(h), i, i, h))
+                heapq.heappush(heap, (-len(h), i, h))
             continue
         for b in h:
             free.discard(id(b))
