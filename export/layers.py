@@ -52,24 +52,40 @@ class SplitBaseGraph(nn.Module):
 
     def __init__(self, model, sh_degree: int, n0: int):
         super().__init__()
-        if model.gaussians.drifts():
-            raise ExportError("the split-layer export does not carry the finite lives and "
-                              "velocities of drifting Gaussians (carve.every > 0 or "
-                              "train.drift_window > 0); export the run as one file instead")
+        g = model.gaussians
+        if g.drift_window > 0:
+            raise ExportError("the split-layer export does not carry a drift window "
+                              "(train.drift_window > 0: every Gaussian drifts); export the run as "
+                              "one file instead")
         self.model = model
         self.deform = FastDeform(model, sh_degree, constant_means=False)
         self.k = (int(sh_degree) + 1) ** 2
         with torch.no_grad():
             base = canonical_arrays(model, self.k, slice(0, n0))
+            # carving's finite lives and velocities (nehad.carve_pass) belong to layer 0: its
+            # passes never run in a layer above the base, so a chunk's Gaussians live at every
+            # time and stand still after the field (life rate 0, velocity 0)
+            if bool((g.life_rate[n0:] != 0).any()):
+                raise ExportError("the split-layer export carries finite lives in layer 0 only; "
+                                  "an enhancement layer has Gaussians with one")
+            self.mortal = g.has_life()
         for name, value in base.items():
             self.register_buffer(f"base_{name}", value.detach().clone())
+        if self.mortal:
+            self.register_buffer("base_life_rate", g.life_rate[:n0].detach().reshape(-1, 1).clone())
+            self.register_buffer("base_velocity", g.drift_velocity()[:n0].detach().clone())
         self.register_buffer("base_layer", torch.zeros(n0, dtype=torch.int32))
 
     def forward(self, time, means, log_scales, quats, opacity_logits, sh, mu_eq, t_eq, layer):
         extra = dict(zip(CHUNK_ARRAYS, (means, log_scales, quats, opacity_logits, sh, mu_eq,
                                         t_eq)))
         arrays = {n: torch.cat([getattr(self, f"base_{n}"), extra[n]], 0) for n in CHUNK_ARRAYS}
-        out = self.deform(*(arrays[n] for n in CHUNK_ARRAYS), time)
+        drift = ()
+        if self.mortal:  # the chunks' rows: life rate 0 (every time), velocity 0
+            still = torch.zeros_like(means)
+            drift = (torch.cat([self.base_life_rate, still[:, :1]], 0),
+                     torch.cat([self.base_velocity, still], 0))
+        out = self.deform(*(arrays[n] for n in CHUNK_ARRAYS), time, *drift)
         return out + (torch.cat([self.base_layer, layer]),)
 
 

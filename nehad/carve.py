@@ -299,7 +299,7 @@ def new_gaussians(points: np.ndarray, colours: np.ndarray, widths: np.ndarray, t
     n = len(points)
     t_eq = np.broadcast_to(np.asarray(t_eq, np.float64), (n,))
     velocities = np.zeros((n, 3)) if velocities is None else velocities
-    f32 = lambda a: torch.as_tensor(np.asarray(a), dtype=torch.float32)
+    f32 = lambda a: torch.tensor(np.asarray(a, np.float32))  # a copy (t_eq is a broadcast view)
     means = f32(points)
     sh_rest = torch.zeros((n,) + tuple(like.sh_rest.shape[1:]))
     sh_dc = torch.zeros((n,) + tuple(like.sh_dc.shape[1:]))

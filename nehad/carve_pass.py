@@ -31,8 +31,8 @@ def van_der_corput(i: int) -> float:
 
 @dataclass(frozen=True)
 class ResidualCarving:
-    """Carving passes every `cfg.every` iterations of a stage's densification window (a
-    CarveConfig, nehad.config). `box`: the scene box rays are sampled in; `free_offset`: how far
+    """Carving passes every `cfg.every` iterations of a stage's densification window, or at the
+    fractions `cfg.at` of it (a CarveConfig, nehad.config). `box`: the scene box rays are sampled in; `free_offset`: how far
     from its equilibrium a carved Gaussian is put with `cfg.hold` false (the BED position mask
     then at its floor: `free_offset_of`)."""
 
@@ -47,14 +47,29 @@ class ResidualCarving:
     def due(self, deforms: bool, layer: int, it: int, timing: DensifySchedule) -> bool:
         """Whether a pass runs after iteration `it` (1-based) of a stage: inside the
         densification window, never while opacities recover from a reset, never in streaming
-        layers above the base."""
+        layers above the base; every `every` iterations, or with `every` 0 at the iterations of
+        `pass_iterations`."""
         c = self.cfg
+        if c.max_new <= 0 or layer > 0 or (not deforms and not c.static_stage):
+            return False
+        if c.every <= 0:
+            return it in pass_iterations(c.at, timing, self._recovery(timing))
         if c.mode == "tracks" and timing.recovering(it, 0.5):
             return False  # every view is rendered: not while opacities grow back
-        return not (c.every <= 0 or c.max_new <= 0 or layer > 0
-                    or (not deforms and not c.static_stage)
-                    or not timing.start <= it < timing.stop or it % c.every
+        return not (not timing.start <= it < timing.stop or it % c.every
                     or it < c.start * timing.length or timing.recovering(it))
+
+    def _recovery(self, timing: DensifySchedule) -> float:
+        """The part of an opacity-reset period a pass waits out: half of it for tracks (every
+        view is rendered and read), a quarter otherwise."""
+        return 0.5 if self.cfg.mode == "tracks" else 0.25
+
+    def _pass_index(self, it: int, timing: DensifySchedule) -> int:
+        """1, 2, ... for the passes of a stage in order (picks the pass's time)."""
+        c = self.cfg
+        if c.every > 0:
+            return it // c.every
+        return 1 + sorted(pass_iterations(c.at, timing, self._recovery(timing))).index(it)
 
     def step_post_update(self, model, optimizer, state: DensifyState, *, deforms: bool,
                          layer: int, it: int, step: int, window: TimeWindow, views,
@@ -68,7 +83,7 @@ class ResidualCarving:
         rng = np.random.default_rng([self.seed, step, 7])
         if self.cfg.mode == "tracks":
             return self._track_pass(model, optimizer, state, deforms, window, views, degree)
-        t_c, nearest = self._pass_views(deforms, it, window, views)
+        t_c, nearest = self._pass_views(deforms, self._pass_index(it, timing), window, views)
         pts, cols, widths, n_bad = self._find_points(model, deforms, nearest, views, degree, rng)
         most = self._most_new()
         if len(pts) > most:
@@ -80,13 +95,13 @@ class ResidualCarving:
                                  deforms, views))
         return out
 
-    def _pass_views(self, deforms: bool, it: int, window: TimeWindow, views):
-        """(the pass's time, the indices of the views nearest to it)."""
+    def _pass_views(self, deforms: bool, index: int, window: TimeWindow, views):
+        """(the time of the stage's `index`-th pass, the indices of the views nearest to it)."""
         c = self.cfg
         pool = eligible_frames(views.times, window)
         times = np.asarray(views.times, np.float64)
         if deforms:  # the passes' times spread evenly over the window (van der Corput)
-            at = window.lo + (window.hi - window.lo) * van_der_corput(it // c.every)
+            at = window.lo + (window.hi - window.lo) * van_der_corput(index)
             t_c = float(times[pool[np.argmin(np.abs(times[pool] - at))]])
         else:
             t_c = float(self.canonical_time)
@@ -116,13 +131,16 @@ class ResidualCarving:
                     window: TimeWindow, views, degree: int) -> dict:
         """`carve.mode=tracks` (nehad.tracks): every view of the window rendered at its own
         time; the tracks of its unexplained blobs become chains of Gaussians, one every frame
-        spacing along each track, living around their own time and moving with the track."""
+        spacing along each track, living around their own time and moving with the track,
+        except where the model already draws the object (`nehad.tracks.drawn_already`)."""
         from nehad.tracks import find_blobs, fit_tracks, seeds_along
 
         c = self.cfg
         pool = eligible_frames(views.times, window)
         times = np.asarray(views.times, np.float64)
-        cams, targets, alphas, drawn = self._render_views(model, deforms, pool, views, degree)
+        clouds = []
+        cams, targets, alphas, drawn = self._render_views(model, deforms, pool, views, degree,
+                                                          clouds)
         blobs = find_blobs(cams, times[pool], targets, alphas, [d.rgb for d in drawn],
                            residual=c.residual)
         tracks = fit_tracks(cams, blobs)
@@ -132,16 +150,42 @@ class ResidualCarving:
         if not seeds:
             return out
         pts, vel, t_eq, cols, widths = (np.concatenate(x) for x in zip(*seeds))
+        have = self._drawn_already(pts, vel, t_eq, cols, widths, times[pool], clouds)
+        out["carve_drawn"] = int(have.sum())
+        pts, vel, t_eq, cols, widths = (x[~have] for x in (pts, vel, t_eq, cols, widths))
         most = self._most_new()
         pts, vel, t_eq, cols, widths = (x[:most] for x in (pts, vel, t_eq, cols, widths))
         out["carved"] = len(pts)
-        out.update(self._add(model.gaussians, optimizer, state, pts, cols, widths, t_eq,
-                             deforms, views, velocities=vel))
+        if len(pts):
+            out.update(self._add(model.gaussians, optimizer, state, pts, cols, widths, t_eq,
+                                 deforms, views, velocities=vel))
         return out
 
-    def _render_views(self, model, deforms: bool, indices, views, degree: int):
+    def _drawn_already(self, pts, vel, t_eq, cols, widths, view_times, clouds) -> np.ndarray:
+        """Which seeds stand for an object the model already draws at their time, judged on
+        the model at the nearest rendered view's time (the reach grows by how far the seed
+        moves in between); with the object's radius (widths / track_width) as the reach."""
+        from nehad.runtime.gaussians import SH_C0
+        from nehad.tracks import drawn_already
+
+        have = np.zeros(len(pts), bool)
+        if not clouds:
+            return have
+        nearest = np.abs(t_eq[:, None] - view_times[None, :]).argmin(axis=1)
+        reach = (widths / max(self.cfg.track_width, 1e-6)
+                 + np.linalg.norm(vel, axis=1) * np.abs(t_eq - view_times[nearest]))
+        for k in np.unique(nearest):
+            rows = np.nonzero(nearest == k)[0]
+            cl = clouds[k]
+            rgb = np.clip(0.5 + SH_C0 * cl.sh[:, 0, :], 0.0, 1.0)
+            have[rows] = drawn_already(pts[rows], cols[rows], reach[rows], cl.means,
+                                       cl.opacities, rgb, self.cfg.colour_tol)
+        return have
+
+    def _render_views(self, model, deforms: bool, indices, views, degree: int, clouds=None):
         """(cameras, targets, alphas or None, renders) of the views `indices`, each rendered
-        at its own time (the canonical Gaussians in a static stage)."""
+        at its own time (the canonical Gaussians in a static stage); the Gaussians each was
+        drawn from are appended to `clouds` when given."""
         from nehad.model import cloud_at
         from nehad.runtime.raster import render
 
@@ -152,6 +196,8 @@ class ResidualCarving:
             cloud = canonical if canonical is not None else cloud_at(model, times[k], degree)
             cams.append(views.cameras[k])
             drawn.append(render(cloud, views.cameras[k], self.background))
+            if clouds is not None:
+                clouds.append(cloud)
             targets.append(views.images[k].numpy())
             a = views.alphas[k]
             alphas.append(None if a is None else a.numpy()[:, :, 0])
@@ -186,6 +232,21 @@ class ResidualCarving:
         return out
 
 
+def pass_iterations(fractions, timing: DensifySchedule, recovery: float) -> set:
+    """The iterations (1-based) of a stage at which the passes of `carve.at` run: each fraction
+    of the stage's length, moved past the first `recovery` part of an opacity-reset period it
+    falls in (opacities are still growing back there), kept when inside the densification
+    window."""
+    out = set()
+    for frac in fractions:
+        it = max(int(round(frac * timing.length)), 1)
+        while timing.recovering(it, recovery):
+            it += 1
+        if timing.start <= it < timing.stop:
+            out.add(it)
+    return out
+
+
 def frame_spacing(times) -> float:
     """The median spacing of the distinct training times (0 with a single time)."""
     distinct = np.unique(np.asarray(times, np.float64))
@@ -215,5 +276,5 @@ def free_offset_of(field_cfg, extent: float) -> float:
     return 12.0 * field_cfg.sigma_s_fraction * float(extent)
 
 
-__all__ = ["ResidualCarving", "frame_spacing", "free_offset_of", "pin_mortal",
-           "van_der_corput"]
+__all__ = ["ResidualCarving", "frame_spacing", "free_offset_of", "pass_iterations",
+           "pin_mortal", "van_der_corput"]

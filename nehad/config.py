@@ -104,20 +104,24 @@ class DensifyConfig:
 
 @dataclass
 class CarveConfig:
-    """Residual carving (nehad.carve, docs/training.md): every `every` iterations of a stage's
-    densification window, Gaussians are added where the views nearest to one time agree that
-    something is missing. 0 = off."""
+    """Residual carving (nehad.carve, docs/training.md): Gaussians are added where the model
+    does not draw what the views show. The recipe: two passes of the deforming stage that
+    follow each unexplained blob through the views in time order and seed a chain of Gaussians
+    along its 3D path (`mode=tracks`; what the static stage never sees, such as an object
+    behind an occluder around the canonical time, is otherwise never created)."""
 
     every: int = 0  # iterations between passes (inside each stage's densification window);
-    # 0 = off: on the stress suite's occluded sphere it was measured not to keep the object
-    # (docs/training.md), so it is not part of the recipe yet
-    views: int = 6  # training views nearest in time to the pass's time
-    mode: str = "vote"  # "vote": a point where the views agree (nehad.carve.carve_points);
-    # "rays": seeds along every unexplained pixel's ray, the optimisation picks the depth
-    # (nehad.carve.seed_rays); "tracks": chains of Gaussians along the 3D paths of the
-    # unexplained blobs through all the window's views (nehad.tracks)
+    # 0: the passes run at the fractions `at` instead
+    at: tuple[float, ...] = (0.275, 0.55)  # with every = 0: the fractions of a stage's iterations at which a
+    # pass runs (each moved past the part of an opacity-reset period where opacities grow
+    # back: nehad.carve_pass.pass_iterations); () with every = 0: no carving
+    views: int = 6  # "vote"/"rays": training views nearest in time to the pass's time
+    mode: str = "tracks"  # "tracks": chains of Gaussians along the 3D paths of the unexplained
+    # blobs through all the window's views (nehad.tracks); "vote": a point where the views
+    # agree (nehad.carve.carve_points); "rays": seeds along every unexplained pixel's ray, the
+    # optimisation picks the depth (nehad.carve.seed_rays)
     seed_views: int = 1  # "rays": the views nearest the pass's time that are seeded
-    static_stage: bool = True  # passes in the static (coarse) stage too, at the canonical
+    static_stage: bool = False  # passes in the static (coarse) stage too, at the canonical
     # time (their Gaussians live at every time); false: only in the deforming stage
     residual: float = 0.25  # a pixel is unexplained when render and target differ by more
     stride: int = 2  # one ray per stride x stride pixels
@@ -126,21 +130,24 @@ class CarveConfig:
     agree: float = 0.6  # ... and land near an unexplained pixel of its colour in this fraction
     colour_tol: float = 0.08  # largest chromaticity (rgb / sum) difference of the same surface
     motion: float = 1.5  # image widths per unit of time an object may move between the views
-    opacity: float = 0.3  # opacity of a carved Gaussian
+    opacity: float = 0.9  # opacity of a carved Gaussian (a chain's Gaussians start nearly
+    # opaque: the few views that see each are far apart, and a faint start faded; the vote
+    # and rays measurements of 2026-11-25 used 0.3)
     max_new: int = 1500  # Gaussians added per pass at most
     hold: bool = True  # a carved Gaussian's BED equilibrium is where it was seen (the position
     # mask holds it still around the pass's time); false: its equilibrium is put out of reach
     # (M_pos = gamma), so the deformation field moves it from the start, as it moves anything
     # that is out of equilibrium
-    track_width: float = 0.5  # "tracks": a seeded Gaussian's scale, in object radii
-    pin: bool = False  # Gaussians with a finite life keep the place, motion, time and life they
+    track_width: float = 0.8  # "tracks": a seeded Gaussian's scale, in object radii
+    pin: bool = True  # Gaussians with a finite life keep the place, motion, time and life they
     # were given (nehad.carve_pass.pin_mortal: a view or two see each, which cannot place it
     # in depth); colour, opacity and shape are still learnt
-    start: float = 0.0  # no pass before this fraction of a stage's iterations ("tracks":
-    # the model should first draw what it can, or its own errors make blobs)
-    life: float = 3.0  # a carved Gaussian lives around the pass's time: its opacity is scaled
-    # by exp(-((t - t_c) / sigma)^2 / 2), sigma = life x the median spacing of the training
-    # times (learnt after); 0 = it lives at every time
+    start: float = 0.0  # with every > 0: no pass before this fraction of a stage's iterations
+    # (the model should first draw what it can, or its own errors make blobs)
+    life: float = 1.0  # a carved Gaussian lives around its time: its opacity is scaled by
+    # exp(-((t - t_c) / sigma)^2 / 2), sigma = life x the median spacing of the training times
+    # (learnt after, unless pinned); 0 = it lives at every time (the vote and rays
+    # measurements of 2026-11-25 used 3)
 
 
 @dataclass
@@ -340,6 +347,8 @@ class Config:
         if not (0.0 < c.residual < 1.0 and 0.0 < c.agree <= 1.0 and 0.0 < c.colour_tol <= 1.0
                 and 0.0 < c.opacity < 1.0):
             raise ConfigError("carve: residual, opacity in (0, 1); agree, colour_tol in (0, 1]")
+        if not all(isinstance(f, (int, float)) and 0.0 < f < 1.0 for f in c.at):
+            raise ConfigError(f"carve.at: fractions of a stage in (0, 1), got {list(c.at)}")
 
     def _validate_lod(self) -> None:
         """The level-of-detail settings."""

@@ -366,5 +366,30 @@ def seeds_along(track: Track, cameras, spacing: float, lo: float, hi: float,
             np.full(n, size))
 
 
-__all__ = ["Blob", "Track", "TrackSettings", "find_blobs", "fit_motion", "fit_tracks",
-           "motion_at", "seeds_along"]
+def drawn_already(points: np.ndarray, colours: np.ndarray, reach: np.ndarray, means: np.ndarray,
+                  opacities: np.ndarray, rgb: np.ndarray, colour_tol: float,
+                  min_opacity: float = 0.3, count: int = 3) -> np.ndarray:
+    """(M,) bool: whether the model already has the object a seed stands for, at the seed's
+    time: at least `count` of its Gaussians (centres `means`, `opacities`, view-independent
+    colours `rgb`, all at that time) with opacity >= `min_opacity` and the seed's chromaticity
+    (within `colour_tol`) lie within `reach` of the seed's point. A blob is also left where the
+    model draws an object a little off its place (a fast object the field lags behind); a
+    chain there would be a second copy of it, pinned, competing with the one the field moves.
+    The chain is for what the model does not draw at all (docs/training.md)."""
+    out = np.zeros(len(points), bool)
+    solid = opacities.reshape(-1) >= min_opacity
+    if not solid.any() or not len(points):
+        return out
+    near_means, near_chroma = means[solid], _chroma(rgb[solid])
+    seed_chroma = _chroma(colours)
+    for i, (p, r) in enumerate(zip(points, reach)):
+        close = np.einsum("ij,ij->i", near_means - p, near_means - p) <= r * r
+        if close.sum() < count:
+            continue
+        alike = np.abs(near_chroma[close] - seed_chroma[i]).max(axis=1) <= colour_tol
+        out[i] = int(alike.sum()) >= count
+    return out
+
+
+__all__ = ["Blob", "Track", "TrackSettings", "drawn_already", "find_blobs", "fit_motion",
+           "fit_tracks", "motion_at", "seeds_along"]

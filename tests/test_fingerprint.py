@@ -37,7 +37,8 @@ torch = pytest.importorskip("torch")
 RECORD = Path(__file__).parent / "data" / "training_fingerprint.json"
 VARIANTS = {
     "test": [],
-    "carve": ["carve.every=10", "carve.static_stage=false", "carve.hold=false"],
+    "carve": ["carve.mode=vote", "carve.every=10", "carve.static_stage=false", "carve.hold=false",
+              "carve.life=3", "carve.opacity=0.3", "carve.pin=false", "carve.track_width=0.5"],
     "lod": ["lod.levels=3", "lod.iterations=12", "coarse.iterations=12", "fine.iterations=12",
             "lod.opacity_threshold=0.02"],
     "batch2_random_background": ["fine.batch_size=2", "data.random_background=true"],

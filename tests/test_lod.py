@@ -20,7 +20,7 @@ ort = pytest.importorskip("onnxruntime")
 from click.testing import CliRunner  # noqa: E402
 
 from nehad.cli.main import main  # noqa: E402
-from nehad.export.onnx_export import export_run, parity_error  # noqa: E402
+from nehad.export.onnx_export import ExportError, export_run, parity_error  # noqa: E402
 from nehad.runtime.layers import (LayeredModel, LayerError, decode_chunk,  # noqa: E402
                                   encode_chunk)
 from torch_blocker import blocked_torch_env  # noqa: E402
@@ -304,6 +304,39 @@ def test_split_prefixes_match_torch(split, trained):
             assert np.array_equal(out["layer"], meta.layer[:n])
     print(f"split layers parity vs torch prefixes {worst:.3g}")
     assert worst <= 1e-5
+
+
+def test_split_export_carries_layer0_lives_and_velocities(trained, tmp_path):
+    """Carving's chains (finite life, a velocity; nehad.carve_pass) live in layer 0: the split
+    export carries them, and its prefixes still match torch's gaussians_at."""
+    from nehad.export.layers import export_split_model
+    from nehad.model import load_run
+
+    model, info = load_run(trained["export_run"])
+    g, sizes = model.gaussians, trained["trainer"].layer_sizes
+    with torch.no_grad():
+        g.life_rate[:sizes[0]:3] = 4.0
+        g.velocity[:sizes[0]:3] = torch.tensor([0.3, -0.2, 0.1])
+    export_split_model(model, info, tmp_path / "layers", cfg=info.config)
+    lm = LayeredModel(tmp_path / "layers")
+    assert lm.loaded_layers == 3 and lm.problems == []
+    worst = 0.0
+    for t in (0.0, 0.7, 1.0):
+        out = lm.outputs(t)
+        with torch.no_grad():
+            ref = [o.numpy() for o in model.gaussians_at(t)]
+        ref[4] = ref[4][:, :out["sh"].shape[1]]
+        for name, b in zip(OUTPUTS, ref):
+            worst = max(worst, parity_error(out[name], b))
+    assert worst <= 1e-5
+    with torch.no_grad():  # the lives matter: without them the opacities differ
+        g.life_rate.zero_()
+        plain = model.gaussians_at(0.0)[3].numpy()
+    assert np.abs(lm.outputs(0.0)["opacities"] - plain).max() > 1e-3
+    with torch.no_grad():  # a finite life in an enhancement layer cannot be carried
+        g.life_rate[sizes[0]] = 1.0
+    with pytest.raises(ExportError, match="layer 0 only"):
+        export_split_model(model, info, tmp_path / "other", cfg=info.config)
 
 
 def test_split_fp16_field(split, trained, tmp_path):

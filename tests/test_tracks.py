@@ -129,3 +129,35 @@ def test_blobs_with_no_common_path_make_no_track():
     blobs = find_blobs(cams, times, targets, alphas, drawn)
     assert len(blobs) >= 25
     assert fit_tracks(cams, blobs) == []
+
+
+def test_a_seed_where_the_model_already_draws_its_object_is_dropped():
+    """drawn_already against a brute-force count: a seed is covered when at least 3 opaque
+    Gaussians of its chromaticity lie within its reach; the wrong colour, too faint or too far
+    does not cover it."""
+    from nehad.tracks import drawn_already
+
+    rng = np.random.default_rng(3)
+    orange, blue = np.array([0.9, 0.45, 0.1]), np.array([0.2, 0.3, 0.8])
+    seeds = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0], [4.0, 0.0, 0.0], [6.0, 0.0, 0.0],
+                      [8.0, 0.0, 0.0]])
+    means, rgb, opac = [], [], []
+    for centre, colour, alpha in (((0, 0, 0), orange, 0.9),  # the object, drawn
+                                  ((2, 0, 0), blue, 0.9),  # something else there (a wall)
+                                  ((4, 0, 0), orange, 0.05),  # faint
+                                  ((6.3, 0, 0), orange * 0.5, 0.9)):  # shaded, 0.3 away
+        means.append(np.asarray(centre) + rng.normal(0.0, 0.02, (5, 3)))
+        rgb.append(np.repeat(colour[None, :], 5, axis=0))
+        opac.append(np.full(5, alpha))
+    means, rgb, opac = np.concatenate(means), np.concatenate(rgb), np.concatenate(opac)
+    colours = np.repeat(orange[None, :], len(seeds), axis=0)
+    got = drawn_already(seeds, colours, np.full(len(seeds), 0.2), means, opac, rgb, 0.08)
+    assert got.tolist() == [True, False, False, False, False]
+    wider = drawn_already(seeds, colours, np.full(len(seeds), 0.4), means, opac, rgb, 0.08)
+    assert wider.tolist() == [True, False, False, True, False]  # same chromaticity, shaded
+    # brute force: the count of alike, opaque Gaussians within the reach, per seed
+    for reach, flags in ((0.2, got), (0.4, wider)):
+        for s, flag in zip(seeds, flags):
+            d = np.linalg.norm(means - s, axis=1)
+            alike = np.abs(rgb / rgb.sum(1, keepdims=True) - orange / orange.sum()).max(1) <= 0.08
+            assert flag == (int(((d <= reach) & (opac >= 0.3) & alike).sum()) >= 3)
