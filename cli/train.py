@@ -80,6 +80,10 @@ def train(data, run, preset, config_file, overrides, resume, lod_levels, quiet):
     click.echo(f"{run}/model.pt: {summary['steps']} steps, {summary['gaussians']} Gaussians, "
                f"last train PSNR {last.get('psnr', float('nan')):.2f} dB, "
                f"{summary['seconds'] / 60:.1f} min")
+    if "chains" in summary:  # carve.check_split (docs/training.md)
+        click.echo(f"  tracks: {summary['chains_dropped']} of {summary['chains']} chains made "
+                   f"transparent, {summary['halo_gaussians_shrunk']} grown Gaussians shrunk "
+                   f"(checked on the {trainer.cfg.carve.check_split} views)")
     if trainer.layer_sizes:
         click.echo(f"  layers (Gaussians): {', '.join(str(n) for n in trainer.layer_sizes)}")
 

@@ -182,6 +182,52 @@ class ResidualCarving:
                                        cl.opacities, rgb, self.cfg.colour_tol)
         return have
 
+    def check_chains(self, model, views, degree: int, spacing: float) -> dict:
+        """`carve.check_split`: after training, the chains of Gaussians the tracks passes
+        seeded are found again (`nehad.tracks.chains_of`); a member grown past HALO times its
+        chain's median size is shrunk to it; then each chain is kept only if it lowers the
+        error of the `views` (held-out views: the data's validation split) around its times
+        (`chain_gains`), the others are made transparent (opacity ~1e-13; the rows stay, so
+        streaming layers keep their sizes). A junk track, or a second copy of an object the
+        field already draws, costs there what it would cost at the test times
+        (docs/training.md)."""
+        from nehad.model import cloud_at
+        from nehad.tracks import chains_of
+
+        g = model.gaussians
+        mortal = np.nonzero(g.life_rate.detach().reshape(-1).numpy() != 0)[0]
+        if not len(mortal) or views is None or not len(views.times):
+            return {}
+        with torch.no_grad():
+            means = g.means.detach().numpy()[mortal]
+            vel = g.velocity.detach().numpy()[mortal]
+            t_eq = g.t_eq.detach().reshape(-1).numpy()[mortal]
+            reach = 2.0 * np.exp(g.log_scales.detach().numpy()[mortal]).max(axis=1)
+        labels = chains_of(means, vel, t_eq, spacing, reach)
+        grown = np.zeros(len(mortal), bool)  # a halo: a member grown far past its chain's size
+        size = np.zeros(len(mortal))
+        for c in range(labels.max() + 1):
+            rows = labels == c
+            if rows.sum() >= 3:
+                size[rows] = 0.5 * np.median(reach[rows])
+                grown[rows] = reach[rows] > HALO * 2.0 * size[rows]
+        with torch.no_grad():  # shrunk back to the chain's size (it still draws the object)
+            rows = torch.as_tensor(mortal[grown])
+            cap = torch.log(torch.as_tensor(size[grown], dtype=g.log_scales.dtype))[:, None]
+            g.log_scales[rows] = torch.minimum(g.log_scales[rows], cap)
+        chains = [mortal[labels == c] for c in range(labels.max() + 1)]
+        spans = [(float(t_eq[labels == c].min()), float(t_eq[labels == c].max()))
+                 for c in range(len(chains))]
+        gains = chain_gains(chains, spans, lambda t: cloud_at(model, t, degree), views,
+                            self.background)
+        dropped = [c for c, gain in enumerate(gains) if gain < 0.0]
+        with torch.no_grad():
+            for c in dropped:
+                g.opacity_logits[torch.as_tensor(chains[c])] = -30.0
+        return {"chains": len(chains), "chains_dropped": len(dropped),
+                "chain_gaussians_dropped": int(sum(len(chains[c]) for c in dropped)),
+                "halo_gaussians_shrunk": int(grown.sum())}
+
     def _render_views(self, model, deforms: bool, indices, views, degree: int, clouds=None):
         """(cameras, targets, alphas or None, renders) of the views `indices`, each rendered
         at its own time (the canonical Gaussians in a static stage); the Gaussians each was
@@ -232,6 +278,62 @@ class ResidualCarving:
         return out
 
 
+def check_run_chains(carving: ResidualCarving, model, cfg, data_dir, run, step: int,
+                     load_background, train_times, degree: int) -> dict:
+    """`carve.check_split` after a run's last step: the tracks chains of `model` checked on
+    that split of the data (`ResidualCarving.check_chains`), logged as a `chains` record in
+    RUN/metrics.jsonl; {} when the run is not in tracks mode, has no chain, or the data has no
+    such split."""
+    from nehad.checkpoint import append_metrics
+    from nehad.data.loader import load_dataset
+    from nehad.views import views_of
+
+    split, g = cfg.carve.check_split, model.gaussians
+    if not split or cfg.carve.mode != "tracks" or len(g) == 0 or not g.has_life():
+        return {}
+    try:
+        scene = load_dataset(data_dir, splits=(split,), background=load_background,
+                             downscale=cfg.data.downscale, frame_stride=cfg.data.frame_stride)
+    except (ValueError, OSError, KeyError):
+        return {}  # no such split: nothing to check against
+    did = carving.check_chains(model, views_of(scene, split), degree, frame_spacing(train_times))
+    if did:
+        append_metrics(run, {"step": step, "stage": "chains", **did, "gaussians": len(g)})
+    return did
+
+
+#: A chain Gaussian whose largest scale is more than HALO times its chain's median has grown
+#: into a halo around the object (docs/training.md); `check_chains` shrinks it to that median.
+HALO = 3.0
+
+
+def chain_gains(chains: np.ndarray, spans, cloud_of, views, background) -> np.ndarray:
+    """(C,) for each chain of Gaussians (rows of `chains`, one index array each, with its
+    (first, last) time in `spans`): how much it lowers the squared error of the `views` whose
+    time lies in its span widened by half the views' median spacing, summed (0 when no view
+    does). `cloud_of(t)` is the model's GaussianCloud at time t, the chain's opacities are set
+    to 0 for the render without it."""
+    from nehad.runtime.raster import render
+
+    times = np.asarray(views.times, np.float64)
+    pad = 0.5 * (frame_spacing(times) or 0.0)
+    gains = np.zeros(len(chains))
+    for k, t in enumerate(times):
+        inside = [c for c, (lo, hi) in enumerate(spans) if lo - pad <= t <= hi + pad]
+        if not inside:
+            continue
+        cloud, cam = cloud_of(float(t)), views.cameras[k]
+        target = views.images[k].numpy()
+        err = float(np.square(render(cloud, cam, background).rgb - target).sum())
+        for c in inside:
+            opac = cloud.opacities.copy()
+            cloud.opacities[chains[c]] = 0.0
+            without = float(np.square(render(cloud, cam, background).rgb - target).sum())
+            cloud.opacities[:] = opac
+            gains[c] += without - err
+    return gains
+
+
 def pass_iterations(fractions, timing: DensifySchedule, recovery: float) -> set:
     """The iterations (1-based) of a stage at which the passes of `carve.at` run: each fraction
     of the stage's length, moved past the first `recovery` part of an opacity-reset period it
@@ -276,5 +378,5 @@ def free_offset_of(field_cfg, extent: float) -> float:
     return 12.0 * field_cfg.sigma_s_fraction * float(extent)
 
 
-__all__ = ["ResidualCarving", "frame_spacing", "free_offset_of", "pass_iterations",
-           "pin_mortal", "van_der_corput"]
+__all__ = ["HALO", "ResidualCarving", "chain_gains", "check_run_chains", "frame_spacing",
+           "free_offset_of", "pass_iterations", "pin_mortal", "van_der_corput"]

@@ -142,6 +142,9 @@ class CarveConfig:
     pin: bool = True  # Gaussians with a finite life keep the place, motion, time and life they
     # were given (nehad.carve_pass.pin_mortal: a view or two see each, which cannot place it
     # in depth); colour, opacity and shape are still learnt
+    check_split: str = "val"  # "tracks": after training, each chain is kept only if it lowers the
+    # error of this split's views around its times (nehad.carve_pass.chain_gains); "" = off,
+    # and nothing is checked when the data has no such split
     start: float = 0.0  # with every > 0: no pass before this fraction of a stage's iterations
     # (the model should first draw what it can, or its own errors make blobs)
     life: float = 1.0  # a carved Gaussian lives around its time: its opacity is scaled by

@@ -391,5 +391,35 @@ def drawn_already(points: np.ndarray, colours: np.ndarray, reach: np.ndarray, me
     return out
 
 
-__all__ = ["Blob", "Track", "TrackSettings", "drawn_already", "find_blobs", "fit_motion",
+def chains_of(means: np.ndarray, velocities: np.ndarray, times: np.ndarray, spacing: float,
+              reach: np.ndarray) -> np.ndarray:
+    """(M,) chain labels 0, 1, ... of Gaussians that tracks passes seeded (`seeds_along`): two
+    belong to one chain when their times are at most 1.5 spacings apart and, each moved with
+    its velocity to the middle of their two times, their centres lie within the larger of
+    their `reach`es (a chain's neighbours are one spacing apart on one path)."""
+    m = len(means)
+    parent = np.arange(m)
+
+    def root(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i in range(m):
+        dt = times - times[i]
+        near = np.nonzero((np.abs(dt) <= 1.5 * spacing) & (np.arange(m) > i))[0]
+        if not len(near):
+            continue
+        mid = 0.5 * dt[near, None]  # from each Gaussian's time to the middle of the pair's
+        a = means[i] + velocities[i] * mid
+        b = means[near] - velocities[near] * mid
+        close = np.linalg.norm(a - b, axis=1) <= np.maximum(reach[i], reach[near])
+        for j in near[close]:
+            parent[root(j)] = root(i)
+    roots = np.array([root(i) for i in range(m)], dtype=np.int64)
+    return np.unique(roots, return_inverse=True)[1].reshape(-1)
+
+
+__all__ = ["Blob", "Track", "TrackSettings", "chains_of", "drawn_already", "find_blobs", "fit_motion",
            "fit_tracks", "motion_at", "seeds_along"]

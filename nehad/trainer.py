@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from nehad.carve_pass import ResidualCarving, free_offset_of, pin_mortal
+from nehad.carve_pass import ResidualCarving, check_run_chains, free_offset_of, pin_mortal
 from nehad.checkpoint import (append_metrics, atomic_torch_save, list_checkpoints, load_state,
                               prepare_run_dir, save_checkpoint)
 from nehad.config import Config
@@ -290,6 +290,9 @@ class Trainer:
                 save_checkpoint(self.run, self.step, self.checkpoint_state(),
                                 cfg.train.keep_checkpoints)
         bar.close()
+        checked = check_run_chains(self.carving, self.model, self.cfg, self.data_dir, self.run,
+                                   self.step, self.load_background, self.train_views.times,
+                                   self.active_sh_degree(max(self.step - 1, 0)))
         atomic_torch_save(self.model_state(), self.run / "model.pt")
         return {"steps": self.step, "gaussians": len(self.model.gaussians),
-                "seconds": time.perf_counter() - start_time, "last": record}
+                "seconds": time.perf_counter() - start_time, "last": record, **checked}

@@ -161,3 +161,24 @@ def test_a_seed_where_the_model_already_draws_its_object_is_dropped():
             d = np.linalg.norm(means - s, axis=1)
             alike = np.abs(rgb / rgb.sum(1, keepdims=True) - orange / orange.sum()).max(1) <= 0.08
             assert flag == (int(((d <= reach) & (opac >= 0.3) & alike).sum()) >= 3)
+
+
+def test_chains_are_found_again_from_their_gaussians():
+    """chains_of: two chains that cross in time (apart in space), and a third later one, are
+    three groups; a chain with a missing member (a gap of two spacings) is cut in two."""
+    from nehad.tracks import chains_of
+
+    s = 0.01
+    t1 = np.arange(10) * s  # along +x at 10 units per unit time
+    t2 = np.arange(10) * s  # standing still 3 units away
+    t3 = 0.3 + np.arange(5) * s  # along +y, later
+    means = np.concatenate([np.c_[10 * t1, 0 * t1, 0 * t1], np.c_[0 * t2, 0 * t2 + 3, 0 * t2],
+                            np.c_[0 * t3 + 5, 10 * (t3 - 0.3), 0 * t3]])
+    vel = np.concatenate([np.tile([10.0, 0, 0], (10, 1)), np.zeros((10, 3)),
+                          np.tile([0, 10.0, 0], (5, 1))])
+    times = np.concatenate([t1, t2, t3])
+    labels = chains_of(means, vel, times, s, np.full(len(times), 0.05))
+    assert len(set(labels[:10])) == 1 and len(set(labels[10:20])) == 1
+    assert len(set(labels[20:])) == 1 and len(set(labels)) == 3
+    cut = np.r_[0:4, 6:10]  # members 4 and 5 of the first chain gone
+    assert len(set(chains_of(means[cut], vel[cut], times[cut], s, np.full(8, 0.05)))) == 2
