@@ -32,9 +32,9 @@ def van_der_corput(i: int) -> float:
 @dataclass(frozen=True)
 class ResidualCarving:
     """Carving passes every `cfg.every` iterations of a stage's densification window, or at the
-    fractions `cfg.at` of it (a CarveConfig, nehad.config). `box`: the scene box rays are sampled in; `free_offset`: how far
-    from its equilibrium a carved Gaussian is put with `cfg.hold` false (the BED position mask
-    then at its floor: `free_offset_of`)."""
+    fractions `cfg.at` of it (a CarveConfig, nehad.config). `box`: the scene box rays are
+    sampled in; `free_offset`: how far from its equilibrium a carved Gaussian is put with
+    `cfg.hold` false (the BED position mask then at its floor: `free_offset_of`)."""
 
     cfg: CarveConfig
     seed: int

@@ -421,5 +421,5 @@ def chains_of(means: np.ndarray, velocities: np.ndarray, times: np.ndarray, spac
     return np.unique(roots, return_inverse=True)[1].reshape(-1)
 
 
-__all__ = ["Blob", "Track", "TrackSettings", "chains_of", "drawn_already", "find_blobs", "fit_motion",
-           "fit_tracks", "motion_at", "seeds_along"]
+__all__ = ["Blob", "Track", "TrackSettings", "chains_of", "drawn_already", "find_blobs",
+           "fit_motion", "fit_tracks", "motion_at", "seeds_along"]
