@@ -113,8 +113,8 @@ class CarveConfig:
     every: int = 0  # iterations between passes (inside each stage's densification window);
     # 0: the passes run at the fractions `at` instead
     at: tuple[float, ...] = (0.275, 0.55)  # with every = 0: the fractions of a stage's
-    # iterations at which a pass runs (each moved past the part of an opacity-reset period where opacities grow
-    # back: nehad.carve_pass.pass_iterations); () with every = 0: no carving
+    # iterations at which a pass runs (each moved past the part of an opacity-reset period
+    # where opacities grow back: nehad.carve_pass.pass_iterations); (): no carving
     views: int = 6  # "vote"/"rays": training views nearest in time to the pass's time
     mode: str = "tracks"  # "tracks": chains of Gaussians along the 3D paths of the unexplained
     # blobs through all the window's views (nehad.tracks); "vote": a point where the views
