@@ -9,6 +9,7 @@ the optimizer, the densification state and where the step falls; it never reads 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -281,11 +282,13 @@ class ResidualCarving:
 def check_run_chains(carving: ResidualCarving, model, cfg, data_dir, run, step: int,
                      load_background, train_times, degree: int) -> dict:
     """`carve.check_split` after a run's last step: the tracks chains of `model` checked on
-    that split of the data (`ResidualCarving.check_chains`), logged as a `chains` record in
-    RUN/metrics.jsonl; {} when the run is not in tracks mode, has no chain, or the data has no
-    such split."""
-    from nehad.checkpoint import append_metrics
+    that split of the data (`ResidualCarving.check_chains`), written to RUN/tracks_check.json
+    (RUN/metrics.jsonl keeps one record per logged step); {} when the run is not in tracks
+    mode, has no chain, or the data has no such split."""
+    import json
+
     from nehad.data.loader import load_dataset
+    from nehad.runtime.images import atomic_write_bytes
     from nehad.views import views_of
 
     split, g = cfg.carve.check_split, model.gaussians
@@ -298,7 +301,8 @@ def check_run_chains(carving: ResidualCarving, model, cfg, data_dir, run, step: 
         return {}  # no such split: nothing to check against
     did = carving.check_chains(model, views_of(scene, split), degree, frame_spacing(train_times))
     if did:
-        append_metrics(run, {"step": step, "stage": "chains", **did, "gaussians": len(g)})
+        record = {"step": step, "split": split, **did}
+        atomic_write_bytes(Path(run) / "tracks_check.json", json.dumps(record).encode())
     return did
 
 

@@ -10,6 +10,8 @@ seeds 0, 1, 2 gave quarters +4.7 +0.2 +7.3 +6.7, +0.0 +8.2 +1.9 +2.5 and +3.1 +3
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 torch = pytest.importorskip("torch")
@@ -32,7 +34,8 @@ def occluder(tmp_path_factory):
     Trainer(build_config("test", None, SETS), data, root / "run", progress=False).train()
     result = evaluate_run(root / "run", "test", data, lpips=False, write_renders=False,
                           progress=False)
-    return {o["name"]: o for o in result["objects"]}
+    check = json.loads((root / "run" / "tracks_check.json").read_text())
+    return {**{o["name"]: o for o in result["objects"]}, "_check": check}
 
 
 def _quarter_gains(obj):
@@ -51,3 +54,9 @@ def test_the_occluded_sphere_is_created(occluder):
     # best quarter of +6.9 to +8.2 over three seeds
     assert sum(gains) / len(gains) >= 2.0, gains
     assert max(gains) >= 5.0, gains
+
+
+def test_the_chains_were_checked_on_the_validation_views(occluder):
+    check = occluder["_check"]  # written after the last step (carve.check_split, 750 steps)
+    assert check["split"] == "val" and check["step"] == 750
+    assert check["chains"] >= 1 and 0 <= check["chains_dropped"] <= check["chains"]

@@ -143,7 +143,6 @@ def read_log(run: Path) -> list[dict]:
 
 def training_plots(records: list[dict], fine_start: int | None) -> list[tuple[str, np.ndarray]]:
     """(caption, image) for loss, PSNR and Gaussian count over the logged steps."""
-    records = [r for r in records if "loss" in r]  # (not the end-of-training `chains` record)
     if not records:
         return []
     steps = np.array([r["step"] for r in records], np.float64)
