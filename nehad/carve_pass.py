@@ -54,13 +54,13 @@ class ResidualCarving:
         if c.max_new <= 0 or layer > 0 or (not deforms and not c.static_stage):
             return False
         if c.every <= 0:
-            return it in pass_iterations(c.at, timing, self._recovery(timing))
+            return it in pass_iterations(c.at, timing, self._recovery())
         if c.mode == "tracks" and timing.recovering(it, 0.5):
             return False  # every view is rendered: not while opacities grow back
         return not (not timing.start <= it < timing.stop or it % c.every
                     or it < c.start * timing.length or timing.recovering(it))
 
-    def _recovery(self, timing: DensifySchedule) -> float:
+    def _recovery(self) -> float:
         """The part of an opacity-reset period a pass waits out: half of it for tracks (every
         view is rendered and read), a quarter otherwise."""
         return 0.5 if self.cfg.mode == "tracks" else 0.25
@@ -70,7 +70,7 @@ class ResidualCarving:
         c = self.cfg
         if c.every > 0:
             return it // c.every
-        return 1 + sorted(pass_iterations(c.at, timing, self._recovery(timing))).index(it)
+        return 1 + sorted(pass_iterations(c.at, timing, self._recovery())).index(it)
 
     def step_post_update(self, model, optimizer, state: DensifyState, *, deforms: bool,
                          layer: int, it: int, step: int, window: TimeWindow, views,
