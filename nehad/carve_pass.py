@@ -166,7 +166,6 @@ class ResidualCarving:
         """Which seeds stand for an object the model already draws at their time, judged on
         the model at the nearest rendered view's time (the reach grows by how far the seed
         moves in between); with the object's radius (widths / track_width) as the reach."""
-        from nehad.runtime.gaussians import SH_C0
         from nehad.tracks import drawn_already
 
         have = np.zeros(len(pts), bool)
@@ -178,9 +177,8 @@ class ResidualCarving:
         for k in np.unique(nearest):
             rows = np.nonzero(nearest == k)[0]
             cl = clouds[k]
-            rgb = np.clip(0.5 + SH_C0 * cl.sh[:, 0, :], 0.0, 1.0)
             have[rows] = drawn_already(pts[rows], cols[rows], reach[rows], cl.means,
-                                       cl.opacities, rgb, self.cfg.colour_tol)
+                                       cl.opacities, cl.base_rgb(), self.cfg.colour_tol)
         return have
 
     def check_chains(self, model, views, degree: int, spacing: float) -> dict:

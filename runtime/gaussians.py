@@ -46,3 +46,8 @@ class GaussianCloud:
         if (deg + 1) ** 2 != k:
             raise ValueError(f"sh: {k} coefficients per channel is not (degree+1)^2")
         return deg
+
+    def base_rgb(self) -> np.ndarray:
+        """(N, 3) float64 view-independent colour, the SH degree-0 term 0.5 + C0 dc, clipped
+        to [0, 1] (what .splat files, the viewer and the tracks' colour test use)."""
+        return np.clip(0.5 + SH_C0 * self.sh[:, 0, :].astype(np.float64), 0.0, 1.0)

@@ -53,8 +53,7 @@ def splat_records(cloud: GaussianCloud, sort: bool = True) -> np.ndarray:
     rec = np.zeros(n, SPLAT_DTYPE)
     rec["position"] = cloud.means
     rec["scale"] = cloud.scales
-    rgb = 0.5 + SH_C0 * cloud.sh[:, 0, :].astype(np.float64)
-    rec["rgba"][:, :3] = _u8(rgb * 255.0)
+    rec["rgba"][:, :3] = _u8(cloud.base_rgb() * 255.0)
     rec["rgba"][:, 3] = _u8(cloud.opacities.astype(np.float64) * 255.0)
     q = cloud.quats.astype(np.float64)
     norm = np.linalg.norm(q, axis=1, keepdims=True)

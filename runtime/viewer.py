@@ -70,13 +70,11 @@ def splat_arrays(cloud):
     Sigma = R S S^T R^T, and the SH degree-0 colour 0.5 + C0 dc (no view dependence)."""
     from viser import transforms
 
-    from .gaussians import SH_C0
-
     q = cloud.quats.astype(np.float64)
     r = transforms.SO3(q / np.linalg.norm(q, axis=1, keepdims=True)).as_matrix()
     rs = r * cloud.scales.astype(np.float64)[:, None, :]
     cov = np.einsum("nij,nkj->nik", rs, rs).astype(np.float32)
-    rgb = np.clip(0.5 + SH_C0 * cloud.sh[:, 0, :], 0.0, 1.0).astype(np.float32)
+    rgb = cloud.base_rgb().astype(np.float32)
     return cloud.means.astype(np.float32), cov, rgb, cloud.opacities.reshape(-1, 1)
 
 

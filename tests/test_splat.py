@@ -47,6 +47,18 @@ def test_layout_matches_the_viewer_byte_for_byte():
     assert data[32 + 28:32 + 32] == bytes([255, 128, 128, 128])
 
 
+def test_base_rgb_is_the_clipped_degree_zero_colour():
+    """GaussianCloud.base_rgb against colours written by hand: dc = (rgb - 0.5) / C0 gives rgb
+    back, clipped to [0, 1]; the higher SH coefficients do not enter."""
+    rgb = np.array([[0.2, 0.6, 1.3], [0.5, -0.4, 0.75]])
+    sh = np.zeros((2, 4, 3))
+    sh[:, 0, :] = (rgb - 0.5) / SH_C0
+    sh[:, 1:, :] = 5.0
+    cloud = GaussianCloud(np.zeros((2, 3)), np.ones((2, 3)), np.tile([1.0, 0, 0, 0], (2, 1)),
+                          np.full(2, 0.5), sh)
+    np.testing.assert_allclose(cloud.base_rgb(), [[0.2, 0.6, 1.0], [0.5, 0.0, 0.75]], atol=1e-6)
+
+
 def test_round_trip(tmp_path):
     cloud = _random_cloud(500)
     path = write_splat(tmp_path / "a.splat", cloud)
