@@ -43,6 +43,10 @@ ABLATIONS = {
     "BED deformed distance": ["field.bed_distance=deformed"],
     "sigma_t 0.05": ["field.sigma_t=0.05"],
     "t_eq lr x10": ["optim.t_eq_lr=1e-2"],
+    # the HNN's parameterisation and input scaling, the Verlet step (issue 25's decoder list)
+    "HNN tanh gain 1": ["field.activation=tanh", "field.hnn_init_gain=1.0"],
+    "trunk not standardised": ["train.standardize_trunk=false"],
+    "Verlet dt 0.5": ["field.dt=0.5"],
 }
 
 
