@@ -92,8 +92,7 @@ def synth(out, scene, suite, resolution, frames, seed, fixed_time, num_gaussians
     if scene not in SCENES:
         raise click.BadParameter(f"unknown scene {scene!r}; expected one of {', '.join(SCENES)}",
                                  param_hint="'--scene'")
-    if out.exists() and not out.is_dir():
-        raise click.BadParameter(f"{out} exists and is not a folder", param_hint="'OUT'")
+    _check_out(out)
     held = max(1, int(round(0.1 * frames)))  # val/test frame count of synthesize_scene
     start = time.perf_counter()
     with user_errors(), _removed_on_failure(out):
@@ -149,6 +148,16 @@ def check_synth_memory(resolution: int, frames: int = 1, cameras: int = 1,
         check_cloud_memory(gaussians, 0, f"--gaussians {gaussians}")
 
 
+def _check_out(out: Path) -> None:
+    """OUT must be a new or empty folder: writing a scene over another one would leave the old
+    scene's images beside the new ones (a mixed dataset)."""
+    if out.exists() and not out.is_dir():
+        raise click.BadParameter(f"{out} exists and is not a folder", param_hint="'OUT'")
+    if out.is_dir() and any(out.iterdir()):
+        raise click.BadParameter(f"{out} is not empty; synth writes a scene into a new or empty "
+                                 f"folder (remove it, or choose another)", param_hint="'OUT'")
+
+
 @contextlib.contextmanager
 def _removed_on_failure(out: Path):
     """OUT, when this command creates it, is removed again if the command fails or is
@@ -167,8 +176,7 @@ def _synth_stress(out, names, nested, resolution, frames, seed):
 
     if frames < 20:
         raise click.BadParameter("stress scenes need at least 20 timestamps", param_hint="'--frames'")
-    if out.exists() and not out.is_dir():
-        raise click.BadParameter(f"{out} exists and is not a folder", param_hint="'OUT'")
+    _check_out(out)
     start = time.perf_counter()
     with user_errors(), _removed_on_failure(out):
         from tqdm import tqdm
@@ -189,8 +197,7 @@ def _synth_capture(out, kind, scene, resolution, frames, cameras):
 
     if resolution < 16 or frames < 2:
         raise click.BadParameter("a capture needs --resolution >= 16 and --frames >= 2")
-    if out.exists() and not out.is_dir():
-        raise click.BadParameter(f"{out} exists and is not a folder", param_hint="'OUT'")
+    _check_out(out)
     with user_errors():
         check_synth_memory(resolution, frames)
     start = time.perf_counter()
@@ -217,8 +224,7 @@ def _synth_other_format(out, fmt, scene, resolution, frames, seed, fixed_time, c
     if scene not in SCENES:
         raise click.BadParameter(f"unknown scene {scene!r}; expected one of {', '.join(SCENES)}",
                                  param_hint="'--scene'")
-    if out.exists() and not out.is_dir():
-        raise click.BadParameter(f"{out} exists and is not a folder", param_hint="'OUT'")
+    _check_out(out)
     start = time.perf_counter()
     with user_errors(), _removed_on_failure(out):
         from tqdm import tqdm

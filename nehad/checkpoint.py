@@ -189,11 +189,48 @@ def _check_contents(state: dict, source: str) -> None:
                               f"{', '.join(absent)})")
     if not all(torch.is_tensor(v) for v in state["field"].values()):
         raise CheckpointError(f"{source}: not a nehad run file (its field holds non-tensors)")
+    for part in ("gaussians", "field"):
+        bad = [k for k, v in state[part].items()
+               if v.is_floating_point() and not bool(torch.isfinite(v).all())]
+        if bad:
+            raise CheckpointError(f"{source}: its {part} hold NaN or infinite values "
+                                  f"({', '.join(bad[:4])}); it cannot be used")
+    _check_record(state, source)
     try:
         config_from_dict(state["config"])
     except (ConfigError, TypeError, ValueError) as e:
         raise CheckpointError(f"{source}: its config is invalid "
                               f"({' '.join(str(e).split())})") from None
+
+
+def _check_record(state: dict, source: str) -> None:
+    """The plain values a run records beside its tensors (nehad.model.RunInfo reads them):
+    sh_degree 0..3 or absent, background three numbers in [0, 1], time_range two finite
+    numbers, the first not above the second."""
+    import math
+
+    def numbers(key, count):
+        v = state.get(key)
+        if torch.is_tensor(v):
+            v = v.tolist()
+        ok = (isinstance(v, (list, tuple)) and len(v) == count
+              and all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                      and math.isfinite(x) for x in v))
+        if not ok:
+            raise CheckpointError(f"{source}: its {key} must be {count} finite numbers, got {v!r}")
+        return [float(x) for x in v]
+
+    degree = state.get("sh_degree")
+    if degree is not None and (isinstance(degree, bool) or degree not in (0, 1, 2, 3)):
+        raise CheckpointError(f"{source}: its sh_degree must be 0, 1, 2 or 3, got {degree!r}")
+    if state.get("background") is not None and not all(
+            0.0 <= c <= 1.0 for c in numbers("background", 3)):
+        raise CheckpointError(f"{source}: its background must lie in [0, 1], "
+                              f"got {state['background']!r}")
+    if state.get("time_range") is not None:
+        lo, hi = numbers("time_range", 2)
+        if lo > hi:
+            raise CheckpointError(f"{source}: its time_range must not decrease, got [{lo}, {hi}]")
 
 
 def checkpoint_dir(run: Path) -> Path:

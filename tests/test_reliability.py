@@ -116,6 +116,23 @@ def _bad_model_pt(kind: str, good: Path, dest: Path) -> None:
         import torch
 
         torch.save([1, 2, 3], dest)
+    elif kind in _EDITS:  # an intact archive whose values are not a run's (hand-edited)
+        import torch
+
+        state = torch.load(good, map_location="cpu", weights_only=True)
+        _EDITS[kind](state)
+        torch.save(state, dest)
+
+
+def _nan_field(state):
+    key = next(k for k, v in state["field"].items() if v.is_floating_point() and v.numel())
+    state["field"][key] = state["field"][key] * float("nan")
+
+
+_EDITS = {"nan_field": _nan_field,
+          "background_word": lambda state: state.update(background="white"),
+          "sh_degree_9": lambda state: state.update(sh_degree=9),
+          "time_range_nan": lambda state: state.update(time_range=[float("nan"), 1.0])}
 
 
 class _Evil:
@@ -123,7 +140,8 @@ class _Evil:
         return (os.system, ("echo pwned",))
 
 
-BAD_MODELS = ("random", "truncated", "empty", "flipped", "code", "foreign")
+BAD_MODELS = ("random", "truncated", "empty", "flipped", "code", "foreign", "nan_field",
+              "background_word", "sh_degree_9", "time_range_nan")
 
 
 @pytest.fixture(scope="module")
@@ -156,9 +174,39 @@ def test_damaged_model_pt_is_one_error_line(bad_runs, model, tmp_path, kind, com
     line = _one_error(_invoke(args), f"{run}/model.pt")
     want = {"random": "truncated or corrupt", "truncated": "truncated or corrupt",
             "empty": "empty", "flipped": "checksum", "code": "refused",
-            "foreign": "not a nehad run file"}[kind]
+            "foreign": "not a nehad run file", "nan_field": "NaN or infinite",
+            "background_word": "background", "sh_degree_9": "sh_degree",
+            "time_range_nan": "time_range"}[kind]
     assert want in line
     assert _listing(out) == [] and _listing(run) == before
+
+
+@pytest.mark.parametrize("split", ["train", "test"])
+def test_a_split_without_frames_is_one_error_line(model, tmp_path, split):
+    """A transforms file whose frames list is empty: train (the train split) and eval (the
+    test split) name the split instead of failing inside numpy."""
+    _, scene, run = model
+    data = tmp_path / "scene"
+    shutil.copytree(scene, data)
+    doc = json.loads((data / f"transforms_{split}.json").read_text())
+    doc["frames"] = []
+    (data / f"transforms_{split}.json").write_text(json.dumps(doc))
+    if split == "train":
+        res = _invoke(["train", data, "-o", tmp_path / "run", "--preset", "test"])
+    else:
+        res = _invoke(["eval", run, "--no-lpips", "--quiet", "--data", data])
+    _one_error(res, f"the {split} split has no frames")
+    assert not (tmp_path / "run").exists()
+
+
+def test_synth_refuses_a_folder_that_holds_files(tmp_path):
+    """Writing a scene over another would leave the old one's images beside the new ones."""
+    out = tmp_path / "scene"
+    out.mkdir()
+    (out / "r_001.png").write_bytes(b"old")
+    res = _invoke(["synth", out, "--resolution", "16", "--frames", "2", "--gaussians", "0"])
+    assert res.exit_code == 2 and "is not empty" in res.output, res.output
+    assert _listing(out) == ["r_001.png"]
 
 
 @pytest.mark.parametrize("content", [os.urandom(300) + b"\xff", b"\xff\xfe\x00a: 1\n",

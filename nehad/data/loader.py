@@ -79,7 +79,7 @@ def load_dataset(root, splits=("train",), background=(1.0, 1.0, 1.0), downscale:
     those of the full video); D-NeRF and HyperNeRF keep every s-th image of each split.
     `options` go to the reader (``undistort`` for HyperNeRF, ``max_frames`` for DyNeRF).
     """
-    from nehad.data.common import check_stride
+    from nehad.data.common import DatasetError, check_stride
 
     fmt = detect_format(root) if format == "auto" else format
     if fmt not in FORMATS:
@@ -87,6 +87,15 @@ def load_dataset(root, splits=("train",), background=(1.0, 1.0, 1.0), downscale:
     frame_stride = check_stride(frame_stride)
     if isinstance(splits, str):
         splits = (splits,)
+    scene = _load(root, fmt, splits, background, downscale, frame_stride, options)
+    for split in splits:
+        if not scene.frames.get(split):
+            raise DatasetError(f"{root}: the {split} split has no frames")
+    return scene
+
+
+def _load(root, fmt, splits, background, downscale, frame_stride, options) -> DNeRFScene:
+    """The reader of `fmt` on `root` (load_dataset's arguments, checked)."""
     if fmt == "dnerf":
         if options:
             raise TypeError(f"load_dataset: D-NeRF takes no options {sorted(options)}")
