@@ -208,13 +208,14 @@ def _check_record(state: dict, source: str) -> None:
     sh_degree 0..3 or absent, background three numbers in [0, 1], time_range two finite
     numbers, the first not above the second."""
     import math
+    import numbers as _numbers
 
     def numbers(key, count):
         v = state.get(key)
         if torch.is_tensor(v):
             v = v.tolist()
         ok = (isinstance(v, (list, tuple)) and len(v) == count
-              and all(isinstance(x, (int, float)) and not isinstance(x, bool)
+              and all(isinstance(x, _numbers.Real) and not isinstance(x, bool)
                       and math.isfinite(x) for x in v))
         if not ok:
             raise CheckpointError(f"{source}: its {key} must be {count} finite numbers, got {v!r}")
