@@ -207,19 +207,14 @@ def _check_record(state: dict, source: str) -> None:
     """The plain values a run records beside its tensors (nehad.model.RunInfo reads them):
     sh_degree 0..3 or absent, background three numbers in [0, 1], time_range two finite
     numbers, the first not above the second."""
-    import math
-    import numbers as _numbers
+    from nehad.data.common import DatasetError, vector
 
     def numbers(key, count):
         v = state.get(key)
-        if torch.is_tensor(v):
-            v = v.tolist()
-        ok = (isinstance(v, (list, tuple)) and len(v) == count
-              and all(isinstance(x, _numbers.Real) and not isinstance(x, bool)
-                      and math.isfinite(x) for x in v))
-        if not ok:
-            raise CheckpointError(f"{source}: its {key} must be {count} finite numbers, got {v!r}")
-        return [float(x) for x in v]
+        try:
+            return vector(v.tolist() if torch.is_tensor(v) else v, count, source, key)
+        except DatasetError as e:
+            raise CheckpointError(str(e)) from None
 
     degree = state.get("sh_degree")
     if degree is not None and (isinstance(degree, bool) or degree not in (0, 1, 2, 3)):

@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import numbers
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -307,9 +308,9 @@ ROTATION_TOLERANCE = 1e-4
 
 
 def vector(value, n: int, path: Path, field: str) -> np.ndarray:
-    """`n` finite numbers (a list) as float64."""
+    """`n` finite numbers (a list) as float64 (numpy's number types count as numbers)."""
     if (not isinstance(value, (list, tuple)) or len(value) != n
-            or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in value)):
+            or any(isinstance(v, bool) or not isinstance(v, numbers.Real) for v in value)):
         raise DatasetError(f"{path}: field '{field}': expected a list of {n} numbers, got {value!r}")
     out = np.asarray(value, dtype=np.float64)
     if not np.isfinite(out).all():
