@@ -45,6 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from nehad.data.synth_gaussians import rotation_to_quat
 from nehad.gaussians import rgb_to_sh_dc
 
 
@@ -290,12 +291,14 @@ def seed_rays(cameras, targets, alphas, renders, box: np.ndarray, *, residual: f
 
 def new_gaussians(points: np.ndarray, colours: np.ndarray, widths: np.ndarray, t_eq,
                   like, opacity: float, life_sigma: float = 0.0,
-                  free_offset: float = 0.0, velocities: np.ndarray | None = None) -> dict:
+                  free_offset: float = 0.0, velocities: np.ndarray | None = None,
+                  shapes: np.ndarray | None = None) -> dict:
     """Parameter tensors (a dict per GaussianParameters.NAMES) for Gaussians at `points`, living
     around `t_eq` (one time, or one per point) with a temporal standard deviation `life_sigma`
     (0: at every time), moving with `velocities` (M, 3) over their life (None: still). Their
     equilibrium mu_eq is their position, or, with `free_offset` > 0, that far from it along +x
-    (out of the position mask's reach: the field moves them from the start)."""
+    (out of the position mask's reach: the field moves them from the start). `shapes` (M, 3, 3)
+    gives each its axes as columns, each as long as its scale (None: round, `widths`)."""
     n = len(points)
     t_eq = np.broadcast_to(np.asarray(t_eq, np.float64), (n,))
     velocities = np.zeros((n, 3)) if velocities is None else velocities
@@ -306,7 +309,13 @@ def new_gaussians(points: np.ndarray, colours: np.ndarray, widths: np.ndarray, t
     sh_dc[:, 0, :] = rgb_to_sh_dc(f32(colours))
     quats = torch.zeros(n, 4)
     quats[:, 0] = 1.0
-    return {"means": means, "log_scales": torch.log(f32(widths)).reshape(n, 1).repeat(1, 3),
+    log_scales = torch.log(f32(widths)).reshape(n, 1).repeat(1, 3)
+    if shapes is not None and n:
+        scales = np.linalg.norm(shapes, axis=1)  # (M, 3): each column's length
+        rot = shapes / scales[:, None, :]
+        rot[np.linalg.det(rot) < 0, :, 2] *= -1.0
+        quats, log_scales = f32(rotation_to_quat(rot)), torch.log(f32(scales))
+    return {"means": means, "log_scales": log_scales,
             "quats": quats,
             "opacity_logits": torch.full((n,) + tuple(like.opacity_logits.shape[1:]),
                                          math.log(opacity / (1.0 - opacity))),

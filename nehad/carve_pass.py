@@ -150,16 +150,16 @@ class ResidualCarving:
         seeds = [seeds_along(tr, cams, spacing, 0.0, 1.0, c.track_width) for tr in tracks]
         if not seeds:
             return out
-        pts, vel, t_eq, cols, widths = (np.concatenate(x) for x in zip(*seeds))
+        pts, vel, t_eq, cols, widths, shapes = (np.concatenate(x) for x in zip(*seeds))
         have = self._drawn_already(pts, vel, t_eq, cols, widths, times[pool], clouds)
         out["carve_drawn"] = int(have.sum())
-        pts, vel, t_eq, cols, widths = (x[~have] for x in (pts, vel, t_eq, cols, widths))
         most = self._most_new()
-        pts, vel, t_eq, cols, widths = (x[:most] for x in (pts, vel, t_eq, cols, widths))
+        pts, vel, t_eq, cols, widths, shapes = (x[~have][:most] for x in
+                                                (pts, vel, t_eq, cols, widths, shapes))
         out["carved"] = len(pts)
         if len(pts):
             out.update(self._add(model.gaussians, optimizer, state, pts, cols, widths, t_eq,
-                                 deforms, views, velocities=vel))
+                                 deforms, views, velocities=vel, shapes=shapes))
         return out
 
     def _drawn_already(self, pts, vel, t_eq, cols, widths, view_times, clouds) -> np.ndarray:
@@ -254,7 +254,7 @@ class ResidualCarving:
         return min(self.cfg.max_new, cap) if cap > 0 else self.cfg.max_new
 
     def _add(self, g, optimizer, state: DensifyState, pts, cols, widths, t_c,
-             deforms: bool, views, velocities=None) -> dict:
+             deforms: bool, views, velocities=None, shapes=None) -> dict:
         """Append the carved Gaussians; at the cap the least opaque ones make room first (they
         are relocated, nehad.carve)."""
         from nehad.carve import new_gaussians
@@ -271,7 +271,7 @@ class ResidualCarving:
         append_gaussians(g, optimizer,
                          new_gaussians(pts, cols, widths, t_c, g, self.cfg.opacity, life,
                                        0.0 if self.cfg.hold else self.free_offset,
-                                       velocities))
+                                       velocities, shapes))
         if state.grad_accum.shape[0] == len(keep):  # statistics follow
             state.keep(keep, len(pts))
         return out

@@ -41,6 +41,8 @@ class Blob:
     colour: np.ndarray  # (3,) the target's mean rgb over it
     origin: np.ndarray  # (3,) the camera centre
     direction: np.ndarray  # (3,) unit ray through the centroid
+    shape: np.ndarray | None = None  # (2, 2) covariance of its pixels' (u, v), pixels^2 (each
+    # pixel a unit square); None: round
 
 
 def find_blobs(cameras, times, targets, alphas, renders, *, residual: float = 0.25,
@@ -64,9 +66,11 @@ def find_blobs(cameras, times, targets, alphas, renders, *, residual: float = 0.
                 continue
             u, v = centres[i] + 0.5  # pixel i spans [i, i + 1) (docs/design.md section 3)
             d = np.array([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, 1.0]) @ c2w[:3, :3].T
+            rows, cols = np.nonzero(labels == i)
+            shape = np.cov(np.stack([cols, rows]).astype(np.float64), bias=True) + np.eye(2) / 12
             blobs.append(Blob(k, float(t), np.array([u, v]), area,
-                              target[labels == i].reshape(-1, 3).mean(axis=0),
-                              c2w[:3, 3].copy(), d / np.linalg.norm(d)))
+                              target[rows, cols].reshape(-1, 3).mean(axis=0),
+                              c2w[:3, 3].copy(), d / np.linalg.norm(d), shape))
     return blobs
 
 
@@ -347,9 +351,11 @@ def seeds_along(track: Track, cameras, spacing: float, lo: float, hi: float,
                 width: float = 0.5):
     """Gaussians for a track: one every `spacing` of time over its span (and half a `max_gap`
     of the default settings beyond its ends, inside [lo, hi]), each at the track's point and
-    with its velocity at its time. Returns (points, velocities, times, colours, widths): the
-    width is `width` times the object's radius (the blobs' radius in pixels at their depth,
-    median)."""
+    with its velocity at its time. Returns (points, velocities, times, colours, widths,
+    shapes): the width is `width` times the object's radius (the blobs' radius in pixels at
+    their depth, median); a shape (3, 3) has the seed's axes as columns, each as long as its
+    scale (`blob_axes`: the blob nearest in time stretched to the width; round where blobs
+    carry no shape)."""
     reach = 0.5 * TrackSettings().max_gap
     start = max(lo, track.times[0] - reach)
     stop = min(hi, track.times[-1] + reach)
@@ -362,8 +368,34 @@ def seeds_along(track: Track, cameras, spacing: float, lo: float, hi: float,
         radii.append(np.sqrt(b.area / np.pi) * z[0] / cam.fx)
     size = width * float(np.median(radii))
     n = len(taus)
+    blob_times = np.array([b.time for b in track.blobs])
+    nearest = np.abs(taus[:, None] - blob_times[None, :]).argmin(axis=1)
+    shapes = np.stack([blob_axes(track.blobs[i], cameras[track.blobs[i].view], size)
+                       for i in nearest]) if n else np.zeros((0, 3, 3))
     return (pts, vel, taus, np.repeat(track.colour()[None, :], n, axis=0),
-            np.full(n, size))
+            np.full(n, size), shapes)
+
+
+def blob_axes(blob: Blob, cam, size: float) -> np.ndarray:
+    """(3, 3) a Gaussian's axes (columns, world frame, each as long as its scale) shaped like
+    the blob: its pixels' principal axes taken into the camera's image plane, scaled so that
+    their geometric mean is `size` (a round blob gets `size` on every axis, an elongated one
+    the same area drawn long and thin); the third axis along the camera's view direction, as
+    short as the shortest (one view cannot tell an object's depth extent)."""
+    if blob.shape is None:
+        return size * np.eye(3)
+    to_plane = np.diag([1.0 / cam.fx, 1.0 / cam.fy])  # pixels -> image-plane units at depth 1
+    lam, vec = np.linalg.eigh(to_plane @ blob.shape @ to_plane)
+    std = np.sqrt(np.maximum(lam, 1e-30))
+    mean = np.sqrt(std[0] * std[1])
+    axes_cam = np.zeros((3, 3))
+    axes_cam[:2, 0] = vec[:, 1] * size * std[1] / mean  # longest first
+    axes_cam[:2, 1] = vec[:, 0] * size * std[0] / mean
+    axes_cam[2, 2] = size * std[0] / mean
+    axes = cam.camera_to_world[:3, :3] @ axes_cam
+    if np.linalg.det(axes) < 0:
+        axes[:, 2] = -axes[:, 2]
+    return axes
 
 
 def drawn_already(points: np.ndarray, colours: np.ndarray, reach: np.ndarray, means: np.ndarray,
@@ -421,5 +453,5 @@ def chains_of(means: np.ndarray, velocities: np.ndarray, times: np.ndarray, spac
     return np.unique(roots, return_inverse=True)[1].reshape(-1)
 
 
-__all__ = ["Blob", "Track", "TrackSettings", "chains_of", "drawn_already", "find_blobs",
-           "fit_motion", "fit_tracks", "motion_at", "seeds_along"]
+__all__ = ["Blob", "Track", "TrackSettings", "blob_axes", "chains_of", "drawn_already",
+           "find_blobs", "fit_motion", "fit_tracks", "motion_at", "seeds_along"]

@@ -11,7 +11,9 @@ import pytest
 from nehad.data.synth import Box, Sphere, render_view
 from nehad.data.synth_stress import rig_cameras
 from nehad.runtime.cameras import Camera
-from nehad.tracks import Blob, fit_motion, fit_tracks, find_blobs, motion_at, seeds_along
+from nehad.data.synth_gaussians import rotation_to_quat
+from nehad.tracks import (Blob, blob_axes, fit_motion, fit_tracks, find_blobs,
+                          motion_at, seeds_along)
 
 SIZE = 96
 RADIUS = 0.18
@@ -98,7 +100,7 @@ def test_the_missing_sphere_is_one_track_that_follows_it(loop):
     speed = 2.0 * math.pi * 1.2  # m per unit time along the loop
     assert np.allclose(np.linalg.norm(vel, axis=1), speed, rtol=0.25)
     # the chain of Gaussians: one per spacing over the span, as wide as half the sphere
-    pts, vel, taus, cols, widths = seeds_along(track, cams, 1 / 60, 0.0, 1.0)
+    pts, vel, taus, cols, widths, shapes = seeds_along(track, cams, 1 / 60, 0.0, 1.0)
     assert len(taus) >= 55 and np.all(np.diff(taus) > 0)
     chroma = lambda c: np.asarray(c) / np.sum(c)  # the shading divided out
     assert np.allclose(chroma(cols.mean(0)), chroma(COLOUR), atol=0.08), cols.mean(0)
@@ -182,3 +184,53 @@ def test_chains_are_found_again_from_their_gaussians():
     assert len(set(labels[20:])) == 1 and len(set(labels)) == 3
     cut = np.r_[0:4, 6:10]  # members 4 and 5 of the first chain gone
     assert len(set(chains_of(means[cut], vel[cut], times[cut], s, np.full(8, 0.05)))) == 2
+
+
+def _moments(weight):
+    """(angle of the principal axis in degrees mod 180, ratio of the principal stds) of an
+    image's weight."""
+    rows, cols = np.nonzero(weight > 1e-3)
+    w = weight[rows, cols]
+    pts = np.stack([cols, rows], 1).astype(np.float64)
+    mean = np.average(pts, axis=0, weights=w)
+    cov = np.cov((pts - mean).T, aweights=w)
+    lam, vec = np.linalg.eigh(cov)
+    return math.degrees(math.atan2(vec[1, 1], vec[0, 1])) % 180.0, math.sqrt(lam[1] / lam[0])
+
+
+def test_a_rods_blob_seeds_a_gaussian_drawn_along_the_rod():
+    """A thin rod that no Gaussian draws: its blob's shape (`Blob.shape`) gives the seed's axes
+    (`blob_axes`); the seed, rendered through the same camera by the project's rasterizer, lies
+    along the ray-cast rod (principal axis within 3 degrees) and is long and thin like it; a
+    round blob gives a round seed of the given size."""
+    from nehad.runtime.gaussians import GaussianCloud
+    from nehad.runtime.raster import render
+
+    cam = _camera(0)
+    centre = np.array([0.0, 0.0, 0.6])
+    for angle in (0.3, 1.2, 2.5):
+        c, s = math.cos(angle), math.sin(angle)
+        rod = Box("rod", centre, np.array([0.5, 0.02, 0.02]),
+                  np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]), COLOUR)
+        full = render_view([rod], cam, supersample=2)
+        target = full[..., :3] + (1.0 - full[..., 3:])
+        (blob,) = find_blobs([cam], [0.0], [target], [full[..., 3]], [np.ones_like(target)],
+                             min_area=1)
+        _, depth = cam.project(centre[None])
+        size = 0.8 * math.sqrt(blob.area / math.pi) * depth[0] / cam.fx  # seeds_along's width
+        axes = blob_axes(blob, cam, size)
+        scales = np.linalg.norm(axes, axis=0)
+        assert np.isclose(np.prod(scales[:2]), size ** 2, rtol=1e-6)
+        cloud = GaussianCloud(centre[None], scales[None],
+                              rotation_to_quat(axes / scales)[None], np.ones(1),
+                              np.zeros((1, 1, 3)))
+        drawn = render(cloud, cam, (0.0, 0.0, 0.0), adapt_threads=False).alpha
+        want_angle, want_ratio = _moments(full[..., 3])
+        got_angle, got_ratio = _moments(drawn)
+        diff = abs(want_angle - got_angle)
+        assert min(diff, 180.0 - diff) < 3.0, (angle, want_angle, got_angle)
+        assert want_ratio > 5 and got_ratio > 0.5 * want_ratio, (want_ratio, got_ratio)
+    disc = Blob(0, 0.0, np.zeros(2), 50, np.ones(3), np.zeros(3), np.array([0.0, 0.0, 1.0]),
+                np.eye(2) * 4.0)
+    assert np.allclose(np.linalg.norm(blob_axes(disc, cam, 0.05), axis=0), 0.05)
+
