@@ -298,7 +298,8 @@ def new_gaussians(points: np.ndarray, colours: np.ndarray, widths: np.ndarray, t
     (0: at every time), moving with `velocities` (M, 3) over their life (None: still). Their
     equilibrium mu_eq is their position, or, with `free_offset` > 0, that far from it along +x
     (out of the position mask's reach: the field moves them from the start). `shapes` (M, 3, 3)
-    gives each its axes as columns, each as long as its scale (None: round, `widths`)."""
+    gives each its axes as columns of a right-handed frame, each as long as its scale (None:
+    round, `widths`)."""
     n = len(points)
     t_eq = np.broadcast_to(np.asarray(t_eq, np.float64), (n,))
     velocities = np.zeros((n, 3)) if velocities is None else velocities
@@ -313,7 +314,6 @@ def new_gaussians(points: np.ndarray, colours: np.ndarray, widths: np.ndarray, t
     if shapes is not None and n:
         scales = np.linalg.norm(shapes, axis=1)  # (M, 3): each column's length
         rot = shapes / scales[:, None, :]
-        rot[np.linalg.det(rot) < 0, :, 2] *= -1.0
         quats, log_scales = f32(rotation_to_quat(rot)), torch.log(f32(scales))
     return {"means": means, "log_scales": log_scales,
             "quats": quats,

@@ -377,11 +377,12 @@ def seeds_along(track: Track, cameras, spacing: float, lo: float, hi: float,
 
 
 def blob_axes(blob: Blob, cam, size: float) -> np.ndarray:
-    """(3, 3) a Gaussian's axes (columns, world frame, each as long as its scale) shaped like
-    the blob: its pixels' principal axes taken into the camera's image plane, scaled so that
-    their geometric mean is `size` (a round blob gets `size` on every axis, an elongated one
-    the same area drawn long and thin); the third axis along the camera's view direction, as
-    short as the shortest (one view cannot tell an object's depth extent)."""
+    """(3, 3) a Gaussian's axes (columns, a right-handed frame in world coordinates, each as
+    long as its scale) shaped like the blob: its pixels' principal axes taken into the
+    camera's image plane, scaled so that their geometric mean is `size` (a round blob gets
+    `size` on every axis, an elongated one the same area drawn long and thin); the third axis
+    along the camera's view direction, as short as the shortest (one view cannot tell an
+    object's depth extent)."""
     if blob.shape is None:
         return size * np.eye(3)
     to_plane = np.diag([1.0 / cam.fx, 1.0 / cam.fy])  # pixels -> image-plane units at depth 1
