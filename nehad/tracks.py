@@ -370,8 +370,8 @@ def seeds_along(track: Track, cameras, spacing: float, lo: float, hi: float,
     n = len(taus)
     blob_times = np.array([b.time for b in track.blobs])
     nearest = np.abs(taus[:, None] - blob_times[None, :]).argmin(axis=1)
-    shapes = np.stack([blob_axes(track.blobs[i], cameras[track.blobs[i].view], size)
-                       for i in nearest]) if n else np.zeros((0, 3, 3))
+    per_blob = np.stack([blob_axes(b, cameras[b.view], size) for b in track.blobs])
+    shapes = per_blob[nearest]
     return (pts, vel, taus, np.repeat(track.colour()[None, :], n, axis=0),
             np.full(n, size), shapes)
 

@@ -11,7 +11,6 @@ import pytest
 from nehad.data.synth import Box, Sphere, render_view
 from nehad.data.synth_stress import rig_cameras
 from nehad.runtime.cameras import Camera
-from nehad.data.synth_gaussians import rotation_to_quat
 from nehad.tracks import (Blob, blob_axes, fit_motion, fit_tracks, find_blobs,
                           motion_at, seeds_along)
 
@@ -200,12 +199,16 @@ def _moments(weight):
 
 def test_a_rods_blob_seeds_a_gaussian_drawn_along_the_rod():
     """A thin rod that no Gaussian draws: its blob's shape (`Blob.shape`) gives the seed's axes
-    (`blob_axes`); the seed, rendered through the same camera by the project's rasterizer, lies
-    along the ray-cast rod (principal axis within 3 degrees) and is long and thin like it; a
-    round blob gives a round seed of the given size."""
+    (`blob_axes`); the seed as `nehad.carve.new_gaussians` makes it, rendered through the same
+    camera by the project's rasterizer, lies along the ray-cast rod (principal axis within 3
+    degrees) and is long and thin like it; a round blob gives a round seed of the given
+    size."""
+    from nehad.carve import new_gaussians
+    from nehad.gaussians import GaussianParameters
     from nehad.runtime.gaussians import GaussianCloud
     from nehad.runtime.raster import render
 
+    like = GaussianParameters.from_points(np.zeros((3, 3)), sh_degree=0)
     cam = _camera(0)
     centre = np.array([0.0, 0.0, 0.6])
     for angle in (0.3, 1.2, 2.5):
@@ -221,9 +224,10 @@ def test_a_rods_blob_seeds_a_gaussian_drawn_along_the_rod():
         axes = blob_axes(blob, cam, size)
         scales = np.linalg.norm(axes, axis=0)
         assert np.isclose(np.prod(scales[:2]), size ** 2, rtol=1e-6)
-        cloud = GaussianCloud(centre[None], scales[None],
-                              rotation_to_quat(axes / scales)[None], np.ones(1),
-                              np.zeros((1, 1, 3)))
+        seed = new_gaussians(centre[None], np.ones((1, 3)), np.array([size]), 0.0, like, 0.9,
+                             shapes=axes[None])  # the seed as training appends it
+        cloud = GaussianCloud(centre[None], np.exp(seed["log_scales"].numpy()),
+                              seed["quats"].numpy(), np.ones(1), np.zeros((1, 1, 3)))
         drawn = render(cloud, cam, (0.0, 0.0, 0.0), adapt_threads=False).alpha
         want_angle, want_ratio = _moments(full[..., 3])
         got_angle, got_ratio = _moments(drawn)
@@ -233,4 +237,3 @@ def test_a_rods_blob_seeds_a_gaussian_drawn_along_the_rod():
     disc = Blob(0, 0.0, np.zeros(2), 50, np.ones(3), np.zeros(3), np.array([0.0, 0.0, 1.0]),
                 np.eye(2) * 4.0)
     assert np.allclose(np.linalg.norm(blob_axes(disc, cam, 0.05), axis=0), 0.05)
-
