@@ -10,13 +10,17 @@ camera (the dataset's first test view).
     python bench/render.py MODEL [--sizes 400,800] [--frames 30] [--threads N] [--busy K]
 
 MODEL is an exported model.onnx or a training run directory (exported to a temporary file
-first). Threads: by default what a user gets (numba's pool and onnxruntime's default, the
-rasterizer's count following the load, runtime/threads.py); --threads N fixes both at N. Run
-with NUMBA_NUM_THREADS=1 OMP_NUM_THREADS=1 for the one-thread figure. --busy K starts K
-processes that spin on a core each after the warm-up frame (another user's job arriving while
-frames are drawn) and stops them at the end. Prints the load average before and after, and
-each part beside its compute floor (bench/floors.py: the graph's multiply-adds at onnxruntime's
-matmul rate; the contributing pairs at the rasterizer's inner-loop rate).
+first). After the frames one after the other it times the same frames as a sequence
+(runtime/render.py `render_frames`: the next frame's deformation on a second thread while this
+frame is rasterized), with the model opened again with one onnxruntime thread (--threads N: N),
+the rasterizer on the cores the load leaves free minus one. Threads: by default what a user
+gets (numba's pool and onnxruntime's default, the rasterizer's count following the load,
+runtime/threads.py); --threads N fixes both at N. Run with NUMBA_NUM_THREADS=1
+OMP_NUM_THREADS=1 for the one-thread figure. --busy K starts K processes that spin on a core
+each after the warm-up frame (another user's job arriving while frames are drawn) and stops
+them at the end. Prints the load average before and after, and each part beside its compute
+floor (bench/floors.py: the graph's multiply-adds at onnxruntime's matmul rate; the
+contributing pairs at the rasterizer's inner-loop rate).
 """
 
 from __future__ import annotations
@@ -39,6 +43,19 @@ def load_average() -> str:
         return "%.2f %.2f %.2f" % os.getloadavg()
     except OSError:
         return "n/a"
+
+
+def pipelined_fps(scene, cam, times) -> float:
+    """Frames per second of `render_frames` over `times` (after one warm-up sequence)."""
+    from nehad.runtime.render import render_frames
+
+    frames = [(cam, float(t)) for t in times]
+    for _ in render_frames(scene, frames[:3]):
+        pass
+    scene.model.clear_cache()
+    start = time.perf_counter()
+    n = sum(1 for _ in render_frames(scene, frames))
+    return n / (time.perf_counter() - start)
 
 
 def main() -> None:
@@ -70,6 +87,7 @@ def main() -> None:
     if args.threads is not None:
         numba.set_num_threads(args.threads)
         fixed = {"adapt_threads": False}
+    seq_scene = open_scene(path, threads=args.threads or 1)
     camera = scene.default_camera
     if camera is None:
         sys.exit(f"{path}: no default camera in the metadata")
@@ -126,6 +144,9 @@ def main() -> None:
                   f"(floor {deform_floor:.2f} ms), rasterization "
                   f"{1e3 * raster_s / n / raster_floor:.1f} (floor {raster_floor:.2f} ms, "
                   f"{pairs / 1e6:.1f} M contributing pairs)", flush=True)
+            fps = pipelined_fps(seq_scene, cam, times[:-1])
+            print(f"{'':>9}as a sequence (next deformation beside this rasterization, "
+                  f"onnxruntime {args.threads or 1} thread(s)): {fps:.1f} FPS", flush=True)
     finally:
         for p in busy:
             p.kill()

@@ -169,6 +169,9 @@ class OnnxModel:
             raise OnnxModelError(f"{self.source}: threads must be >= 0, got {threads}")
         import onnxruntime as ort
 
+        from .threads import prefer_passive_openmp
+
+        prefer_passive_openmp()  # the rasterizer's idle workers leave onnxruntime the cores
         opts = ort.SessionOptions()
         opts.log_severity_level = 3
         opts.intra_op_num_threads = int(threads or 0)

@@ -150,3 +150,33 @@ def test_a_spinning_process_takes_a_thread_away():
         assert gov.decide(64, rt.usable_cores()) <= max(1, rt.usable_cores() - 1)
     finally:
         spinner.kill()
+
+
+def test_an_onnx_scene_lets_idle_openmp_workers_sleep(tmp_path):
+    """Opening an exported model sets OMP_WAIT_POLICY=PASSIVE before numba's threads start
+    (runtime/threads.py prefer_passive_openmp); the user's setting wins, and once numba's
+    threads run the policy is left alone (OpenMP has read it)."""
+    import subprocess
+    import sys
+
+    from test_runtime_onnx import fake_model
+
+    path = fake_model(tmp_path / "m.onnx")
+    script = ("import os, sys\n"
+              "from nehad.runtime.scene import open_scene\n"
+              "if sys.argv[1] == 'late':  # numba's threads started first\n"
+              "    from numba.np.ufunc import parallel\n"
+              "    parallel._launch_threads()\n"
+              "open_scene(sys.argv[2])\n"
+              "print(os.environ.get('OMP_WAIT_POLICY'))\n")
+    env = {k: v for k, v in os.environ.items() if k != "OMP_WAIT_POLICY"}
+
+    def policy(mode, **extra):
+        out = subprocess.run([sys.executable, "-c", script, mode, str(path)], env={**env, **extra},
+                             capture_output=True, text=True, timeout=120)
+        assert out.returncode == 0, out.stderr
+        return out.stdout.strip()
+
+    assert policy("early") == "PASSIVE"
+    assert policy("early", OMP_WAIT_POLICY="ACTIVE") == "ACTIVE"
+    assert policy("late") == "None"

@@ -29,13 +29,23 @@ from nehad.field.config import SMOOTH_ACTIVATIONS
 from nehad.field.hnn_fused import fused_field, fused_input_gradients, fused_supported
 
 
+# log1p(e) on [0, 1] to 5.4e-4 as e (c1 + e (c2 + e c3)), fitted by weighted least squares
+# (docs/performance.md, "Frames in a sequence"); stored negated, as `_softplus` uses them
+_LOG1P_GUESS = (-0.9874545668773013, 0.40841264342981454, -0.11464033548246846)
+
+
 def _softplus(z: torch.Tensor) -> torch.Tensor:
-    """softplus(z); in an exported graph written as relu(z) + log(1 + exp(-|z|)) (Relu, Abs, Neg,
-    Exp, Add, Log): onnxruntime's Softplus kernel took 9.2 of the 16.4 ms of a 15k-Gaussian
-    deformation on 2 threads, the decomposition runs on its vectorised Exp and Log
-    (docs/performance.md#whole-frames-of-an-exported-model)."""
+    """softplus(z) = relu(z) + log1p(e), e = exp(-|z|) in (0, 1]. In an exported graph the log1p
+    is written with Exp, Mul and Add only: a cubic guess y0 and one Newton step on exp(y) = 1 + e,
+    y1 = y0 - 1 + (1 + e) exp(-y0), 3.7e-7 from log1p in float32. onnxruntime's Softplus kernel
+    took 9.2 of the 16.4 ms of a 15k-Gaussian deformation and its Log 1.4 ms per (15k, 64)
+    array on one thread, its vectorised Exp 0.1 ms (docs/performance.md)."""
     if is_capturing():
-        return torch.relu(z) + torch.log(1.0 + torch.exp(-torch.abs(z)))
+        e = torch.exp(-torch.abs(z))
+        c1, c2, c3 = _LOG1P_GUESS
+        u0 = e * (c1 + e * (c2 + e * c3))  # -y0
+        u1 = (u0 + 1.0) - (1.0 + e) * torch.exp(u0)  # -y1
+        return torch.relu(z) - u1
     return F.softplus(z)
 
 
