@@ -165,7 +165,7 @@ class Trainer:
         picks = self._pick_views(phase, views, window, rng)
         total, psnrs, renders = self._render_loss(phase, step, views, picks, rng)
         self._update(total, phase, window)
-        did = self._change_model(phase, step, window, views, renders)
+        did = self._change_model(phase, step, window, renders)
         record = {"step": step + 1, "stage": phase.stage, "loss": float(total.item()),
                   "psnr": float(np.mean(psnrs)), "gaussians": len(self.model.gaussians),
                   "sh_degree": self.active_sh_degree(step),
@@ -229,7 +229,7 @@ class Trainer:
         self.optimizer.step()
         self.schedule.after_update(self, phase, window)
 
-    def _change_model(self, phase: Phase, step: int, window, views: Views, renders) -> dict:
+    def _change_model(self, phase: Phase, step: int, window, renders) -> dict:
         """Densification, then carving (the strategies); a warning when the model empties."""
         stats = [ViewStats(res.means2d.grad, res.radii, cam.width, cam.height)
                  for res, cam in renders]
@@ -238,9 +238,11 @@ class Trainer:
         did = self.strategy.step_post_backward(
             self.model.gaussians, self.optimizer, self.densify_state, phase.it + 1,
             self.densify_timing, stats, frozen=frozen, max_gaussians=cap, generator=gen)
+        # carving sees the layer's own resolution, not the warm-up's (docs/training.md)
         did.update(self.carving.step_post_update(
             self.model, self.optimizer, self.densify_state, deforms=phase.deforms,
-            layer=phase.layer, it=phase.it + 1, step=step, window=window, views=views,
+            layer=phase.layer, it=phase.it + 1, step=step, window=window,
+            views=self.schedule.views(self, phase.layer),
             degree=self.active_sh_degree(step), timing=self.densify_timing))
         if len(self.model.gaussians) == 0 and not getattr(self, "_warned_empty", False):
             self._warned_empty = True  # the stress suite's thin rod: docs/results.md

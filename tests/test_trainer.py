@@ -302,10 +302,25 @@ def test_resolution_schedule_and_logged_psnr(tmp_path, tiny_scene):
               **{"data.resolution_schedule": "[[0,4],[0.5,2]]", "coarse.iterations": 10,
                  "fine.iterations": 10, "data.random_background": "true",
                  "data.warmup_min_size": 0})
+    seen = []  # the image sizes carving is given: the layer's own, never the warm-up's
+
+    class Spy:
+        def __init__(self, inner):
+            self.inner = inner
+
+        def __getattr__(self, name):
+            return getattr(self.inner, name)
+
+        def step_post_update(self, *args, **kw):
+            seen.append(tuple(kw["views"].images[0].shape[:2]))
+            return self.inner.step_post_update(*args, **kw)
+
+    tr.carving = Spy(tr.carving)
     tr.train()
     lines = [json.loads(x) for x in (tmp_path / "res" / "metrics.jsonl").read_text().splitlines()]
     sizes = {r["step"]: r["resolution"] for r in lines}
     assert sizes[10] == [6, 6] and sizes[20] == [12, 12]  # 24 px images / 4, then / 2
+    assert len(seen) == 20 and set(seen) == {(24, 24)}
     assert all(np.isfinite(r["psnr"]) for r in lines)
 
 
