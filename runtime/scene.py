@@ -119,15 +119,13 @@ class OnnxScene(Scene):
     def __init__(self, path, lod: int | None = None, threads: int | None = None):
         super().__init__(path)
         from .onnx_model import read_model_info
-
         from .threads import prefer_passive_openmp
 
         if not self.path.is_file():
             raise SceneError(f"{self.path}: no such file", "scene")
         self.info = read_model_info(self.path)
         self.threads = threads
-        prefer_passive_openmp()  # before the first frame starts numba's threads (the session
-        # is opened at the first frame)
+        prefer_passive_openmp()  # now: the session (and its call) waits for the first frame
         self._model = None
         self.time_range = tuple(float(v) for v in self.info.time_range)
         self.default_background = tuple(float(v) for v in self.info.background)
