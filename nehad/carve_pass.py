@@ -16,6 +16,7 @@ import torch
 
 from nehad.config import CarveConfig
 from nehad.curriculum import TimeWindow, eligible_frames
+from nehad.chain_check import DROPPED, HALO, chain_lives, trained_rows
 from nehad.densify import DensifySchedule, DensifyState, append_gaussians, keep_gaussians
 
 
@@ -181,13 +182,14 @@ class ResidualCarving:
                                        cl.opacities, cl.base_rgb(), self.cfg.colour_tol)
         return have
 
-    def check_chains(self, model, views, degree: int, spacing: float) -> dict:
+    def check_chains(self, model, views, degree: int, spacing: float, train_times=()) -> dict:
         """`carve.check_split`: after training, the chains of Gaussians the tracks passes
         seeded are found again (`nehad.tracks.chains_of`); a member grown past HALO times its
-        chain's median size is shrunk to it; then each chain is kept only if it lowers the
-        error of the `views` (held-out views: the data's validation split) around its times
-        (`chain_gains`), the others are made transparent (opacity ~1e-13; the rows stay, so
-        streaming layers keep their sizes). A junk track, or a second copy of an object the
+        chain's median size is shrunk to it; then each chain is kept, kept with its life
+        multiplied by one of `carve.check_lives`, or made transparent (opacity ~1e-13; the rows
+        stay, so streaming layers keep their sizes), whichever brings the `views` (held-out
+        views: the data's validation split) around its times closest to their targets
+        (`nehad.chain_check.chain_lives`). A junk track, or a second copy of an object the
         field already draws, costs there what it would cost at the test times
         (docs/training.md)."""
         from nehad.model import cloud_at
@@ -215,16 +217,27 @@ class ResidualCarving:
             cap = torch.log(torch.as_tensor(size[grown], dtype=g.log_scales.dtype))[:, None]
             g.log_scales[rows] = torch.minimum(g.log_scales[rows], cap)
         chains = [mortal[labels == c] for c in range(labels.max() + 1)]
-        spans = [(float(t_eq[labels == c].min()), float(t_eq[labels == c].max()))
-                 for c in range(len(chains))]
-        gains = chain_gains(chains, spans, lambda t: cloud_at(model, t, degree), views,
-                            self.background)
-        dropped = [c for c, gain in enumerate(gains) if gain < 0.0]
-        with torch.no_grad():
-            for c in dropped:
-                g.opacity_logits[torch.as_tensor(chains[c])] = -30.0
+        rates = g.life_rate.detach().reshape(-1).numpy().astype(np.float64)
+        with torch.no_grad():  # clouds without the life factors; the chains' lives are chosen
+            g.life_rate[torch.as_tensor(mortal)] = 1e-20  # still finite: the drift holds
+            try:
+                choice = chain_lives(chains, g.t_eq.detach().reshape(-1).numpy(), rates,
+                                     lambda t: cloud_at(model, t, degree), views,
+                                     self.background, self.cfg.check_lives,
+                                     trained=trained_rows(g.t_eq.detach().reshape(-1).numpy(),
+                                                          rates, train_times))
+            finally:
+                g.life_rate[torch.as_tensor(mortal), 0] = torch.as_tensor(
+                    rates[mortal], dtype=g.life_rate.dtype)
+            rows = torch.as_tensor(np.nonzero(choice == DROPPED)[0])
+            g.opacity_logits[rows] = -30.0
+            longer = torch.as_tensor(np.nonzero(choice > 1.0)[0])
+            g.life_rate[longer] = g.life_rate[longer] / torch.as_tensor(
+                choice[longer.numpy()], dtype=g.life_rate.dtype)[:, None]
+        dropped = [c for c, rows in enumerate(chains) if choice[rows[0]] == DROPPED]
         return {"chains": len(chains), "chains_dropped": len(dropped),
                 "chain_gaussians_dropped": int(sum(len(chains[c]) for c in dropped)),
+                "chain_gaussians_longer": int((choice > 1.0).sum()),
                 "halo_gaussians_shrunk": int(grown.sum())}
 
     def _render_views(self, model, deforms: bool, indices, views, degree: int, clouds=None):
@@ -297,43 +310,12 @@ def check_run_chains(carving: ResidualCarving, model, cfg, data_dir, run, step: 
                              downscale=cfg.data.downscale, frame_stride=cfg.data.frame_stride)
     except (ValueError, OSError, KeyError):
         return {}  # no such split: nothing to check against
-    did = carving.check_chains(model, views_of(scene, split), degree, frame_spacing(train_times))
+    did = carving.check_chains(model, views_of(scene, split), degree, frame_spacing(train_times),
+                               train_times)
     if did:
         record = {"step": step, "split": split, **did}
         atomic_write_bytes(Path(run) / "tracks_check.json", json.dumps(record).encode())
     return did
-
-
-#: A chain Gaussian whose largest scale is more than HALO times its chain's median has grown
-#: into a halo around the object (docs/training.md); `check_chains` shrinks it to that median.
-HALO = 3.0
-
-
-def chain_gains(chains: np.ndarray, spans, cloud_of, views, background) -> np.ndarray:
-    """(C,) for each chain of Gaussians (rows of `chains`, one index array each, with its
-    (first, last) time in `spans`): how much it lowers the squared error of the `views` whose
-    time lies in its span widened by half the views' median spacing, summed (0 when no view
-    does). `cloud_of(t)` is the model's GaussianCloud at time t, the chain's opacities are set
-    to 0 for the render without it."""
-    from nehad.runtime.raster import render
-
-    times = np.asarray(views.times, np.float64)
-    pad = 0.5 * (frame_spacing(times) or 0.0)
-    gains = np.zeros(len(chains))
-    for k, t in enumerate(times):
-        inside = [c for c, (lo, hi) in enumerate(spans) if lo - pad <= t <= hi + pad]
-        if not inside:
-            continue
-        cloud, cam = cloud_of(float(t)), views.cameras[k]
-        target = views.images[k].numpy()
-        err = float(np.square(render(cloud, cam, background).rgb - target).sum())
-        for c in inside:
-            opac = cloud.opacities.copy()
-            cloud.opacities[chains[c]] = 0.0
-            without = float(np.square(render(cloud, cam, background).rgb - target).sum())
-            cloud.opacities[:] = opac
-            gains[c] += without - err
-    return gains
 
 
 def pass_iterations(fractions, timing: DensifySchedule, recovery: float) -> set:
@@ -380,5 +362,5 @@ def free_offset_of(field_cfg, extent: float) -> float:
     return 12.0 * field_cfg.sigma_s_fraction * float(extent)
 
 
-__all__ = ["HALO", "ResidualCarving", "chain_gains", "check_run_chains", "frame_spacing",
+__all__ = ["ResidualCarving", "check_run_chains", "frame_spacing",
            "free_offset_of", "pass_iterations", "pin_mortal", "van_der_corput"]

@@ -143,8 +143,12 @@ class CarveConfig:
     # were given (nehad.carve_pass.pin_mortal: a view or two see each, which cannot place it
     # in depth); colour, opacity and shape are still learnt
     check_split: str = "val"  # "tracks": after training, each chain is kept only if it lowers the
-    # error of this split's views around its times (nehad.carve_pass.chain_gains); "" = off,
+    # error of this split's views around its times (nehad.chain_check.chain_lives); "" = off,
     # and nothing is checked when the data has no such split
+    check_lives: tuple[float, ...] = (1.0, 1.5, 2.0, 3.0)  # the check also tries each chain with its life
+    # multiplied by these (nehad.chain_check.chain_lives): a chain Gaussian is trained by the
+    # views around its own time, the held-out times see its neighbours' tails; (1.0,) = only
+    # keep or drop
     start: float = 0.0  # with every > 0: no pass before this fraction of a stage's iterations
     # (the model should first draw what it can, or its own errors make blobs)
     life: float = 1.0  # a carved Gaussian lives around its time: its opacity is scaled by
@@ -352,6 +356,10 @@ class Config:
             raise ConfigError("carve: residual, opacity in (0, 1); agree, colour_tol in (0, 1]")
         if not all(isinstance(f, (int, float)) and 0.0 < f < 1.0 for f in c.at):
             raise ConfigError(f"carve.at: fractions of a stage in (0, 1), got {list(c.at)}")
+        if not c.check_lives or not all(isinstance(f, (int, float)) and f >= 1.0
+                                        for f in c.check_lives):
+            raise ConfigError("carve.check_lives: one or more life factors >= 1, got "
+                              f"{list(c.check_lives)}")
 
     def _validate_lod(self) -> None:
         """The level-of-detail settings."""

@@ -343,42 +343,78 @@ def test_pinned_gaussians_keep_place_motion_time_and_life():
         assert not torch.equal(getattr(g, n).detach()[1], before[n][1]), n
 
 
-def test_a_chain_that_helps_the_held_out_views_gains_one_that_does_not_loses():
-    """chain_gains against the summed squared errors computed here: a chain on a moving sphere
-    the truth shows lowers the held-out views' error, a chain where nothing is costs; views
-    outside a chain's span do not count for it."""
-    from nehad.carve_pass import chain_gains
+def _chain_scene():
+    """A sphere moving along x, seen at training times 0.1 .. 0.5 and at held-out times midway;
+    rows 0-4: a chain on it, one member per training time living sigma = 0.03 around it,
+    moving with the sphere; row 5: a wrong copy 0.8 m beside it, living at every time."""
     from nehad.runtime.gaussians import GaussianCloud
-    from nehad.runtime.raster import render
     from nehad.views import Views
 
-    cams = _cams(range(6))
-    times = [0.1, 0.2, 0.3, 0.4, 0.5, 0.9]
     path = lambda t: np.array([-0.5 + 2.0 * t, 0.0, 0.5])  # noqa: E731
+    held = [0.15, 0.25, 0.35, 0.45]
+    cams = _cams(range(len(held)))
     targets = [_views([Sphere("s", path(t), 0.2, (0.9, 0.4, 0.1))], [c])[0][0]
-               for t, c in zip(times, cams)]
+               for t, c in zip(held, cams)]
     views = Views(cams, [torch.from_numpy(np.ascontiguousarray(t, np.float32)) for t in targets],
-                  times, [None] * len(times))
-    sh = np.zeros((2, 1, 3), np.float32)
+                  held, [None] * len(held))
+    t_eq = np.array([0.1, 0.2, 0.3, 0.4, 0.5, 0.0])
+    rates = np.array([1 / 0.03] * 5 + [0.0])
+    sh = np.zeros((6, 1, 3), np.float32)
     sh[:, 0] = (np.array([0.9, 0.4, 0.1]) - 0.5) / 0.28209479177387814
 
-    def cloud_of(t):  # row 0 on the sphere, row 1 a wrong copy 0.8 m beside it
-        means = np.stack([path(t), path(t) + [0.0, 0.8, 0.0]]).astype(np.float32)
-        return GaussianCloud(means, np.full((2, 3), 0.15, np.float32),
-                             np.tile(np.float32([1, 0, 0, 0]), (2, 1)),
-                             np.full(2, 0.95, np.float32), sh.copy())
+    def cloud_of(t):  # the life windows left out, as chain_lives asks
+        means = np.stack([path(t)] * 5 + [path(t) + [0.0, 0.8, 0.0]]).astype(np.float32)
+        return GaussianCloud(means, np.full((6, 3), 0.15, np.float32),
+                             np.tile(np.float32([1, 0, 0, 0]), (6, 1)),
+                             np.full(6, 0.95, np.float32), sh.copy())
+    return views, t_eq, rates, cloud_of
 
-    spans = [(0.1, 0.5), (0.1, 0.5)]
-    gains = chain_gains([np.array([0]), np.array([1])], spans, cloud_of, views, (1.0, 1.0, 1.0))
-    expect = np.zeros(2)
-    for k, t in enumerate(times[:5]):  # 0.9 is outside both spans
+
+def _held_out_error(views, t_eq, rates, cloud_of, life) -> float:
+    """The summed squared error of `views` with the rows' lives multiplied by `life` (0: off)."""
+    from nehad.runtime.raster import render
+
+    total = 0.0
+    for k, t in enumerate(views.times):
         cloud = cloud_of(t)
-        err = lambda c: float(np.square(render(c, cams[k], (1.0, 1.0, 1.0)).rgb  # noqa: E731
-                                        - targets[k]).sum())
-        full = err(cloud)
-        for row in (0, 1):
-            c = cloud_of(t)
-            c.opacities[row] = 0.0
-            expect[row] += err(c) - full
-    np.testing.assert_allclose(gains, expect, rtol=1e-6)
-    assert gains[0] > 0.0 > gains[1]
+        sigma = np.where(rates > 0, life / np.maximum(rates, 1e-12), np.inf)
+        cloud.opacities[:] = np.where(life > 0, 0.95 * np.exp(-0.5 * ((t - t_eq) / sigma) ** 2),
+                                      0.0)
+        total += float(np.square(render(cloud, views.cameras[k], (1.0, 1.0, 1.0)).rgb
+                                 - views.images[k].numpy()).sum())
+    return total
+
+
+def test_the_check_drops_a_wrong_chain_and_lengthens_the_trained_members_lives():
+    """chain_lives against brute force: the wrong copy is dropped (the held-out views are
+    closer without it), and the chain's life factor is the one of the candidates that gives
+    the held-out views, midway between its members, the lowest error, here longer than 1
+    (at 1 each member is at 0.25 of its opacity there)."""
+    from nehad.chain_check import DROPPED, chain_lives
+
+    views, t_eq, rates, cloud_of = _chain_scene()
+    chains = [np.arange(5), np.array([5])]
+    factors = (1.0, 1.5, 2.0, 3.0)
+    life = chain_lives(chains, t_eq, rates, cloud_of, views, (1.0, 1.0, 1.0), factors)
+    assert life[5] == DROPPED
+    assert (_held_out_error(views, t_eq, rates, cloud_of, np.array([1.0] * 5 + [0.0]))
+            < _held_out_error(views, t_eq, rates, cloud_of, np.ones(6)))
+    errors = [_held_out_error(views, t_eq, rates, cloud_of, np.array([f] * 5 + [0.0]))
+              for f in factors]
+    assert np.all(life[:5] == factors[int(np.argmin(errors))]) and life[0] > 1.0
+    assert min(errors) < errors[0] - 1.0  # the longer life is worth it, not a tie
+    keep_or_drop = chain_lives(chains, t_eq, rates, cloud_of, views, (1.0, 1.0, 1.0))
+    np.testing.assert_array_equal(keep_or_drop, [1.0] * 5 + [DROPPED])
+    untrained = chain_lives(chains, t_eq, rates, cloud_of, views, (1.0, 1.0, 1.0), factors,
+                            trained=np.array([True, False, True, False, True, True]))
+    assert np.all(untrained[[1, 3]] == 1.0)  # only the trained rows are lengthened
+
+
+def test_trained_rows_are_those_a_training_view_sees_within_a_life_sigma():
+    from nehad.chain_check import trained_rows
+
+    train_times = np.array([0.0, 0.1, 0.2, 0.6])
+    t_eq = np.array([0.1, 0.2 + 0.1, 0.4, 0.6 - 0.1, 0.35])
+    rates = np.array([10.0, 10.0, 10.0, 10.0, 0.0])  # sigma 0.1; the last lives at every time
+    np.testing.assert_array_equal(trained_rows(t_eq, rates, train_times),
+                                  [True, True, False, True, True])
