@@ -164,7 +164,8 @@ def eval_(run, split, data_dir, no_lpips, max_frames, quiet):
 @click.option("--resolution", type=click.IntRange(min=16), default=128, show_default=True,
               help="Image size of the synthetic scene.")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
-              help="Override a training setting of the quick preset (repeatable).")
+              help="Override a training setting (repeatable). The demo trains the quick "
+                   "preset with at most 5000 Gaussians and 2500 deforming steps.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def demo(out, resolution, overrides, quiet):
     """Synthesise a scene, train NeHaD on it (quick preset), evaluate it and render a strip of
