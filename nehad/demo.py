@@ -37,11 +37,11 @@ def truth_strip(scene: str, camera, times, background) -> np.ndarray:
     return np.concatenate(tiles, axis=1)
 
 
-#: What the demo changes in the `quick` preset (before the user's --set): at most 5000 Gaussians
+#: What the demo changes in the `quick` preset (before the user's --set): at most 4000 Gaussians
 #: and 2500 deforming steps. A 128x128 scene needs no more; the demo takes 84 s instead of
 #: 153 s on the 2-core machine, 0.7 dB lower, every object in place (docs/results.md,
 #: 2026-11-26).
-DEMO_SETTINGS = ("densify.max_gaussians=5000", "fine.iterations=2500")
+DEMO_SETTINGS = ("densify.max_gaussians=4000", "fine.iterations=2500")
 
 
 def run_demo(out: Path, resolution: int = 128, frames: int = 60, preset: str = "quick",
