@@ -165,7 +165,7 @@ def eval_(run, split, data_dir, no_lpips, max_frames, quiet):
               help="Image size of the synthetic scene.")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
               help="Override a training setting (repeatable). The demo trains the quick "
-                   "preset with at most 5000 Gaussians and 2500 deforming steps.")
+                   "preset with at most 4000 Gaussians and 2500 deforming steps.")
 @click.option("--quiet", is_flag=True, help="No progress bars.")
 def demo(out, resolution, overrides, quiet):
     """Synthesise a scene, train NeHaD on it (quick preset), evaluate it and render a strip of

@@ -38,9 +38,8 @@ def truth_strip(scene: str, camera, times, background) -> np.ndarray:
 
 
 #: What the demo changes in the `quick` preset (before the user's --set): at most 4000 Gaussians
-#: and 2500 deforming steps. A 128x128 scene needs no more; the demo takes 84 s instead of
-#: 153 s on the 2-core machine, 0.7 dB lower, every object in place (docs/results.md,
-#: 2026-11-26).
+#: and 2500 deforming steps. The demo takes 77-78 s instead of 153 s alone on the 2-core
+#: machine, 0.8 dB lower, every object in place in its strip (docs/results.md, 2026-11-26).
 DEMO_SETTINGS = ("densify.max_gaussians=4000", "fine.iterations=2500")
 
 
