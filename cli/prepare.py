@@ -9,6 +9,7 @@ from pathlib import Path
 import click
 
 from .errors import InputError, user_errors
+from .params import FiniteFloat
 
 _MODELS = ["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"]
 
@@ -35,7 +36,7 @@ def _bars():
               help="rig: static synchronised cameras (a folder of videos, or of image folders); "
                    "monocular: one moving camera (a video, or a folder of images). auto: from "
                    "what INPUT holds.")
-@click.option("--fps", type=click.FloatRange(min=0.0, min_open=True), default=None,
+@click.option("--fps", type=FiniteFloat(min=0.0, min_open=True), default=None,
               help="Monocular video: frames kept per second  [default: every frame]")
 @click.option("--instants", type=click.IntRange(min=1), default=3, show_default=True,
               help="Rig: synchronised instants (spread over the videos) used to pose the "

@@ -88,6 +88,28 @@ def render(scene, view, output, depth, alpha, background, size, sh_degree, time_
                    err=True)
 
 
+def _check_sequence_space(folder: Path, frames: int, gaussians: int, sh_degree: int,
+                          fmt: str) -> None:
+    """Refuse `--frames N` when the N files would not fit on the disk of `folder` (a PLY
+    Gaussian holds 14 + 3 (sh_degree + 1)^2 float32 values, a .splat one 32 bytes)."""
+    import shutil
+
+    per = 32 if fmt == "splat" else 4 * (14 + 3 * (sh_degree + 1) ** 2)
+    need = frames * (gaussians * per + 1024)
+    target = folder if folder.is_dir() else folder.parent
+    try:
+        free = shutil.disk_usage(target).free
+    except OSError:
+        return
+    if need > free:
+        import errno
+        import os
+
+        raise InputError(f"{folder}: {os.strerror(errno.ENOSPC)} for --frames {frames} "
+                         f"({frames} {fmt} files of {gaussians} Gaussians need "
+                         f"{need / 1e9:.3g} GB, {free / 1e9:.3g} GB are free)")
+
+
 @click.command()
 @click.argument("scene", type=click.Path(path_type=Path))
 @click.option("-o", "--output", required=True, type=click.Path(path_type=Path),
@@ -154,6 +176,7 @@ def ply(scene, output, time_, frames, extrapolate, fmt, lod):
             write_all([(output, write)])
             click.echo(f"{output}: {count} Gaussians at t = {time_:g}")
             return
+        _check_sequence_space(output, frames, source.num_gaussians, source.sh_degree, fmt)
         lo, hi = source.time_range
         times = np.linspace(lo, hi, frames) if frames > 1 else np.array([lo])
         counts = []

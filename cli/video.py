@@ -70,7 +70,7 @@ def report_interrupted(frames_dir, total: int | None) -> None:
 @click.option("--frames", type=click.IntRange(min=1), default=None,
               help="Frames of an orbit, spiral or frozen camera (default 120); a camera list or "
                    "dataset split has its own count.")
-@click.option("--fps", type=FiniteFloat(0, 1000, min_open=True), default=None,
+@click.option("--fps", type=FiniteFloat(0.001, 1000), default=None,
               help="Frames per second of the video [default: 30].")
 @click.option("--time", "time_spec", default=None, metavar="A:B|T|own",
               help="Time schedule: A:B sweeps t over the frames, T freezes it (bullet time), own "

@@ -140,9 +140,10 @@ def _archive_problem(path: Path) -> str | None:
     return None
 
 
-def load_state(path) -> dict:
+def load_state(path, resumable: bool = False) -> dict:
     """The state dict in `path` (a checkpoint or model.pt), checked: a readable, undamaged
-    archive of tensors and plain values holding :data:`REQUIRED_KEYS`; else CheckpointError."""
+    archive of tensors and plain values holding :data:`REQUIRED_KEYS` (and, with `resumable`,
+    what a checkpoint adds to resume training from it); else CheckpointError."""
     path = Path(path)
     source = str(path)
     try:
@@ -170,6 +171,12 @@ def load_state(path) -> dict:
     missing = [k for k in REQUIRED_KEYS if not isinstance(state.get(k), dict)]
     if missing:
         raise CheckpointError(f"{source}: not a nehad run file (lacks {', '.join(missing)})")
+    if resumable:
+        lacks = [k for k in ("optimizer", "strategy") if not isinstance(state.get(k), dict)]
+        if lacks or not isinstance(state.get("step"), int):
+            raise CheckpointError(f"{source}: not a training checkpoint (lacks "
+                                  f"{', '.join(lacks or ['step'])}: a model.pt cannot be "
+                                  f"resumed); remove it to resume from the one before")
     _check_contents(state, source)
     return state
 

@@ -178,7 +178,7 @@ def parse_override(text: str) -> dict:
         raise ConfigError(f"override {text!r}: empty key")
     try:
         value = yaml.safe_load(raw) if raw.strip() else ""
-    except yaml.YAMLError:
+    except (yaml.YAMLError, ValueError, RecursionError):  # kept as text: the type check names it
         value = raw
     out: dict = {}
     node = out
@@ -244,6 +244,10 @@ def load_yaml(path) -> dict:
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
         problem = getattr(e, "problem", None) or str(e)
         raise ConfigError(f"{path}: malformed YAML{where}: {problem}") from None
+    except ValueError as e:  # an integer of thousands of digits
+        raise ConfigError(f"{path}: malformed YAML: {str(e)[:200]}") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: malformed YAML: nested too deeply") from None
     if data is None:
         return {}
     if not isinstance(data, dict):

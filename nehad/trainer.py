@@ -75,7 +75,7 @@ class Trainer:
     # -- setup ---------------------------------------------------------------------------
     def _latest_checkpoint(self):
         ckpts = list_checkpoints(self.run)
-        return load_state(ckpts[-1]) if ckpts else None
+        return load_state(ckpts[-1], resumable=True) if ckpts else None
 
     def _build(self, state) -> None:
         cfg = self.cfg

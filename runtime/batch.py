@@ -47,6 +47,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .errors import InputProblem
+from .mp4 import MAX_FPS, MIN_FPS
 from .suffixes import IMAGE_SUFFIXES
 from .values import parse_background, parse_size
 
@@ -170,8 +171,8 @@ def _convert(key: str, value, w: _Where, base: Path):
             raise w.err(key, f"expected a whole number >= 1, got {value!r}")
         return int(value)
     if key == "fps":
-        if not _is_num(value) or not 0 < value <= 1000:
-            raise w.err(key, f"expected a number in (0, 1000], got {value!r}")
+        if not _is_num(value) or not MIN_FPS <= value <= MAX_FPS:
+            raise w.err(key, f"expected a number in [{MIN_FPS:g}, {MAX_FPS:g}], got {value!r}")
         return float(value)
     if key == "crf":
         if not _is_int(value) or not 0 <= value <= 51:
@@ -266,6 +267,10 @@ def load_batch(path) -> BatchSpec:
     except UnicodeDecodeError as e:
         raise BatchError(f"{source}: not a UTF-8 text file (byte {e.start}: "
                          f"{e.object[e.start]:#04x}); expected a YAML jobs file") from None
+    except ValueError as e:  # an integer of thousands of digits
+        raise BatchError(f"{source}: malformed YAML: {str(e)[:200]}") from None
+    except RecursionError:
+        raise BatchError(f"{source}: malformed YAML: nested too deeply") from None
     except OSError as e:
         raise BatchError(f"{source}: cannot read ({e.strerror or e})") from None
     if not isinstance(doc, dict):

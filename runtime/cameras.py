@@ -152,6 +152,11 @@ class Camera:
 # validation helpers (every message: "<source>: <field>: <problem>")
 
 
+
+def _parse_failure(e: BaseException) -> str:
+    """A parser's failure in a few words (RecursionError's own message names Python's stack)."""
+    return "nested too deeply" if isinstance(e, RecursionError) else str(e)[:200]
+
 def _err(source: str, fld: str, problem: str) -> CameraError:
     prefix = f"{source}: " if source else ""
     return CameraError(f"{prefix}{fld}: {problem}")
@@ -491,6 +496,8 @@ def load_view(path, frame: int | None = None) -> Camera | list[Camera]:
         doc = json.loads(text)
     except json.JSONDecodeError as e:
         raise CameraError(f"{source}: malformed JSON (line {e.lineno}, column {e.colno}: {e.msg})") from None
+    except (ValueError, RecursionError) as e:  # a 5000-digit number; arrays nested 100k deep
+        raise CameraError(f"{source}: malformed JSON ({_parse_failure(e)})") from None
 
     if isinstance(doc, dict) and "frames" in doc:
         frames = doc["frames"]
@@ -527,8 +534,10 @@ def frame_image_path(transforms_path, index: int) -> Path:
     try:
         doc = json.loads(path.read_text())
         fp = doc["frames"][index].get("file_path")
-    except (OSError, ValueError, KeyError, IndexError, TypeError, AttributeError) as e:
-        raise CameraError(f"{path}: frames[{index}].file_path: cannot be read ({e})") from None
+    except (OSError, ValueError, KeyError, IndexError, TypeError, AttributeError,
+            RecursionError) as e:
+        raise CameraError(f"{path}: frames[{index}].file_path: cannot be read "
+                          f"({_parse_failure(e)})") from None
     if not isinstance(fp, str) or not fp:
         raise _err(str(path), f"frames[{index}].file_path", "expected a relative image path")
     base = path.parent / fp

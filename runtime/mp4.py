@@ -52,7 +52,7 @@ import numpy as np
 
 from .errors import InputProblem
 
-__all__ = ["DEFAULT_CRF", "DEFAULT_FPS", "ENCODERS", "MAX_FPS", "Mp4Error", "Mp4Writer", "encode",
+__all__ = ["DEFAULT_CRF", "DEFAULT_FPS", "ENCODERS", "MAX_FPS", "MIN_FPS", "Mp4Error", "Mp4Writer", "encode",
            "encoded_size", "video_rate"]
 
 #: Frames per second of a video when none is asked for.
@@ -61,6 +61,8 @@ DEFAULT_FPS = 30.0
 DEFAULT_CRF = 18
 #: The highest frame rate accepted.
 MAX_FPS = 1000.0
+#: The lowest frame rate a video stores (`video_rate` keeps rates to 1/1000 of a frame).
+MIN_FPS = 0.001
 #: Values of `encoder`.
 ENCODERS = ("auto", "pyav", "opencv")
 
@@ -130,8 +132,9 @@ class Mp4Writer:
         self.lossless = bool(lossless)
         out = self.output
         if isinstance(fps, bool) or not isinstance(fps, (int, float, np.integer, np.floating)) \
-                or not (math.isfinite(fps) and 0 < fps <= MAX_FPS):
-            raise error(f"{out}: frame rate {fps!r}: expected a number in (0, {MAX_FPS:g}]")
+                or not (math.isfinite(fps) and MIN_FPS <= fps <= MAX_FPS):
+            raise error(f"{out}: frame rate {fps!r}: expected a number in "
+                        f"[{MIN_FPS:g}, {MAX_FPS:g}]")
         self.rate = video_rate(float(fps))
         if self.rate <= 0:
             raise error(f"{out}: frame rate {fps!r}: too low (below 1/1000 frame per second)")

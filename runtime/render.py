@@ -136,15 +136,19 @@ def write_all(outputs) -> None:
 def write_sequence(folder, items) -> int:
     """Write the files `items` yields, (name, writer) pairs, into `folder` (created if
     missing), one at a time so that only one is in memory; if one fails, remove those written
-    and the folder if this call created it. Returns how many were written."""
+    that were not there before (a file this call replaced stays, in its new version) and the
+    folder if this call created it. Returns how many were written."""
     folder = Path(folder)
     created = not folder.exists()
     folder.mkdir(exist_ok=True)
-    written = []
+    written, count = [], 0
     try:
         for name, writer in items:
+            new = not (folder / name).exists()
             write_all([(folder / name, writer)])
-            written.append(folder / name)
+            count += 1
+            if new:
+                written.append(folder / name)
     except BaseException:
         for p in written:
             p.unlink(missing_ok=True)
@@ -154,7 +158,7 @@ def write_sequence(folder, items) -> int:
             except OSError:
                 pass
         raise
-    return len(written)
+    return count
 
 
 __all__ = ["RenderedView", "render_frames", "render_view", "check_output", "write_all",

@@ -1238,6 +1238,12 @@ def _damage(run: Path, what: str) -> None:
     elif what == "last checkpoint":
         last = sorted((run / "checkpoints").glob("step_*.pt"))[-1]
         last.write_bytes(last.read_bytes()[:100])
+    elif what == "model.pt as the last checkpoint":
+        last = sorted((run / "checkpoints").glob("step_*.pt"))[-1]
+        shutil.copy(run / "model.pt", last.with_name("step_9999999.pt"))
+    elif what == "eval metrics.json of other types":
+        (run / "eval_test").mkdir(exist_ok=True)
+        (run / "eval_test" / "metrics.json").write_text('{"mean": "high", "objects": 3}')
 
 
 RUN_FILES = [
@@ -1246,6 +1252,8 @@ RUN_FILES = [
     ("report", "config.yaml", "config.yaml: not a UTF-8 text file"),
     ("report", "metrics.jsonl", "metrics.jsonl: not a UTF-8 text file"),
     ("report", "eval metrics.json", "metrics.json: not a UTF-8 text file"),
+    ("train --resume", "model.pt as the last checkpoint", "not a training checkpoint"),
+    ("report", "eval metrics.json of other types", "not the JSON object nehad eval writes"),
 ]
 
 
@@ -1279,3 +1287,89 @@ def test_view_refuses_a_bad_host_promptly(model, host, needle):
     _proc_error(proc, f"--host {host!r}" if needle.startswith("not") else f"--host {host}",
                 needle)
     assert time.perf_counter() - start < 30
+
+
+# ---------------------------------------------------------------------------------------------
+# inputs a fuzzing pass found (2026-11-26): each ends in one error line naming the input
+
+
+def _deep_json(path: Path) -> Path:
+    path.write_text("[" * 100000 + "]" * 100000)
+    return path
+
+
+def test_parsers_refuse_deep_nesting_and_huge_numbers(model, tmp_path):
+    onnx_path, _, _ = model
+    out = tmp_path / "out"
+    out.mkdir()
+    render = ["render", onnx_path, "--time", "0.5", "-o", out / "x.png", "--view"]
+    _one_error(_invoke(render + [_deep_json(tmp_path / "deep.json")]), "deep.json",
+               "nested too deeply")
+    huge = tmp_path / "huge.json"
+    huge.write_text('{"width": ' + "7" * 5000 + ', "height": 10}')
+    _one_error(_invoke(render + [huge]), "huge.json", "malformed JSON")
+    cfg = tmp_path / "deep.yaml"
+    cfg.write_text("a: " + "[" * 5000 + "]" * 5000 + "\n")
+    _one_error(_invoke(["train", tmp_path, "-o", out / "r", "--config", cfg]), "deep.yaml")
+    big = tmp_path / "big.yaml"
+    big.write_text("fine:\n  iterations: " + "7" * 5000 + "\n")
+    _one_error(_invoke(["train", tmp_path, "-o", out / "r", "--config", big]), "big.yaml")
+    jobs = tmp_path / "jobs.yaml"
+    jobs.write_text("jobs:\n  - {type: video, model: m.onnx, frames: " + "7" * 5000 + "}\n")
+    _one_error(_invoke(["batch", jobs, "--check"]), "jobs.yaml")
+    _one_error(_invoke(["train", tmp_path, "-o", out / "r", "--set",
+                        "fine.iterations=" + "7" * 5000]), "fine.iterations")
+    _one_error(_invoke(["train", tmp_path, "-o", out / "r", "--set",
+                        "field.resolution=[100000,100000,8,4]"]), "resolution", "GiB")
+    assert _listing(out) == []
+
+
+def test_a_dataset_with_frames_of_two_sizes_is_refused_naming_the_image(model, tmp_path):
+    from PIL import Image
+
+    _, scene, _ = model
+    data = tmp_path / "data"
+    shutil.copytree(scene, data)
+    Image.new("RGBA", (16, 16)).save(data / "train" / "r_001.png")
+    _one_error(_invoke(["train", data, "-o", tmp_path / "run", "--preset", "test", "--quiet"]),
+               "r_001.png", "16x16")
+    assert not (tmp_path / "run").exists()
+
+
+def test_frame_rates_and_frame_counts_are_refused_before_any_work(model, tmp_path):
+    onnx_path, _, _ = model
+    out = tmp_path / "out"
+    out.mkdir()
+    _one_error(_invoke(["video", onnx_path, "--frames", "2", "--fps", "0.0005",
+                        "-o", out / "v.mp4"]), "--fps")
+    _one_error(_invoke(["prepare", tmp_path, "-o", out / "p", "--fps", "nan"]), "--fps")
+    _one_error(_invoke(["ply", onnx_path, "--frames", str(10**12), "-o", out / "plys"]),
+               "plys", "--frames", "No space left on device")
+    assert _listing(out) == []
+
+
+def test_a_failed_sequence_keeps_the_files_it_did_not_create(tmp_path):
+    from nehad.runtime.render import write_sequence
+
+    (tmp_path / "frame_0000.ply").write_text("the user's")
+
+    def items():
+        yield "frame_0000.ply", lambda p: Path(p).write_text("new")
+        yield "frame_0001.ply", lambda p: Path(p).write_text("new")
+        raise OSError("the model failed at the third time")
+
+    with pytest.raises(OSError):
+        write_sequence(tmp_path, items())
+    assert _listing(tmp_path) == ["frame_0000.ply"]
+
+
+def test_report_reads_a_log_with_values_of_other_types(model, tmp_path):
+    _, _, run = model
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    with open(copy / "metrics.jsonl", "a") as f:
+        f.write('{"step": "three"}\n{"step": 2, "psnr": [1], "loss": "x"}\n')
+    res = _invoke(["report", copy, "-o", tmp_path / "r.html", "--frames", "0", "--no-score",
+                   "--max-side", "32"])
+    assert res.exit_code == 0, res.output
+    assert "No test renders: --frames 0" in (tmp_path / "r.html").read_text()

@@ -104,8 +104,10 @@ def read_json(path: Path, what: str) -> object:
         raise DatasetError(f"{path}: {what} not found")
     try:
         return json.loads(path.read_text(encoding="utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+    except (ValueError, UnicodeDecodeError) as exc:  # JSONDecodeError, a 5000-digit number
         raise DatasetError(f"{path}: malformed JSON ({exc})") from None
+    except RecursionError:
+        raise DatasetError(f"{path}: malformed JSON (nested too deeply)") from None
 
 
 def number(value, path: Path, field_name: str, positive: bool = False) -> float:

@@ -155,6 +155,9 @@ def _load_image(img_path: Path, background: np.ndarray, downscale: int, json_pat
     except Exception as exc:  # ImageError and OpenImageIO failures
         raise DatasetError(f"{img_path}: cannot read image (named by {json_path} "
                            f"frames[{k}].file_path): {exc}") from None
+    if not np.isfinite(pixels).all():  # a float EXR/TIFF can hold them; training would die
+        raise DatasetError(f"{img_path}: holds NaN or infinite pixel values (named by "
+                           f"{json_path} frames[{k}].file_path)")
     c = pixels.shape[2]
     if c == 1:
         rgb, alpha = np.repeat(pixels, 3, axis=2), None
@@ -230,8 +233,14 @@ def _load_split(root: Path, split: str, path: Path, doc: dict, times: list[float
     for k, fr in enumerate(doc["frames"]):  # validate the camera fields before decoding
         _frame_matrix(fr, k, path)
         _image_path(root, fr, k, path)
-    return [_load_frame(root, fr, k, path, doc, split, times[k], bg, downscale)
-            for k, fr in enumerate(doc["frames"])]
+    frames = [_load_frame(root, fr, k, path, doc, split, times[k], bg, downscale)
+              for k, fr in enumerate(doc["frames"])]
+    for fr in frames[1:]:  # one size per split: its metrics stack the frames (nehad eval)
+        if fr.image.shape != frames[0].image.shape:
+            size = lambda f: f"{f.image.shape[1]}x{f.image.shape[0]}"  # noqa: E731
+            raise DatasetError(f"{fr.path}: {size(fr)} pixels, but {frames[0].path.name} of the "
+                               f"same split ({path.name}) is {size(frames[0])}")
+    return frames
 
 
 def _initial_points(root: Path):

@@ -19,6 +19,11 @@ HNN_GRAD_MODES = ("autograd", "closed_form", "fused")
 SPATIAL_REGULARIZERS = ("tv", "second_order")
 
 
+
+#: The most values a hex-plane may hold (2 GiB as float32): a config asking for more is refused
+#: before anything is allocated (the paper's largest, HyperNeRF's, holds 7.4 M).
+MAX_PLANE_VALUES = 5 * 10**8
+
 @dataclass
 class FieldConfig:
     """Hex-plane encoder + trunk + decoder (HNN or 4DGS MLP) + physics switches.
@@ -187,6 +192,13 @@ class FieldConfig:
         if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
             self._bad(name, f"must be an integer >= {minimum}")
 
+    def plane_values(self) -> int:
+        """Values in the hex-plane: per multires level m, three spatial planes (r_i m x r_j m)
+        and three space-time ones (r_i m x r_t), out_dim channels each."""
+        x, y, z, t = (int(r) for r in self.resolution)
+        return sum(self.out_dim * ((x * y + x * z + y * z) * m * m + (x + y + z) * m * t)
+                   for m in self.multires)
+
     def _validate_encoder(self) -> None:
         """The hex-plane fields: sizes, initialisation and regularisers."""
         self._pos_int("out_dim")
@@ -198,6 +210,12 @@ class FieldConfig:
         if (not isinstance(mr, (tuple, list)) or len(mr) == 0
                 or any(isinstance(m, bool) or not isinstance(m, int) or m < 1 for m in mr)):
             self._bad("multires", "must be a non-empty list of integers >= 1")
+        values = self.plane_values()
+        if values > MAX_PLANE_VALUES:
+            self._bad("resolution", f"with multires {list(mr)} and out_dim {self.out_dim} the "
+                                    f"hex-plane would hold {values:.3g} values "
+                                    f"({values * 4 / 2**30:.1f} GiB as float32, three times that "
+                                    f"while training); at most {MAX_PLANE_VALUES:.0e}")
         lo, hi = self._finite("plane_init_low"), self._finite("plane_init_high")
         if not lo < hi:
             self._bad("plane_init_high", "must exceed plane_init_low")

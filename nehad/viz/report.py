@@ -117,11 +117,19 @@ def note(text: str) -> str:
 
 
 def _fmt(v, digits: int = 3) -> str:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "n/a"
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(float(v)):
+        return "n/a"  # also what a hand-edited metrics file holds in place of a number
     if isinstance(v, (int, np.integer)):
         return str(int(v))
     return f"{float(v):.{digits}f}"
+
+
+def _number(v) -> float:
+    """A logged value as a float, NaN where the record holds something else."""
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        return float("nan")
+    return float(v)
 
 
 def read_log(run: Path) -> list[dict]:
@@ -136,7 +144,8 @@ def read_log(run: Path) -> list[dict]:
             rec = json.loads(line)
         except ValueError:
             continue
-        if isinstance(rec, dict) and "step" in rec:
+        step = rec.get("step") if isinstance(rec, dict) else None
+        if isinstance(step, int) and not isinstance(step, bool):
             out.append(rec)
     return out
 
@@ -146,7 +155,7 @@ def training_plots(records: list[dict], fine_start: int | None) -> list[tuple[st
     if not records:
         return []
     steps = np.array([r["step"] for r in records], np.float64)
-    col = lambda k: np.array([float(r.get(k, np.nan)) for r in records], np.float64)
+    col = lambda k: np.array([_number(r.get(k)) for r in records], np.float64)
     vl = [(fine_start, "fine stage")] if fine_start else []
     alpha = min(1.0, 20.0 / max(len(records), 1))
     loss, psnr, count = col("loss"), col("psnr"), col("gaussians")
@@ -176,10 +185,24 @@ def _eval_results(run: Path) -> list[dict]:
             doc = json.loads(text)
         except ValueError as e:
             raise VizError(f"{p}: malformed JSON ({e}); run nehad eval again") from None
-        if not isinstance(doc, dict):
-            raise VizError(f"{p}: expected the JSON object written by nehad eval")
+        if not isinstance(doc, dict) or not _eval_layout(doc):
+            raise VizError(f"{p}: not the JSON object nehad eval writes (run nehad eval again)")
         out.append(doc)
     return out
+
+
+def _eval_layout(doc: dict) -> bool:
+    """Whether the parts of an eval metrics.json the report reads have their types."""
+    kinds = {"mean": dict, "fps_threads": dict, "resolution": list, "objects": list,
+             "by_time": list, "quarters": list, "per_frame": list, "object_warnings": list,
+             "object_rules": dict}
+    if any(k in doc and doc[k] is not None and not isinstance(doc[k], t)
+           for k, t in kinds.items()):
+        return False
+    if "resolution" in doc and doc["resolution"] is not None and len(doc["resolution"]) < 2:
+        return False
+    return all(isinstance(o, dict) for k in ("objects", "by_time", "quarters", "per_frame")
+               for o in (doc.get(k) or []))
 
 
 def metrics_section(run: Path) -> str:
@@ -426,7 +449,11 @@ def _section_curves(rep: _Report, records: list[dict]) -> tuple:
 
 def _section_metrics(rep: _Report, evals: list[dict]) -> tuple:
     """The scores of `nehad eval` (`metrics_section`)."""
-    body = metrics_section(rep.run)
+    try:
+        body = metrics_section(rep.run)
+    except (TypeError, ValueError, AttributeError, KeyError, IndexError) as e:
+        raise VizError(f"{rep.run}/eval_*/metrics.json: not what nehad eval writes "
+                       f"({type(e).__name__}: {e}); run nehad eval again") from None
     if not evals:
         rep.skipped["metrics"] = "no eval_*/metrics.json"
     return ("metrics", "Metrics", body)
@@ -435,8 +462,10 @@ def _section_metrics(rep: _Report, evals: list[dict]) -> tuple:
 def _section_renders(rep: _Report, frames: int, max_side: int) -> tuple:
     """`frames` test frames: ground truth | render | error map, with their PSNR."""
     test_frames = rep.test_frames
-    if not test_frames:
-        body = note(f"No test renders: {rep.skipped.get('renders', 'the test split is empty')}")
+    if not test_frames or frames == 0:
+        why = "--frames 0" if test_frames else rep.skipped.get("renders",
+                                                                 "the test split is empty")
+        body = note(f"No test renders: {why}")
         return ("renders", "Test renders beside ground truth", body)
     rep.say("report: test renders")
     figs, psnrs = [], []
