@@ -1373,3 +1373,18 @@ def test_report_reads_a_log_with_values_of_other_types(model, tmp_path):
                    "--max-side", "32"])
     assert res.exit_code == 0, res.output
     assert "No test renders: --frames 0" in (tmp_path / "r.html").read_text()
+
+
+def test_a_dataset_image_with_nan_pixels_is_refused_naming_it(model, tmp_path):
+    from nehad.runtime.images import write_image
+
+    _, scene, _ = model
+    data = tmp_path / "data"
+    shutil.copytree(scene, data)
+    doc = json.loads((data / "transforms_train.json").read_text())
+    doc["frames"][1]["file_path"] = "./train/nan.exr"
+    (data / "transforms_train.json").write_text(json.dumps(doc))
+    write_image(data / "train" / "nan.exr", np.full((32, 32, 4), np.nan, np.float32))
+    _one_error(_invoke(["train", data, "-o", tmp_path / "run", "--preset", "test", "--quiet"]),
+               "nan.exr", "NaN")
+    assert not (tmp_path / "run").exists()
