@@ -506,7 +506,10 @@ def build_config(preset: str = "cpu", config_file=None, overrides=()) -> Config:
         data.pop("preset", None)
         cfg = merge(cfg, data)
     for text in overrides:
-        cfg = merge(cfg, parse_override(text))
+        change = parse_override(text)
+        if "preset" in change:  # it would be recorded in config.yaml while the settings stay
+            raise ConfigError(f"override {text!r}: the preset is chosen with --preset, not --set")
+        cfg = merge(cfg, change)
     return cfg.validate()
 
 

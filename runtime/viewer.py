@@ -230,7 +230,8 @@ class Viewer:
         threading.Thread(target=self._play_loop, name="nehad-view-play", daemon=True).start()
         if self.mode == "browser":
             self._send_splats()
-        return f"http://{self.host}:{self.server.get_port()}"
+        host = f"[{self.host}]" if ":" in self.host else self.host  # an IPv6 address
+        return f"http://{host}:{self.server.get_port()}"
 
     def stop(self) -> None:
         self._stop.set()

@@ -1321,6 +1321,8 @@ def test_parsers_refuse_deep_nesting_and_huge_numbers(model, tmp_path):
                         "fine.iterations=" + "7" * 5000]), "fine.iterations")
     _one_error(_invoke(["train", tmp_path, "-o", out / "r", "--set",
                         "field.resolution=[100000,100000,8,4]"]), "resolution", "GiB")
+    _one_error(_invoke(["train", tmp_path, "-o", out / "r", "--set", "preset=paper"]),
+               "preset=paper", "--preset")
     assert _listing(out) == []
 
 
