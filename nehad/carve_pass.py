@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from nehad.chain_check import DROPPED, HALO, chain_lives, trained_rows
 from nehad.config import CarveConfig
 from nehad.curriculum import TimeWindow, eligible_frames
-from nehad.chain_check import DROPPED, HALO, chain_lives, trained_rows
 from nehad.densify import DensifySchedule, DensifyState, append_gaussians, keep_gaussians
 
 
