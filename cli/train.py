@@ -82,9 +82,8 @@ def train(data, run, preset, config_file, overrides, resume, lod_levels, quiet):
                f"{summary['seconds'] / 60:.1f} min")
     if "chains" in summary:  # carve.check_split (docs/training.md)
         click.echo(f"  tracks: {summary['chains_dropped']} of {summary['chains']} chains made "
-                   f"transparent, {summary.get('chain_gaussians_longer', 0)} Gaussians given a longer "
-                   f"life, "
-                   f"{summary['halo_gaussians_shrunk']} grown Gaussians shrunk "
+                   f"transparent, {summary.get('chain_gaussians_longer', 0)} Gaussians given "
+                   f"a longer life, {summary['halo_gaussians_shrunk']} grown Gaussians shrunk "
                    f"(checked on the {trainer.cfg.carve.check_split} views)")
     if trainer.layer_sizes:
         click.echo(f"  layers (Gaussians): {', '.join(str(n) for n in trainer.layer_sizes)}")

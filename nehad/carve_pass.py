@@ -218,14 +218,13 @@ class ResidualCarving:
             g.log_scales[rows] = torch.minimum(g.log_scales[rows], cap)
         chains = [mortal[labels == c] for c in range(labels.max() + 1)]
         rates = g.life_rate.detach().reshape(-1).numpy().astype(np.float64)
+        t_all = g.t_eq.detach().reshape(-1).numpy()  # every row's, as chain_lives indexes
         with torch.no_grad():  # clouds without the life factors; the chains' lives are chosen
             g.life_rate[torch.as_tensor(mortal)] = 1e-20  # still finite: the drift holds
             try:
-                choice = chain_lives(chains, g.t_eq.detach().reshape(-1).numpy(), rates,
-                                     lambda t: cloud_at(model, t, degree), views,
-                                     self.background, self.cfg.check_lives,
-                                     trained=trained_rows(g.t_eq.detach().reshape(-1).numpy(),
-                                                          rates, train_times))
+                choice = chain_lives(chains, t_all, rates, lambda t: cloud_at(model, t, degree),
+                                     views, self.background, self.cfg.check_lives,
+                                     trained=trained_rows(t_all, rates, train_times))
             finally:
                 g.life_rate[torch.as_tensor(mortal), 0] = torch.as_tensor(
                     rates[mortal], dtype=g.life_rate.dtype)

@@ -113,12 +113,11 @@ def trained_rows(t_eq: np.ndarray, rates: np.ndarray, train_times,
                  least: float = 0.6) -> np.ndarray:
     """(N,) whether a Gaussian's life window sums to `least` or more over the training times:
     a view at one life sigma from its time or nearer (rows that live at every time: True)."""
-    tt = np.asarray(train_times, np.float64).reshape(-1)
-    if not len(tt):
+    tt = np.asarray(train_times, np.float64).reshape(1, -1)
+    if not tt.size:
         return np.ones(len(t_eq), bool)
-    seen = np.exp(-0.5 * np.square((tt[None, :] - np.asarray(t_eq, np.float64).reshape(-1, 1))
-                                   * np.asarray(rates, np.float64).reshape(-1, 1))).sum(axis=1)
-    return seen >= least
+    column = lambda a: np.asarray(a, np.float64).reshape(-1, 1)  # noqa: E731
+    return _life_window(tt, column(t_eq), column(rates)).sum(axis=1) >= least
 
 
 def _opacity(base: np.ndarray, t: float, t_eq: np.ndarray, rate: np.ndarray,

@@ -145,10 +145,10 @@ class CarveConfig:
     check_split: str = "val"  # "tracks": after training, each chain is kept only if it lowers the
     # error of this split's views around its times (nehad.chain_check.chain_lives); "" = off,
     # and nothing is checked when the data has no such split
-    check_lives: tuple[float, ...] = (1.0, 1.5, 2.0, 3.0)  # the check also tries each chain with its life
-    # multiplied by these (nehad.chain_check.chain_lives): a chain Gaussian is trained by the
-    # views around its own time, the held-out times see its neighbours' tails; (1.0,) = only
-    # keep or drop
+    check_lives: tuple[float, ...] = (1.0, 1.5, 2.0, 3.0)  # then the lives of the kept chains'
+    # trained members are multiplied by the one of these the split's views prefer
+    # (nehad.chain_check.chain_lives): a chain Gaussian is trained by the views around its own
+    # time, the held-out times see its neighbours' tails; (1.0,) = only keep or drop
     start: float = 0.0  # with every > 0: no pass before this fraction of a stage's iterations
     # (the model should first draw what it can, or its own errors make blobs)
     life: float = 1.0  # a carved Gaussian lives around its time: its opacity is scaled by

@@ -55,7 +55,7 @@ def run_demo(out: Path, resolution: int = 128, frames: int = 60, preset: str = "
     run = out / "run"
     log(f"2/4 training ({preset} preset) into {run}")
     demo = DEMO_SETTINGS if preset == "quick" else ()
-    cfg = build_config(preset, None, tuple(demo) + tuple(overrides))
+    cfg = build_config(preset, None, demo + tuple(overrides))
     summary = Trainer(cfg, data, run, resume=(run / "config.yaml").exists(),
                            progress=progress).train()
     log("3/4 evaluating on the test views")

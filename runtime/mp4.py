@@ -52,8 +52,8 @@ import numpy as np
 
 from .errors import InputProblem
 
-__all__ = ["DEFAULT_CRF", "DEFAULT_FPS", "ENCODERS", "MAX_FPS", "MIN_FPS", "Mp4Error", "Mp4Writer", "encode",
-           "encoded_size", "video_rate"]
+__all__ = ["DEFAULT_CRF", "DEFAULT_FPS", "ENCODERS", "MAX_FPS", "MIN_FPS", "Mp4Error",
+           "Mp4Writer", "encode", "encoded_size", "video_rate"]
 
 #: Frames per second of a video when none is asked for.
 DEFAULT_FPS = 30.0
