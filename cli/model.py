@@ -94,11 +94,12 @@ def _export_split(run: Path, folder: Path, opset: int, fp16_field: bool = False)
 def info(model):
     """Describe an exported MODEL (.onnx): Gaussians, SH degree, time range, bounds, opset,
     operators used and file size, after checking the file against the digest of its graph
-    written at export (a damaged file is refused). Needs neither torch nor onnx."""
+    written at export (a damaged file is refused) and loading it in onnxruntime as `render`
+    does (a file `render` refuses is refused here too). Needs neither torch nor onnx."""
     with user_errors():
-        from nehad.runtime.onnx_model import read_model_info
+        from nehad.runtime.onnx_model import OnnxModel
 
-        i = read_model_info(model)
+        i = OnnxModel(model, threads=1).info
     md = i.metadata
     lo, hi = i.time_range
     click.echo(f"{model}: {md['format']}")

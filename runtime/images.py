@@ -116,6 +116,33 @@ def atomic_write_bytes(path, data: bytes, error=OSError, sweep: bool = True) -> 
             f.write(data)
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def png_cut_short(path) -> str | None:
+    """Why the PNG at `path` ends before its IEND chunk (a copy or download cut short), or
+    None when its chunks reach IEND (or it is not a PNG). Walks the chunk headers only; read
+    before decoding because libpng prints its own line to the terminal on such a file, beside
+    the error we raise."""
+    with open(path, "rb") as f:
+        if f.read(8) != _PNG_SIGNATURE:
+            return None
+        size = os.fstat(f.fileno()).st_size
+        at = 8
+        while True:
+            head = f.read(8)
+            if len(head) < 8:
+                return f"the file ends at byte {size} inside its chunks, before IEND"
+            length = int.from_bytes(head[:4], "big")
+            if head[4:8] == b"IEND":
+                return None
+            at += 12 + length  # length, type, data, CRC
+            if at > size:
+                return (f"chunk {head[4:8].decode('latin-1')!r} needs {at - size} more bytes "
+                        f"than the file's {size}")
+            f.seek(at)
+
+
 def read_image(path) -> np.ndarray:
     """Read an image as float32 (H, W, C): PNG/JPEG scaled to [0, 1], EXR values as stored.
 
@@ -128,6 +155,9 @@ def read_image(path) -> np.ndarray:
     path = str(path)
     if not os.path.isfile(path):
         raise ImageError(f"{path}: no such image file")
+    short = png_cut_short(path)
+    if short is not None:
+        raise ImageError(f"{path}: cannot decode image (a PNG cut short: {short})")
     # Ask for the stored (straight) colour and premultiply in float below: OpenImageIO's own
     # premultiplication of an 8-bit PNG happens in 8 bits and rounds the colour a second time.
     config = oiio.ImageSpec()

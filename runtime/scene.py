@@ -240,6 +240,10 @@ def open_scene(path, lod: int | None = None, threads: int | None = None,
                      f"run folder)", "scene")
 
 
+#: The largest time a model takes (its time input is float32; beyond, it would be infinite).
+FLOAT32_MAX = 3.4028234663852886e38
+
+
 def check_time(scene, t: float, extrapolate: bool = False, what: str | None = None) -> float:
     """`t` as a float, or SceneError when it is not finite or lies outside the trained time
     range of `scene` (a Scene, or anything with a `time_range`, or a (lo, hi) pair) unless
@@ -250,6 +254,9 @@ def check_time(scene, t: float, extrapolate: bool = False, what: str | None = No
         what = f"{{time}} {t:g}" if isinstance(t, (int, float)) else f"{{time}} {t}"
     if t is None or not math.isfinite(t):
         raise SceneError(f"{what}: not a finite number", "time")
+    if abs(t) > FLOAT32_MAX:
+        raise SceneError(f"{what}: beyond the float32 range of a model's time input "
+                         f"(|t| <= {FLOAT32_MAX:.4g})", "time")
     if not extrapolate and not (lo - 1e-9 <= t <= hi + 1e-9):
         raise SceneError(f"{what}: time {t:g} is outside the trained time range [{lo:g}, "
                          f"{hi:g}] (allow it with {{extrapolate}})", "time")

@@ -1390,3 +1390,64 @@ def test_a_dataset_image_with_nan_pixels_is_refused_naming_it(model, tmp_path):
     _one_error(_invoke(["train", data, "-o", tmp_path / "run", "--preset", "test", "--quiet"]),
                "nan.exr", "NaN")
     assert not (tmp_path / "run").exists()
+
+
+def test_a_png_cut_short_is_one_error_and_no_libpng_line(model, tmp_path, capfd):
+    """libpng prints its own line on a truncated PNG; the file is refused before it decodes.
+    A PNG with bytes after its IEND chunk still reads."""
+    from nehad.runtime.images import png_cut_short, read_image
+
+    _, scene, _ = model
+    data = tmp_path / "data"
+    shutil.copytree(scene, data)
+    png = data / "train" / "r_001.png"
+    whole = png.read_bytes()
+    png.write_bytes(whole[: len(whole) * 2 // 3])
+    capfd.readouterr()
+    _one_error(_invoke(["train", data, "-o", tmp_path / "run", "--preset", "test", "--quiet"]),
+               "r_001.png", "cut short")
+    assert "libpng" not in capfd.readouterr().err
+    tail = tmp_path / "tail.png"
+    tail.write_bytes(whole + b"trailing bytes")
+    assert png_cut_short(tail) is None and read_image(tail).shape == read_image(
+        scene / "train" / "r_001.png").shape
+
+
+def test_training_refuses_the_scaled_camera_that_render_refuses(model, tmp_path):
+    _, scene, _ = model
+    data = tmp_path / "data"
+    shutil.copytree(scene, data)
+    doc = json.loads((data / "transforms_train.json").read_text())
+    m = np.asarray(doc["frames"][2]["transform_matrix"])
+    m[:3, :3] *= 2.0
+    doc["frames"][2]["transform_matrix"] = m.tolist()
+    (data / "transforms_train.json").write_text(json.dumps(doc))
+    _one_error(_invoke(["train", data, "-o", tmp_path / "run", "--preset", "test", "--quiet"]),
+               "frames[2].transform_matrix", "not orthonormal")
+    cam = tmp_path / "cam.json"
+    cam.write_text(json.dumps({"width": 32, "height": 32, "fov_x": 0.7,
+                               "camera_to_world": m.tolist(), "convention": "opengl"}))
+    _one_error(_invoke(["render", model[0], "--view", cam, "--time", "0.5",
+                        "-o", tmp_path / "x.png"]), "not orthonormal")
+
+
+def test_a_time_beyond_float32_is_refused_even_when_extrapolating(model, tmp_path):
+    _one_error(_invoke(["render", model[0], "--view", "default", "--time", "1e308",
+                        "--extrapolate", "-o", tmp_path / "x.png"]), "--time", "float32")
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_info_refuses_a_model_that_render_refuses(model, tmp_path):
+    """A file whose metadata says 7 Gaussians where its outputs hold 2000: `render` refused
+    it and `info` described it."""
+    import onnx
+
+    proto = onnx.load(str(model[0]))
+    for prop in proto.metadata_props:
+        if prop.key == "num_gaussians":
+            prop.value = "7"
+    bad = tmp_path / "bad.onnx"
+    onnx.save(proto, str(bad))
+    for command in (["info", bad], ["render", bad, "--view", "default", "--time", "0.5",
+                                    "-o", tmp_path / "x.png"]):
+        _one_error(_invoke(command), "bad.onnx", "num_gaussians 7")
