@@ -87,7 +87,7 @@ def _frame_matrix(frame: dict, k: int, path: Path) -> np.ndarray:
     err, det = float(np.abs(r.T @ r - np.eye(3)).max()), float(np.linalg.det(r))
     if err > ROTATION_TOLERANCE or abs(det - 1.0) > ROTATION_TOLERANCE:
         # the same rule as a cam.json's (runtime/cameras.py), so that what trains also renders
-        what = ("a reflection (det = %.6g, must be +1)" % det if err <= ROTATION_TOLERANCE else
+        what = (f"a reflection (det = {det:.6g}, must be +1)" if err <= ROTATION_TOLERANCE else
                 f"not orthonormal (|R^T R - I| = {err:.2g}, det = {det:.6g}; scale or shear is "
                 "not allowed)")
         raise DatasetError(f"{path}: {name}: its rotation is {what}")
