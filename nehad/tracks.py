@@ -157,6 +157,9 @@ class TrackSettings:
     max_tracks: int = 8
     samples: int = 30  # random draws per anchor blob
     join_blobs: int = 5  # blobs from each end two tracks are joined on (`_join`)
+    grow_degree: int = 2  # the motion that predicts a track's next blob (`_grow`): 2 a
+    # quadratic through the last `fit_blobs` (a straight line over an arc cuts its corner and
+    # missed the next blob after a held-out stretch: docs/results.md, 2026-11-27), 1 a line
 
 
 def _gate(s: TrackSettings, blob: Blob) -> float:
@@ -231,7 +234,9 @@ def _hypothesis(cameras, views: _Views, anchor: Blob, free, s: TrackSettings,
 
 
 def _grow(cameras, views: _Views, blobs: list, free, s: TrackSettings, step: int) -> list:
-    """Follow the track `blobs` view by view in time order (`step` +1 forward, -1 back)."""
+    """Follow the track `blobs` view by view in time order (`step` +1 forward, -1 back): the
+    next view's blob is the one nearest the motion (of `grow_degree`) fitted to the last
+    `fit_blobs`, within its gate."""
     blobs = sorted(blobs, key=lambda b: b.time)
     end = blobs[-1] if step > 0 else blobs[0]
     r = views.rank[end.view] + step
@@ -241,7 +246,11 @@ def _grow(cameras, views: _Views, blobs: list, free, s: TrackSettings, step: int
         if abs(t - last.time) > s.max_gap:
             break
         recent = blobs[-s.fit_blobs:] if step > 0 else blobs[:s.fit_blobs]
-        coef = fit_motion(recent, last.time)
+        coef = None  # a quadratic needs five blobs to be fitted with some to spare
+        if s.grow_degree >= 2 and len(recent) >= 5:
+            coef = fit_motion(recent, last.time, degree=s.grow_degree)
+        if coef is None:
+            coef = fit_motion(recent, last.time)
         if coef is None:
             break
         m = _best_match(cameras, coef, last.time, [b for b in views.of[v] if id(b) in free],
