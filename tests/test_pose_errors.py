@@ -39,10 +39,11 @@ def test_errors_are_the_ones_put_in_whatever_the_gauge(tmp_path):
     truth = orbit_poses(12, 60.0)
     gauge = _turn([0.3, -1.0, 0.5], 47.0)
     rng = np.random.default_rng(3)
-    est = []
+    est, axis = [], None
     for i, c2w in enumerate(truth):
         pose = c2w.copy()
-        axis = rng.normal(size=3) if i % 2 == 0 else axis
+        if i % 2 == 0:
+            axis = rng.normal(size=3)
         pose[:3, :3] = _turn(axis, 0.4 if i % 2 == 0 else -0.4) @ pose[:3, :3]
         if i == 5:
             pose[:3, 3] += 0.04 * np.array([0.0, 0.0, 1.0])  # 1% of the extent 4
