@@ -216,8 +216,8 @@ class Trainer:
         if phase.deforms:
             total = total + self.model.field.regularization_loss()
         if not torch.isfinite(total):
-            raise RunError(f"step {step + 1}: the loss became {float(total.detach())}; training stopped "
-                           f"(the last checkpoint in {self.run} is intact)")
+            raise RunError(f"step {step + 1}: the loss became {float(total.detach())}; training "
+                           f"stopped (the last checkpoint in {self.run} is intact)")
         return total, psnrs, renders
 
     def _update(self, total, phase: Phase, window) -> None:
