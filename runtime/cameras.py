@@ -152,10 +152,10 @@ class Camera:
 # validation helpers (every message: "<source>: <field>: <problem>")
 
 
-
 def _parse_failure(e: BaseException) -> str:
     """A parser's failure in a few words (RecursionError's own message names Python's stack)."""
     return "nested too deeply" if isinstance(e, RecursionError) else str(e)[:200]
+
 
 def _err(source: str, fld: str, problem: str) -> CameraError:
     prefix = f"{source}: " if source else ""
@@ -228,7 +228,9 @@ def _matrix(value, fld: str, source: str, shapes=((4, 4), (3, 4))) -> np.ndarray
     return m
 
 
-def _check_rotation(r: np.ndarray, fld: str, source: str) -> None:
+def check_rotation(r: np.ndarray, fld: str, source: str) -> None:
+    """CameraError unless `r` is a rotation (orthonormal, det +1, to ROTATION_TOLERANCE): the
+    rule of every camera a user gives, a cam.json's and a dataset's (nehad.data.dnerf)."""
     err = np.abs(r.T @ r - np.eye(3)).max()
     det = float(np.linalg.det(r))
     if err > ROTATION_TOLERANCE or abs(det - 1) > ROTATION_TOLERANCE:
@@ -248,7 +250,7 @@ def _rigid_inverse(m: np.ndarray) -> np.ndarray:
 
 def _rigid(value, fld: str, source: str) -> np.ndarray:
     m = _matrix(value, fld, source)
-    _check_rotation(m[:3, :3], fld, source)
+    check_rotation(m[:3, :3], fld, source)
     return m
 
 
@@ -355,7 +357,7 @@ def _parse_3dgs_entry(obj: dict, source: str) -> Camera:
     cx = _principal(obj, "cx", width / 2, source)
     cy = _principal(obj, "cy", height / 2, source)
     rot = _matrix(obj["rotation"], "rotation", source, shapes=((3, 3),))
-    _check_rotation(rot, "rotation", source)
+    check_rotation(rot, "rotation", source)
     pos = _matrix([obj["position"]], "position", source, shapes=((1, 3),))[0]
     c2w = np.eye(4)
     c2w[:3, :3] = rot

@@ -35,7 +35,7 @@ import numpy as np
 from nehad.data.common import (DNERF_INIT_BOUND, DatasetError, DNeRFScene, Frame,  # noqa: F401
                                area_downscale, check_background, check_scene_args,
                                downscale_camera, number, read_json, read_ply_points)
-from nehad.runtime.cameras import ROTATION_TOLERANCE, Camera, CameraError
+from nehad.runtime.cameras import Camera, CameraError, check_rotation
 from nehad.runtime.images import DNERF_IMAGE_SUFFIXES, STILL_SUFFIXES, read_image
 
 __all__ = ["DatasetError", "Frame", "DNeRFScene", "load_dnerf", "SPLITS", "POINT_CLOUD_NAMES"]
@@ -83,14 +83,10 @@ def _frame_matrix(frame: dict, k: int, path: Path) -> np.ndarray:
         raise DatasetError(f"{path}: {name}: holds NaN or infinite values")
     if not np.allclose(m[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
         raise DatasetError(f"{path}: {name}: last row must be [0, 0, 0, 1], got {m[3].tolist()}")
-    r = m[:3, :3]
-    err, det = float(np.abs(r.T @ r - np.eye(3)).max()), float(np.linalg.det(r))
-    if err > ROTATION_TOLERANCE or abs(det - 1.0) > ROTATION_TOLERANCE:
-        # the same rule as a cam.json's (runtime/cameras.py), so that what trains also renders
-        what = (f"a reflection (det = {det:.6g}, must be +1)" if err <= ROTATION_TOLERANCE else
-                f"not orthonormal (|R^T R - I| = {err:.2g}, det = {det:.6g}; scale or shear is "
-                "not allowed)")
-        raise DatasetError(f"{path}: {name}: its rotation is {what}")
+    try:  # a cam.json's rule, so that what trains also renders
+        check_rotation(m[:3, :3], name, str(path))
+    except CameraError as e:
+        raise DatasetError(str(e)) from None
     return m
 
 

@@ -19,10 +19,10 @@ HNN_GRAD_MODES = ("autograd", "closed_form", "fused")
 SPATIAL_REGULARIZERS = ("tv", "second_order")
 
 
-
 #: The most values a hex-plane may hold (2 GiB as float32): a config asking for more is refused
 #: before anything is allocated (the paper's largest, HyperNeRF's, holds 7.4 M).
 MAX_PLANE_VALUES = 5 * 10**8
+
 
 @dataclass
 class FieldConfig:
