@@ -26,6 +26,7 @@ Used by bench/train_step.py and bench/render.py; run alone to print the rate.
 
 from __future__ import annotations
 
+import json
 import time
 
 import numpy as np
@@ -137,4 +138,5 @@ def onnx_field_macs(path) -> tuple[int, int]:
             per_row += 4 * inits[node.input[0]][1]
     meta = {p.key: p.value for p in model.metadata_props}
     rows = int(meta.get("num_gaussians", 0)) - int(meta.get("static_gaussians", 0))
-    return per_row, rows
+    parts = len(json.loads(meta.get("parts", "[0, 0]"))) - 1  # each part's nodes: its rows
+    return per_row // parts, rows

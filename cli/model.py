@@ -3,6 +3,7 @@ streaming layers), and what such a file holds (docs/design.md, "The exported fil
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import click
@@ -25,7 +26,11 @@ from .errors import InputError, user_errors
               help="For a run trained with --lod-levels: write DIR/base.onnx (field + layer 0), "
                    "DIR/layer_K.bin per enhancement layer and DIR/manifest.json (sizes, "
                    "sha256) for streaming (docs/streaming.md). With or instead of -o.")
-def export_(run, output, opset, fp16_weights, split_dir):
+@click.option("--parts", type=click.IntRange(1, 64), default=4, show_default=True,
+              help="Cut the Gaussians into up to this many parts that the runtime deforms side "
+                   "by side, one per core (fewer when a part would hold under 2048 moving "
+                   "Gaussians); 1: one part. The file's main outputs are the same either way.")
+def export_(run, output, opset, fp16_weights, split_dir, parts):
     """Export the trained RUN to one self-contained ONNX file (format nehad-onnx/1).
 
     The graph maps an input `time` [1] to the activated Gaussians (means, scales, quats,
@@ -55,7 +60,7 @@ def export_(run, output, opset, fp16_weights, split_dir):
 
         if not 17 <= opset <= MAX_OPSET:
             raise InputError(f"--opset {opset}: supported opsets are 17..{MAX_OPSET}")
-        rep = export_run(run, output, opset=opset, fp16_weights=fp16_weights)
+        rep = export_run(run, output, opset=opset, fp16_weights=fp16_weights, parts=parts)
     worst = max(rep.parity.values()) if rep.parity else 0.0
     click.echo(f"{output}: {rep.num_gaussians} Gaussians, SH degree {rep.sh_degree}, opset "
                f"{rep.opset}, {rep.file_size / 1e6:.2f} MB, {sum(rep.operators.values())} nodes "
@@ -66,6 +71,9 @@ def export_(run, output, opset, fp16_weights, split_dir):
         click.echo(f"  {rep.num_static} of {rep.num_gaussians} Gaussians do not move (at most "
                    f"{dev.get('position', 0):.1e} of the extent over time): written "
                    f"pre-deformed, the field runs on the other {rep.num_gaussians - rep.num_static}")
+    if "parts" in rep.metadata:
+        k = len(json.loads(rep.metadata["parts"])) - 1
+        click.echo(f"  {k} parts, deformed side by side by the runtime (--parts)")
 
 
 def _export_split(run: Path, folder: Path, opset: int, fp16_field: bool = False) -> None:
@@ -118,6 +126,10 @@ def info(model):
     if "static_gaussians" in md:  # nehad.export.static_split
         click.echo(f"  static:       {md['static_gaussians']} of {i.num_gaussians} Gaussians "
                    f"written pre-deformed (the field runs on the others)")
+    if "parts" in md:  # docs/design.md section 7: rows deformed side by side
+        bounds = json.loads(md["parts"])
+        click.echo(f"  parts:        {len(bounds) - 1} (rows {md['parts']}), deformed side by "
+                   f"side, one per thread")
     for key, label in (("decoder", "decoder"), ("config_hash", "config hash"),
                        ("nehad_version", "exported by"), ("fp16_weights", "fp16 weights")):
         if key in md:

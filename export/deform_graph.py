@@ -398,12 +398,17 @@ class FastDeform(nn.Module):
         sigma = world_axis_sigma(log_scales, quats, self.cfg.norm_eps) * (2.0 / (aabb[1] - aabb[0]))
         return normalize_aabb(means, aabb), sigma.detach()
 
-    def features(self, means, log_scales, quats, tp) -> torch.Tensor:
+    def features(self, means, log_scales, quats, tp, rows=None) -> torch.Tensor:
+        """`rows`: the Gaussians' rows in the model this was built from (None: all, in order),
+        where the stored mipmapped spatial features are looked up."""
         if not self.cfg.mipmap:
             return hexplane_features(self.hexplane, normalize_aabb(means, self.aabb), tp,
                                      self.constant_means)
         x, sigma = self._mip_inputs(means, log_scales, quats)
-        return mip_hexplane_features(self.hexplane, x, tp, sigma, self.mip_spatial)
+        spatial = self.mip_spatial
+        if spatial is not None and rows is not None:
+            spatial = spatial[rows]
+        return mip_hexplane_features(self.hexplane, x, tp, sigma, spatial)
 
     def decode(self, f: torch.Tensor) -> torch.Tensor:
         """The decoder's per-Gaussian outputs (see `adapter_maps` / `MLPHeadsGraph`) as rows,
@@ -419,14 +424,15 @@ class FastDeform(nn.Module):
         return cols.t()  # (N, k) -> (k, N): one cheap Transpose (a transB Gemm was slower)
 
     def forward(self, means, log_scales, quats, opacity_logits, sh, mu_eq, t_eq, time,
-                life_rate=None, velocity=None):
+                life_rate=None, velocity=None, rows=None):
         # the tail runs on (k, N) rows (see the module doc); `life_rate` [N,1] (None: every
         # Gaussian lives at every time): GaussianParameters.life_factor; `velocity` [N,3]
-        # (0 where the life rate is 0): GaussianParameters.drift
+        # (0 where the life rate is 0): GaussianParameters.drift; `rows`: see `features`
         cfg = self.cfg
         n = means.shape[0]
         t = time.reshape(1, 1).to(means.dtype)
-        rows = self.decode(self.features(means, log_scales, quats, (2.0 * t - 1.0).reshape(1)))
+        rows = self.decode(self.features(means, log_scales, quats, (2.0 * t - 1.0).reshape(1),
+                                         rows))
         sh = sh[:, :self.k]
         opacity = opacity_logits.reshape(1, n)
         if self.deform_appearance:

@@ -38,72 +38,130 @@ def closed_form_copy(model) -> nn.Module:
     return model
 
 
+PART_SUFFIX = ".part"  # docs/design.md section 7: rows of an output, "means.part0", ...
+MIN_PART_ROWS = 2048  # moving Gaussians per part at least (`part_bounds`)
+
+
+def part_output_name(name: str, part: int) -> str:
+    """The output that holds part `part`'s rows of output `name`."""
+    return f"{name}{PART_SUFFIX}{part}"
+
+
+def part_bounds(moving: np.ndarray, parts: int, min_rows: int = MIN_PART_ROWS) -> list[int]:
+    """Row boundaries 0 = b_0 < ... < b_P = N cutting N Gaussians (`moving` [N] bool: those the
+    field deforms) into P <= `parts` contiguous ranges with about equal numbers of moving ones, at
+    least `min_rows` each (P = 1 when there are fewer than 2 `min_rows`)."""
+    moving = np.asarray(moving, bool).reshape(-1)
+    n, m = len(moving), int(moving.sum())
+    parts = max(1, min(int(parts), m // max(1, int(min_rows))))
+    if parts == 1:
+        return [0, n]
+    # the row after which the cumulative moving count first reaches p m / P
+    cum = np.cumsum(moving)
+    cuts = [int(np.searchsorted(cum, p * m / parts, side="left")) + 1 for p in range(1, parts)]
+    return [0] + cuts + [n]
+
+
 class ExportGraph(nn.Module):
     """forward(time [1]) -> (means [N,3], scales [N,3], quats [N,4], opacities [N], sh [N,K,3])
-    and, when `layer` ([N] layer index of each Gaussian, docs/design.md section 8) is given, `layer` [N] int32."""
+    and, when `layer` ([N] layer index of each Gaussian, docs/design.md section 8) is given, `layer` [N] int32.
 
-    def __init__(self, model, sh_degree: int, layer=None, static=None):
+    With `parts` > 1 the rows are cut into contiguous parts (`part_bounds`), each deformed by its
+    own copy of the graph's nodes (one set of weights), and the outputs are the parts'
+    concatenation, followed by every part's own outputs (`part_output_name`): a runtime that asks
+    onnxruntime for one part's outputs runs that part's nodes only, so parts run side by side on
+    several cores (docs/design.md section 7; runtime/onnx_model.py)."""
+
+    def __init__(self, model, sh_degree: int, layer=None, static=None, parts: int = 1,
+                 min_part_rows: int = MIN_PART_ROWS):
         super().__init__()
         if not 0 <= int(sh_degree) <= model.gaussians.sh_degree:
             raise ValueError(f"ExportGraph: sh_degree {sh_degree} outside 0..{model.gaussians.sh_degree}")
         self.sh_degree = int(sh_degree)
         self.k = (self.sh_degree + 1) ** 2
-        self.split = static is not None and static.num_static > 0
-        if self.split:  # nehad.export.static_split: the field runs on the moving Gaussians only
-            model = self._moving_part(model, static)
+        g = model.gaussians
+        n = len(g)
+        still = np.zeros(n, bool)
+        if static is not None and static.num_static > 0:  # nehad.export.static_split
+            still = np.asarray(static.mask, bool).reshape(-1)
+        self.bounds = part_bounds(~still, parts, min_part_rows)
         self.model = model
         self.deform = FastDeform(model, sh_degree)
+        # SH the field does not deform pass through whole (no gather)
+        self.sh_passes = not model.field.cfg.deform_opacity_sh
+        self.register_buffer("sh_all", torch.cat([g.sh_dc, g.sh_rest], 1)[:, :self.k]
+                             .detach().clone())
+        frozen_row = np.cumsum(still) - 1  # a static Gaussian's row in static.frozen
+        self._parts = []
+        for p, (a, b) in enumerate(zip(self.bounds[:-1], self.bounds[1:])):
+            rows = np.arange(a, b)
+            moving, kept = rows[~still[a:b]], rows[still[a:b]]
+            self.register_buffer(f"moving_{p}", torch.as_tensor(moving, dtype=torch.int64))
+            split = len(kept) > 0
+            if split:  # moving rows, then the frozen ones, put back in the model's order
+                order = np.concatenate([moving, kept]) - a
+                inverse = np.empty_like(order)
+                inverse[order] = np.arange(len(order))
+                self.register_buffer(f"inverse_{p}", torch.as_tensor(inverse, dtype=torch.int64))
+                for name, value in zip(OUTPUT_NAMES, static.frozen):
+                    self.register_buffer(f"frozen_{name}_{p}", torch.as_tensor(
+                        np.asarray(value)[frozen_row[kept]], dtype=torch.float32))
+            self._parts.append((a, b, len(moving), split))
         self.with_layer = layer is not None
         if self.with_layer:
             self.register_buffer("layer", torch.as_tensor(layer, dtype=torch.int32).reshape(-1))
 
-    def _moving_part(self, model, static):
-        """A copy of `model` holding only the Gaussians that move; the frozen outputs of the
-        others and the permutation back to the model's order become buffers."""
-        from nehad.gaussians import GaussianParameters
-
-        g = model.gaussians
-        mask = torch.as_tensor(static.mask)
-        moving, still = torch.nonzero(~mask).reshape(-1), torch.nonzero(mask).reshape(-1)
-        order = torch.cat([moving, still])
-        inverse = torch.empty_like(order)
-        inverse[order] = torch.arange(len(order))
-        self.register_buffer("inverse", inverse)
-        for name, value in zip(OUTPUT_NAMES[:4], static.frozen[:4]):
-            self.register_buffer(f"frozen_{name}", torch.as_tensor(value, dtype=torch.float32))
-        # SH the field does not deform pass through whole (no gather); deformed SH are split too
-        self.sh_passes = not model.field.cfg.deform_opacity_sh
-        if self.sh_passes:
-            self.register_buffer("sh_all", torch.cat([g.sh_dc, g.sh_rest], 1)[:, :self.k]
-                                 .detach().clone())
-        else:
-            self.register_buffer("frozen_sh", torch.as_tensor(static.frozen[4],
-                                                              dtype=torch.float32))
-        part = copy.copy(model)
-        part._modules = dict(model._modules)
-        part._modules["gaussians"] = GaussianParameters(
-            *(getattr(g, name).detach()[moving] for name in GaussianParameters.NAMES))
-        part._modules["gaussians"].drift_window = g.drift_window
-        return part
+    @property
+    def parts(self) -> int:
+        return len(self._parts)
 
     @property
     def output_names(self) -> tuple[str, ...]:
-        return OUTPUT_NAMES + ((LAYER_OUTPUT,) if self.with_layer else ())
+        names = OUTPUT_NAMES + ((LAYER_OUTPUT,) if self.with_layer else ())
+        if self.parts == 1:
+            return names
+        return names + tuple(part_output_name(name, p) for p in range(self.parts)
+                             for name in self.part_names)
+
+    @property
+    def part_names(self) -> tuple[str, ...]:
+        """The outputs that have part outputs: those that change with time (SH the field does
+        not deform and the layers are constants, stored once, whole)."""
+        return tuple(name for name in OUTPUT_NAMES if not (name == "sh" and self.sh_passes))
+
+    def _part(self, p: int, time: torch.Tensor) -> tuple:
+        """The outputs of rows [a, b) of part p: the field on its moving rows, the frozen rows
+        beside them (NeHaDModel.gaussians_at with the time a tensor, a graph input)."""
+        a, b, num_moving, split = self._parts[p]
+        g = self.model.gaussians
+        out = None
+        if num_moving:
+            i = getattr(self, f"moving_{p}")
+            out = self.deform(g.means[i], g.log_scales[i], g.quats[i], g.opacity_logits[i],
+                              torch.cat([g.sh_dc[i], g.sh_rest[i]], 1), g.mu_eq[i], g.t_eq[i],
+                              time, g.life_rate[i] if g.has_life() else None,
+                              g.drift_velocity()[i] if g.drifts() else None, rows=i)
+        if split:
+            inverse = getattr(self, f"inverse_{p}")
+            frozen = [getattr(self, f"frozen_{name}_{p}") for name in OUTPUT_NAMES]
+            merged = [f if out is None else torch.cat([o, f], 0)[inverse]
+                      for o, f in zip(out or [None] * 4, frozen[:4])]
+            sh = (self.sh_all[a:b] if self.sh_passes else frozen[4] if out is None
+                  else torch.cat([out[4], frozen[4]], 0)[inverse])
+            out = tuple(merged) + (sh,)
+        return out + (self.layer[a:b],) if self.with_layer else out
 
     def forward(self, time: torch.Tensor):
-        # NeHaDModel.gaussians_at, with the time kept a tensor (a graph input)
-        g = self.model.gaussians
-        out = self.deform(g.means, g.log_scales, g.quats, g.opacity_logits,
-                          torch.cat([g.sh_dc, g.sh_rest], 1), g.mu_eq, g.t_eq, time,
-                          g.life_rate if g.has_life() else None,
-                          g.drift_velocity() if g.drifts() else None)
-        if self.split:  # moving rows, then the frozen ones, put back in the model's order
-            merged = [torch.cat([o, getattr(self, f"frozen_{name}")], 0)[self.inverse]
-                      for name, o in zip(OUTPUT_NAMES[:4], out[:4])]
-            sh = (self.sh_all if self.sh_passes
-                  else torch.cat([out[4], self.frozen_sh], 0)[self.inverse])
-            out = tuple(merged) + (sh,)
-        return out + (self.layer,) if self.with_layer else out
+        parts = [self._part(p, time) for p in range(self.parts)]
+        if len(parts) == 1:
+            return parts[0]
+        own = len(self.part_names)  # the first `own` outputs of a part are its own outputs
+        whole = tuple(torch.cat(columns, 0) for columns in zip(*(part[:own] for part in parts)))
+        if own < len(OUTPUT_NAMES):
+            whole = whole + (self.sh_all,)
+        if self.with_layer:
+            whole = whole + (self.layer,)
+        return whole + tuple(o for part in parts for o in part[:own])
 
 
 def reference_outputs(model, t: float, sh_degree: int, layer=None) -> list:
@@ -119,4 +177,5 @@ def reference_outputs(model, t: float, sh_degree: int, layer=None) -> list:
     return out
 
 
-__all__ = ["ExportGraph", "LAYER_OUTPUT", "OUTPUT_NAMES", "closed_form_copy", "reference_outputs"]
+__all__ = ["ExportGraph", "LAYER_OUTPUT", "MIN_PART_ROWS", "OUTPUT_NAMES", "PART_SUFFIX", "closed_form_copy",
+           "part_bounds", "part_output_name", "reference_outputs"]

@@ -26,10 +26,15 @@ import torch
 
 from nehad.model import RunInfo
 from nehad.export.checks import FORMAT, MIN_OPSET, check_graph
-from nehad.export.graph import OUTPUT_NAMES, ExportGraph, closed_form_copy, reference_outputs
+from nehad.export.graph import (MIN_PART_ROWS, OUTPUT_NAMES, ExportGraph, closed_form_copy,
+                                reference_outputs)
 from nehad.runtime.images import atomic_write_bytes
 
 PARITY_TOL = 1e-5
+#: parts a runtime may deform side by side (fewer when a part would hold under MIN_PART_ROWS
+#: moving Gaussians): 4 parts on 2 cores deform a 15k-Gaussian model in 6.5 ms against 8.6 for
+#: the whole on onnxruntime's 2 threads (docs/performance.md, "Parts of the deformation").
+DEFAULT_PARTS = 4
 PARITY_TIMES = (0.0, 0.25, 0.5, 0.8, 1.0)
 MAX_OPSET = 20  # the highest opset the TorchScript-based exporter writes
 
@@ -251,13 +256,16 @@ def run_layers_of(info: RunInfo, n: int):
 
 def export_model(model, info: RunInfo, out_path, *, opset: int = MIN_OPSET, fp16_weights: bool = False,
                  cfg=None, sh_degree: int | None = None, times=PARITY_TIMES,
-                 tol: float = PARITY_TOL, static: bool = True) -> ExportReport:
+                 tol: float = PARITY_TOL, static: bool = True,
+                 parts: int = DEFAULT_PARTS, min_part_rows: int = MIN_PART_ROWS) -> ExportReport:
     """Export `model` (a NeHaDModel) with what its run records
     (`info`, as returned by load_run) to
     `out_path`. Raises ExportError (nothing written) when a check fails. `static`: Gaussians that
     do not move are written pre-deformed and skip the field (nehad.export.static_split); the
     parity check holds the graph to the model with those rows frozen, and the report's
-    `static_deviation` says how far the frozen rows are from the model at any sampled time."""
+    `static_deviation` says how far the frozen rows are from the model at any sampled time.
+    `parts`: the rows cut into up to this many parts that a runtime deforms side by side
+    (`nehad.export.graph.part_bounds`; metadata `parts`, docs/design.md section 7)."""
     start = _time.perf_counter()
     out_path = Path(out_path)
     check_opset(opset)
@@ -278,7 +286,8 @@ def export_model(model, info: RunInfo, out_path, *, opset: int = MIN_OPSET, fp16
 
         canonical = float(getattr(getattr(cfg, "train", None), "canonical_time", 0.5))
         split = find_static(work, sh_degree, canonical_time=canonical)
-    graph = ExportGraph(work, sh_degree, layer, static=split).eval()
+    graph = ExportGraph(work, sh_degree, layer, static=split, parts=parts,
+                        min_part_rows=min_part_rows).eval()
     names_out = graph.output_names
     check_finite({name: getattr(work.gaussians, name) for name in
                   ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")})
@@ -288,6 +297,8 @@ def export_model(model, info: RunInfo, out_path, *, opset: int = MIN_OPSET, fp16
     md["fp16_weights"] = "1" if fp16_weights else "0"
     if split is not None and split.num_static:
         md["static_gaussians"] = str(split.num_static)
+    if graph.parts > 1:  # docs/design.md section 7: the row bounds of the part outputs
+        md["parts"] = json.dumps(graph.bounds)
     if layer is not None:  # docs/design.md section 8: Gaussians per layer, layer 0 first
         md["lod_layers"] = json.dumps(np.bincount(layer, minlength=int(layer.max()) + 1
                                                   if len(layer) else 1).tolist())
@@ -304,8 +315,16 @@ def export_model(model, info: RunInfo, out_path, *, opset: int = MIN_OPSET, fp16
         ref = reference_outputs(m, t, sh_degree, layer)
         return ref if split is None else split.apply(ref[:5]) + ref[5:]
 
+    own = len(graph.part_names)
+    whole = len(names_out) - (graph.parts * own if graph.parts > 1 else 0)
     for t in times:
         got = sess.run(None, {"time": np.array([t], np.float32)})
+        for j in range(whole, len(got)):  # each part output: rows of its whole output
+            p, i = divmod(j - whole, own)
+            a, b = graph.bounds[p], graph.bounds[p + 1]
+            if not np.array_equal(got[j], got[i][a:b]):
+                raise ExportError(f"exported graph: output {names_out[j]} is not rows {a}:{b} "
+                                  f"of {names_out[i]}")
         for n, a, b in zip(names_out, got, reference(work, t)):
             if not np.isfinite(a).all():
                 raise ExportError(f"exported graph: output {n} at time {t} holds NaN/inf")

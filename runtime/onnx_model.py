@@ -11,6 +11,14 @@ outputs means [N,3], scales [N,3], quats [N,4], opacities [N], sh [N,K,3] (and a
 `layer` [N]). A foreign, truncated or damaged file, or outputs holding NaN, raise
 :class:`OnnxModelError` with a message naming the file. The deformed Gaussians of the last few
 times are cached, so several views at one time deform once.
+
+A file exported in parts (metadata `parts`: row bounds 0 = b_0 < ... < b_P = N) has an output
+`NAME.partP` with rows b_P .. b_P+1 of each output NAME that changes with time (docs/design.md
+section 7). With more than one thread the parts are deformed side by side: each thread runs a
+session of its own on the graph cut down to its share of the parts (`graph_for_outputs`:
+onnxruntime runs every node of a graph whatever a run asks for), one onnxruntime thread each (a
+15k-Gaussian model on 2 cores: 6.3 ms against 8.7-9.0 for the whole on onnxruntime's 2 threads,
+docs/performance.md). The outputs without parts are constants, fetched once.
 """
 
 from __future__ import annotations
@@ -26,14 +34,18 @@ from pathlib import Path
 import numpy as np
 
 from .gaussians import GaussianCloud
-from .onnx_proto import ModelSummary, ProtoError, graph_sha256, summarize
+from .onnx_proto import ModelSummary, ProtoError, graph_for_outputs, graph_sha256, summarize
 from .errors import InputProblem
+from .threads import usable_cores
 
 FORMAT = "nehad-onnx/1"
 OUTPUTS = ("means", "scales", "quats", "opacities", "sh")
 REQUIRED_METADATA = ("format", "sh_degree", "num_gaussians", "time_range", "background", "aabb")
 #: Metadata key of the SHA-256 of the serialized graph (runtime.onnx_proto.graph_sha256).
 DIGEST_KEY = "graph_sha256"
+#: Metadata key of the part row bounds; part outputs are named NAME + PART_SUFFIX + index.
+PARTS_KEY = "parts"
+PART_SUFFIX = ".part"
 
 
 class OnnxModelError(InputProblem):
@@ -145,7 +157,9 @@ class OnnxModel:
 
     Args:
         path: the .onnx file.
-        threads: intra-op threads of the session (None or 0: onnxruntime's default).
+        threads: threads of the deformation (None or 0: onnxruntime's default, or for a file in
+            parts one per usable core): a file in parts runs its parts on up to this many
+            threads side by side, the rest as intra-op threads of the session.
         cache_size: how many times' deformed Gaussians to keep (0: no cache).
     """
 
@@ -167,6 +181,16 @@ class OnnxModel:
         self.runs = 0  # session runs so far (the cache saves the others)
         if threads is not None and int(threads) < 0:
             raise OnnxModelError(f"{self.source}: threads must be >= 0, got {threads}")
+        self.part_bounds = self._read_part_bounds()
+        parts = len(self.part_bounds) - 1
+        total = int(threads or 0) or usable_cores()
+        #: parts deformed side by side (1: one run for the whole)
+        self.workers = min(parts, total) if parts > 1 else 1
+        intra = max(1, total // self.workers) if parts > 1 else int(threads or 0)
+        self._pool = None
+        self._pool_pid = None
+        self._constants: dict | None = None
+        self._part_sessions: list = []
         import onnxruntime as ort
 
         from .threads import prefer_passive_openmp
@@ -174,7 +198,7 @@ class OnnxModel:
         prefer_passive_openmp()  # the rasterizer's idle workers leave onnxruntime the cores
         opts = ort.SessionOptions()
         opts.log_severity_level = 3
-        opts.intra_op_num_threads = int(threads or 0)
+        opts.intra_op_num_threads = intra
         opts.inter_op_num_threads = 1
         # onnxruntime's pool threads spin after each run by default, taking the cores from the
         # Numba rasterizer that runs next: 17.5 FPS instead of 41.2 for a 12k-Gaussian model at
@@ -187,6 +211,58 @@ class OnnxModel:
             raise OnnxModelError(f"{self.source}: onnxruntime cannot load the model: "
                                  f"{' '.join(str(e).split())[:300]}") from None
         self._check_signature()
+        if parts > 1:
+            self._open_parts(ort, opts)
+
+    def _open_parts(self, ort, opts) -> None:
+        """One session per share of the parts (module doc); the whole graph's session is let
+        go (the parts hold the same constants between them). With one share (one thread) its
+        session holds every part without the whole outputs' concatenation, as fast on one
+        thread as a file without parts (docs/performance.md)."""
+        data = self.path.read_bytes()
+        try:
+            self._part_sessions = [
+                ort.InferenceSession(graph_for_outputs(data, fetch + (self._constant_names
+                                                                      if i == 0 else [])),
+                                     opts, providers=["CPUExecutionProvider"])
+                for i, fetch in enumerate(self._fetches)]
+        except Exception as e:
+            raise OnnxModelError(f"{self.source}: onnxruntime cannot load the model's parts: "
+                                 f"{' '.join(str(e).split())[:300]}") from None
+        self.session = None
+
+    def _read_part_bounds(self) -> list[int]:
+        """The metadata's part row bounds ([0, N] for a file without parts)."""
+        n, text = self.num_gaussians, self.metadata.get(PARTS_KEY)
+        if text is None:
+            return [0, n]
+        bounds = _json(self.metadata, PARTS_KEY, self.source)
+        ok = (isinstance(bounds, list) and len(bounds) >= 2
+              and all(isinstance(b, int) and not isinstance(b, bool) for b in bounds)
+              and bounds[0] == 0 and bounds[-1] == n
+              and all(a < b for a, b in zip(bounds[:-1], bounds[1:])))
+        if not ok:
+            raise OnnxModelError(f"{self.source}: metadata {PARTS_KEY!r} must be increasing row "
+                                 f"numbers from 0 to num_gaussians {n}, got {text!r}")
+        return bounds
+
+    def _part_outputs(self, names) -> dict[str, list[int]]:
+        """{NAME.partP: expected [rows, ...] shape} for the outputs in parts, checked present as
+        a whole set per output; `names` are the session's outputs."""
+        bounds, parts = self.part_bounds, len(self.part_bounds) - 1
+        found = {}
+        for name in OUTPUTS:
+            have = [f"{name}{PART_SUFFIX}{p}" in names for p in range(parts)]
+            if parts > 1 and any(have):
+                if not all(have):
+                    raise OnnxModelError(f"{self.source}: output {name!r} has some of its "
+                                         f"{parts} part outputs, not all")
+                for p in range(parts):
+                    found[f"{name}{PART_SUFFIX}{p}"] = (name, bounds[p + 1] - bounds[p])
+        if parts > 1 and not found:
+            raise OnnxModelError(f"{self.source}: metadata {PARTS_KEY!r} names {parts} parts "
+                                 f"but the model has no part outputs")
+        return found
 
     def _check_signature(self) -> None:
         src, n, k = self.source, self.num_gaussians, (self.sh_degree + 1) ** 2
@@ -202,6 +278,9 @@ class OnnxModel:
         if missing:
             raise OnnxModelError(f"{src}: the model lacks outputs {missing} "
                                  f"(has {sorted(outs)})")
+        parts = self._part_outputs(outs)
+        for part, (name, rows) in parts.items():
+            expected[part] = [rows] + expected[name][1:]
         extra = sorted(set(outs) - set(expected))
         if extra:
             raise OnnxModelError(f"{src}: unexpected outputs {extra}")
@@ -213,7 +292,14 @@ class OnnxModel:
             if o.type != want or not shape_ok:
                 raise OnnxModelError(f"{src}: output {name!r} is {o.type} {o.shape}; expected "
                                      f"{want} {expected[name]} (N = num_gaussians {n}, K = {k})")
-        self.output_names = [o.name for o in self.session.get_outputs()]
+        self.output_names = [o.name for o in self.session.get_outputs() if o.name not in parts]
+        # in parts: the part outputs each thread asks for, and the constant outputs
+        self.parted = sorted({name for name, _ in parts.values()}, key=OUTPUTS.index)
+        groups = np.array_split(np.arange(len(self.part_bounds) - 1), self.workers)
+        self._fetches = [[f"{name}{PART_SUFFIX}{p}" for p in group for name in self.parted]
+                         for group in groups]
+        # the first share's session also holds the outputs without parts (constants)
+        self._constant_names = [name for name in self.output_names if name not in self.parted]
 
     # ------------------------------------------------------------------ running
     def outputs(self, time: float) -> dict[str, np.ndarray]:
@@ -230,9 +316,12 @@ class OnnxModel:
             if hit is not None:
                 self._cache.move_to_end(key)
                 return hit
-        values = self.session.run(None, {"time": np.array([key], np.float32),
-                                         **self._extra_feeds})
-        out = dict(zip(self.output_names, values))
+        feeds = {"time": np.array([key], np.float32), **self._extra_feeds}
+        if self._part_sessions:
+            out = self._run_parts(feeds)
+        else:
+            values = self.session.run(self.output_names, feeds)
+            out = dict(zip(self.output_names, values))
         for name, arr in out.items():
             bad = int(np.size(arr) - np.count_nonzero(np.isfinite(arr)))
             if bad:
@@ -245,6 +334,30 @@ class OnnxModel:
                 while len(self._cache) > self.cache_size:
                     self._cache.popitem(last=False)
         return out
+
+    def _run_parts(self, feeds: dict) -> dict[str, np.ndarray]:
+        """The outputs from the parts, deformed side by side (module doc): the first share in
+        this thread, the others on a pool (made anew in a forked process)."""
+        if self.workers > 1 and (self._pool is None or self._pool_pid != os.getpid()):
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._pool = ThreadPoolExecutor(self.workers - 1, thread_name_prefix="nehad-parts")
+            self._pool_pid = os.getpid()
+        first, *others = self._part_sessions
+        futures = [self._pool.submit(session.run, None, feeds) for session in others]
+        fetch = self._fetches[0]
+        if self._constants is None:  # the outputs without parts do not change with time
+            got = first.run(fetch + self._constant_names, feeds)
+            self._constants = dict(zip(self._constant_names, got[len(fetch):]))
+            shares = [got[:len(fetch)]]
+        else:
+            shares = [first.run(fetch, feeds)]
+        shares += [f.result() for f in futures]
+        values = [v for share in shares for v in share]
+        parted = len(self.parted)
+        out = {name: np.concatenate(values[i::parted], 0) for i, name in enumerate(self.parted)}
+        out.update(self._constants)
+        return {name: out[name] for name in self.output_names}
 
     def gaussians(self, time: float, max_layer: int | None = None) -> GaussianCloud:
         """The deformed, activated Gaussians at `time` for the shared rasterizer; with
@@ -275,7 +388,8 @@ class OnnxModel:
     def set_extra_inputs(self, feeds: dict) -> None:
         """Feed these optional inputs (overridable initializers, e.g. the extra_* Gaussians of
         streaming layers) with every run from now on; clears the cache."""
-        known = {i.name for i in self.session.get_overridable_initializers()}
+        known = ({i.name for i in self.session.get_overridable_initializers()}
+                 if self.session is not None else set())
         unknown = sorted(set(feeds) - known)
         if unknown:
             raise OnnxModelError(f"{self.source}: the model has no optional inputs {unknown}")

@@ -168,7 +168,7 @@ def graph_sha256(data, spans=None) -> str:
     return h.hexdigest()
 
 
-__all__ = ["ModelSummary", "ProtoError", "graph_sha256", "summarize"]
+__all__ = ["ModelSummary", "ProtoError", "graph_for_outputs", "graph_sha256", "summarize"]
 
 
 # -- one edit: initializers as graph inputs ----------------------------------------------------
@@ -266,3 +266,66 @@ def _raw_field(buf, num: int, wt: int, value) -> bytes:
     if wt == 5:
         return key + value.to_bytes(4, "little")
     return key + _encode_varint(value[1] - value[0]) + bytes(buf[value[0]:value[1]])
+
+
+# -- one edit: the graph that computes some of the outputs ---------------------------------------
+
+# NodeProto and AttributeProto
+_N_INPUT, _N_OUTPUT, _N_ATTRIBUTE = 1, 2, 5
+_A_GRAPH, _A_GRAPHS = 6, 11
+
+
+def _node_io(buf, span) -> tuple[list[str], list[str]]:
+    """(inputs, outputs) of a NodeProto; a node that holds a subgraph raises ProtoError (its
+    outer-scope inputs are not listed among its inputs)."""
+    inputs, outputs = [], []
+    for num, wt, v in _fields(buf, *span):
+        if num == _N_INPUT and wt == 2:
+            inputs.append(_text(buf, v))
+        elif num == _N_OUTPUT and wt == 2:
+            outputs.append(_text(buf, v))
+        elif num == _N_ATTRIBUTE and wt == 2:
+            if any(n in (_A_GRAPH, _A_GRAPHS) for n, _, _ in _fields(buf, *v)):
+                raise ProtoError("a node holds a subgraph")
+    return inputs, outputs
+
+
+def graph_for_outputs(data: bytes, names) -> bytes:
+    """The model `data` with only the outputs `names` and what computes them: the nodes they
+    depend on and the initializers those read (onnxruntime runs every node of a graph, whatever
+    outputs a run asks for). Every kept field keeps its bytes."""
+    names = list(names)
+    buf = memoryview(data)
+    rest, graph = bytearray(), []
+    for num, wt, v in _fields(buf):
+        if num == _M_GRAPH and wt == 2:
+            graph += [(gnum, gwt, gv) for gnum, gwt, gv in _fields(buf, *v)]
+        else:
+            rest += _raw_field(buf, num, wt, v)
+    nodes = [(i, *_node_io(buf, gv)) for i, (gnum, gwt, gv) in enumerate(graph)
+             if gnum == _G_NODE and gwt == 2]
+    producer = {out: (i, ins) for i, ins, outs in nodes for out in outs}
+    outputs = {_name_of_value_info(buf, gv) for gnum, gwt, gv in graph
+               if gnum == _G_OUTPUT and gwt == 2}
+    missing = sorted(set(names) - outputs)
+    if missing:
+        raise ProtoError(f"the model has no outputs {missing}")
+    keep, used, stack = set(), set(names), list(names)
+    while stack:
+        hit = producer.get(stack.pop())
+        if hit is None or hit[0] in keep:
+            continue
+        keep.add(hit[0])
+        for name in hit[1]:
+            if name and name not in used:
+                used.add(name)
+                stack.append(name)
+    out = bytearray()
+    for i, (gnum, gwt, gv) in enumerate(graph):
+        if gwt == 2 and (
+                (gnum == _G_NODE and i not in keep)
+                or (gnum == _G_OUTPUT and _name_of_value_info(buf, gv) not in names)
+                or (gnum == _G_INITIALIZER and _tensor_header(buf, gv)[0] not in used)):
+            continue
+        out += _raw_field(buf, gnum, gwt, gv)
+    return bytes(rest + _field(_M_GRAPH, bytes(out)))

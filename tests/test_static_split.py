@@ -100,6 +100,35 @@ def test_split_export_matches_the_unsplit_one(half_still, tmp_path):
     assert res.exit_code == 0 and f"static:       {split.num_static} of" in res.output
 
 
+def test_split_export_in_parts_matches_the_split_one(half_still, tmp_path):
+    """Parts with static and moving rows (each part puts its own rows back in the model's order)
+    and parts without static rows give the outputs of the split file without parts; the
+    runtime's parts side by side give them too."""
+    import json
+
+    from nehad.runtime.onnx_model import OnnxModel
+
+    run, model, meta = half_still
+    one = export_model(model, meta, tmp_path / "one.onnx", parts=1)
+    three = export_model(model, meta, tmp_path / "three.onnx", parts=3, min_part_rows=1)
+    assert three.num_static == one.num_static > 0
+    bounds = json.loads(three.metadata["parts"])
+    still = find_static(model, 1).mask
+    assert len(bounds) == 4
+    held = [int(still[a:b].sum()) for a, b in zip(bounds[:-1], bounds[1:])]
+    assert any(0 < k < b - a for k, a, b in zip(held, bounds[:-1], bounds[1:])), held
+    assert 0 in held, held  # and a part with none
+    side = OnnxModel(tmp_path / "three.onnx", threads=2, cache_size=0)
+    assert side.workers == 2
+    for t in (0.0, 0.45, 1.0):
+        a = dict(zip(OUTPUTS, _outputs(tmp_path / "one.onnx", t)))
+        b = dict(zip(OUTPUTS, _outputs(tmp_path / "three.onnx", t)))
+        c = side.outputs(t)
+        for name in OUTPUTS:
+            np.testing.assert_allclose(b[name], a[name], rtol=1e-6, atol=1e-6)
+            np.testing.assert_array_equal(c[name], b[name])
+
+
 def test_nothing_static_means_no_split(tmp_path, half_still):
     run, model, meta = half_still
     with torch.no_grad():  # every Gaussian gets a finite life: opacity changes with time

@@ -90,7 +90,9 @@ class Deformer {
   run(t) {
     const job = this.busy.then(async () => {
       const start = performance.now();
-      const out = await this.session.run(this.feeds(t));
+      // the outputs a file in parts also has per part (NAME.partP) are not needed here
+      const names = this.session.outputNames.filter((n) => !n.includes('.part'));
+      const out = await this.session.run(this.feeds(t), names);
       const g = { means: out.means.data, scales: out.scales.data, quats: out.quats.data,
                   opacities: out.opacities.data, sh: out.sh.data, n: out.opacities.dims[0],
                   k: out.sh.dims[1], ms: performance.now() - start, t };
