@@ -29,7 +29,8 @@ from .errors import InputError, user_errors
 @click.option("--parts", type=click.IntRange(1, 64), default=4, show_default=True,
               help="Cut the Gaussians into up to this many parts that the runtime deforms side "
                    "by side, one per core (fewer when a part would hold under 2048 moving "
-                   "Gaussians); 1: one part. The file's main outputs are the same either way.")
+                   "Gaussians); 1: one part. The file's main outputs are the same either way. "
+                   "For -o only (a --split-layers base is one part).")
 def export_(run, output, opset, fp16_weights, split_dir, parts):
     """Export the trained RUN to one self-contained ONNX file (format nehad-onnx/1).
 

@@ -194,7 +194,7 @@ class LayeredModel:
         self.max_layer = None if max_layer is None else int(max_layer)
         _check_file(self.folder, self.entries[0])
         self.base = OnnxModel(self.folder / self.entries[0]["file"], threads=threads)
-        self.overridable = {i.name: i for i in self.base.session.get_overridable_initializers()}
+        self.overridable = dict(self.base.overridable_inputs)
         missing = [f"{EXTRA_PREFIX}{n}" for n in CHUNK_ARRAYS
                    if f"{EXTRA_PREFIX}{n}" not in self.overridable]
         if self.num_layers > 1 and (missing or EXTRA_LAYER not in self.overridable):

@@ -34,7 +34,8 @@ from pathlib import Path
 import numpy as np
 
 from .gaussians import GaussianCloud
-from .onnx_proto import ModelSummary, ProtoError, graph_for_outputs, graph_sha256, summarize
+from .onnx_proto import (ModelSummary, ProtoError, graph_for_outputs, graph_sha256,
+                         inputs_read, summarize)
 from .errors import InputProblem
 from .threads import usable_cores
 
@@ -74,7 +75,7 @@ class ModelInfo:
 def _json(md: dict, key: str, source: str):
     try:
         return json.loads(md[key])
-    except (ValueError, TypeError):
+    except (ValueError, TypeError, RecursionError):
         raise OnnxModelError(f"{source}: metadata {key!r} is not valid JSON: {md[key]!r}") from None
 
 
@@ -91,6 +92,11 @@ def _floats(value, n: int, key: str, source: str) -> list[float]:
 
 def read_model_info(path) -> ModelInfo:
     """Read and validate the file's summary and metadata (no onnxruntime session)."""
+    return _read_model(path)[0]
+
+
+def _read_model(path) -> tuple[ModelInfo, bytes]:
+    """`read_model_info` and the bytes it checked (a file in parts is opened from them)."""
     path = Path(path)
     source = str(path)
     if path.exists() and not path.is_dir() and not path.is_file():
@@ -145,7 +151,7 @@ def read_model_info(path) -> ModelInfo:
             raise OnnxModelError(f"{source}: metadata default_camera: {e}") from None
     opset = int(s.opsets.get("", s.opsets.get("ai.onnx", 0)))
     return ModelInfo(path, len(data), opset, dict(s.operators), dict(md), s, deg, n, (lo, hi),
-                     tuple(bg), aabb, camera, digest is not None)
+                     tuple(bg), aabb, camera, digest is not None), data
 
 
 def _dims(arg) -> list:
@@ -166,7 +172,7 @@ class OnnxModel:
     def __init__(self, path, threads: int | None = None, cache_size: int = 4):
         self.path = Path(path)
         self.source = str(self.path)
-        self.info = read_model_info(self.path)
+        self.info, data = _read_model(self.path)
         self.metadata = self.info.metadata
         self.sh_degree = self.info.sh_degree
         self.num_gaussians = self.info.num_gaussians
@@ -191,6 +197,9 @@ class OnnxModel:
         self._pool_pid = None
         self._constants: dict | None = None
         self._part_sessions: list = []
+        self.session = None  # the whole graph's session (a file without parts)
+        #: optional inputs of the graph (overridable initializers: runtime/layers.py)
+        self.overridable_inputs: dict = {}
         import onnxruntime as ort
 
         from .threads import prefer_passive_openmp
@@ -204,32 +213,71 @@ class OnnxModel:
         # Numba rasterizer that runs next: 17.5 FPS instead of 41.2 for a 12k-Gaussian model at
         # 400x400 on 2 cores (bench/render.py).
         opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        try:
-            self.session = ort.InferenceSession(self.source, opts,
-                                                providers=["CPUExecutionProvider"])
-        except Exception as e:
-            raise OnnxModelError(f"{self.source}: onnxruntime cannot load the model: "
-                                 f"{' '.join(str(e).split())[:300]}") from None
-        self._check_signature()
         if parts > 1:
-            self._open_parts(ort, opts)
+            self._open_parts(ort, opts, data)
+            return
+        del data
+        self.session = self._session(ort, self.source, opts, "the model")
+        self._check_inputs(self.session)
+        self.overridable_inputs = {i.name: i
+                                   for i in self.session.get_overridable_initializers()}
+        outs = {o.name: o for o in self.session.get_outputs()}
+        missing = [name for name in OUTPUTS if name not in outs]
+        if missing:
+            raise OnnxModelError(f"{self.source}: the model lacks outputs {missing} "
+                                 f"(has {sorted(outs)})")
+        self._check_outputs(outs.values(), {})
+        self.output_names = list(outs)
 
-    def _open_parts(self, ort, opts) -> None:
-        """One session per share of the parts (module doc); the whole graph's session is let
-        go (the parts hold the same constants between them). With one share (one thread) its
-        session holds every part without the whole outputs' concatenation, as fast on one
-        thread as a file without parts (docs/performance.md)."""
-        data = self.path.read_bytes()
+    def _session(self, ort, model, opts, what: str):
         try:
-            self._part_sessions = [
-                ort.InferenceSession(graph_for_outputs(data, fetch + (self._constant_names
-                                                                      if i == 0 else [])),
-                                     opts, providers=["CPUExecutionProvider"])
-                for i, fetch in enumerate(self._fetches)]
+            return ort.InferenceSession(model, opts, providers=["CPUExecutionProvider"])
         except Exception as e:
-            raise OnnxModelError(f"{self.source}: onnxruntime cannot load the model's parts: "
+            raise OnnxModelError(f"{self.source}: onnxruntime cannot load {what}: "
                                  f"{' '.join(str(e).split())[:300]}") from None
-        self.session = None
+
+    def _open_parts(self, ort, opts, data: bytes) -> None:
+        """One session per share of the parts (module doc), each on the graph cut down to its
+        part outputs, from the bytes whose digest was checked; no session of the whole graph.
+        With one share (one thread) its session holds every part without the whole outputs'
+        concatenation, as fast on one thread as a file without parts (docs/performance.md).
+        The outputs without part outputs must be constants (read no input)."""
+        src, names = self.source, self.info.summary.outputs
+        missing = [name for name in OUTPUTS if name not in names]
+        if missing:
+            raise OnnxModelError(f"{src}: the model lacks outputs {missing} (has {sorted(names)})")
+        parts = self._part_outputs(names)
+        extra = sorted(set(names) - set(OUTPUTS) - {"layer"} - set(parts))
+        if extra:
+            raise OnnxModelError(f"{src}: unexpected outputs {extra}")
+        self.parted = sorted({name for name, _ in parts.values()}, key=OUTPUTS.index)
+        self.output_names = [name for name in names if name not in parts]
+        self._constant_names = [name for name in self.output_names if name not in self.parted]
+        moving = [name for name in OUTPUTS[:4] if name not in self.parted]
+        if moving:
+            raise OnnxModelError(f"{src}: outputs {moving} have no part outputs, as a file in "
+                                 f"parts must")
+        try:
+            read = inputs_read(data, self._constant_names) if self._constant_names else set()
+        except ProtoError as e:
+            raise OnnxModelError(f"{src}: not a readable ONNX file ({e})") from None
+        if read:
+            raise OnnxModelError(f"{src}: outputs {self._constant_names} have no part outputs "
+                                 f"but read the inputs {sorted(read)} (they change with time)")
+        groups = np.array_split(np.arange(len(self.part_bounds) - 1), self.workers)
+        self._fetches = [[f"{name}{PART_SUFFIX}{p}" for p in group for name in self.parted]
+                         for group in groups]
+        for i, fetch in enumerate(self._fetches):
+            wanted = fetch + (self._constant_names if i == 0 else [])
+            try:
+                cut = graph_for_outputs(data, wanted)
+            except ProtoError as e:
+                raise OnnxModelError(f"{src}: cannot cut the model into its parts ({e})") from None
+            session = self._session(ort, cut, opts, f"the model's parts {wanted[:1]}...")
+            del cut
+            self._check_inputs(session)
+            self._check_outputs(session.get_outputs(), parts)
+            self._part_sessions.append(session)
 
     def _read_part_bounds(self) -> list[int]:
         """The metadata's part row bounds ([0, N] for a file without parts)."""
@@ -237,69 +285,59 @@ class OnnxModel:
         if text is None:
             return [0, n]
         bounds = _json(self.metadata, PARTS_KEY, self.source)
-        ok = (isinstance(bounds, list) and len(bounds) >= 2
-              and all(isinstance(b, int) and not isinstance(b, bool) for b in bounds)
-              and bounds[0] == 0 and bounds[-1] == n
-              and all(a < b for a, b in zip(bounds[:-1], bounds[1:])))
-        if not ok:
-            raise OnnxModelError(f"{self.source}: metadata {PARTS_KEY!r} must be increasing row "
-                                 f"numbers from 0 to num_gaussians {n}, got {text!r}")
+        if not (isinstance(bounds, list) and len(bounds) >= 2
+                and all(isinstance(b, int) and not isinstance(b, bool) for b in bounds)):
+            raise OnnxModelError(f"{self.source}: metadata {PARTS_KEY!r} must be a list of row "
+                                 f"numbers, got {text!r}")
+        if bounds[0] != 0 or bounds[-1] != n or any(a >= b for a, b in zip(bounds[:-1], bounds[1:])):
+            raise OnnxModelError(f"{self.source}: metadata {PARTS_KEY!r} must increase from 0 to "
+                                 f"num_gaussians {n}, got {text!r}")
         return bounds
 
-    def _part_outputs(self, names) -> dict[str, list[int]]:
-        """{NAME.partP: expected [rows, ...] shape} for the outputs in parts, checked present as
-        a whole set per output; `names` are the session's outputs."""
+    def _part_outputs(self, names) -> dict[str, tuple[str, int]]:
+        """{NAME.partP: (NAME, rows)} for the outputs in parts, checked present as a whole set
+        per output; `names` are the file's outputs."""
         bounds, parts = self.part_bounds, len(self.part_bounds) - 1
         found = {}
         for name in OUTPUTS:
             have = [f"{name}{PART_SUFFIX}{p}" in names for p in range(parts)]
-            if parts > 1 and any(have):
+            if any(have):
                 if not all(have):
                     raise OnnxModelError(f"{self.source}: output {name!r} has some of its "
                                          f"{parts} part outputs, not all")
                 for p in range(parts):
                     found[f"{name}{PART_SUFFIX}{p}"] = (name, bounds[p + 1] - bounds[p])
-        if parts > 1 and not found:
+        if not found:
             raise OnnxModelError(f"{self.source}: metadata {PARTS_KEY!r} names {parts} parts "
                                  f"but the model has no part outputs")
         return found
 
-    def _check_signature(self) -> None:
-        src, n, k = self.source, self.num_gaussians, (self.sh_degree + 1) ** 2
-        inputs = self.session.get_inputs()
+    def _check_inputs(self, session) -> None:
+        inputs = session.get_inputs()
         if len(inputs) != 1 or inputs[0].name != "time" or inputs[0].type != "tensor(float)" \
                 or _dims(inputs[0]) not in ([1], [None]):
             got = [(i.name, i.type, i.shape) for i in inputs]
-            raise OnnxModelError(f"{src}: expected one input 'time' float32 [1], got {got}")
+            raise OnnxModelError(f"{self.source}: expected one input 'time' float32 [1], got {got}")
+
+    def _check_outputs(self, outputs, parts: dict) -> None:
+        """Each output's type and shape (N = num_gaussians; a part output: its rows)."""
+        src, n, k = self.source, self.num_gaussians, (self.sh_degree + 1) ** 2
         expected = {"means": [n, 3], "scales": [n, 3], "quats": [n, 4], "opacities": [n],
                     "sh": [n, k, 3], "layer": [n]}
-        outs = {o.name: o for o in self.session.get_outputs()}
-        missing = [name for name in OUTPUTS if name not in outs]
-        if missing:
-            raise OnnxModelError(f"{src}: the model lacks outputs {missing} "
-                                 f"(has {sorted(outs)})")
-        parts = self._part_outputs(outs)
         for part, (name, rows) in parts.items():
             expected[part] = [rows] + expected[name][1:]
-        extra = sorted(set(outs) - set(expected))
+        outputs = list(outputs)
+        extra = sorted({o.name for o in outputs} - set(expected))
         if extra:
             raise OnnxModelError(f"{src}: unexpected outputs {extra}")
-        for name, o in outs.items():
-            want = "tensor(int32)" if name == "layer" else "tensor(float)"
+        for o in outputs:
+            want = "tensor(int32)" if o.name == "layer" else "tensor(float)"
             dims = _dims(o)
-            shape_ok = len(dims) == len(expected[name]) and all(
-                d is None or d == e for d, e in zip(dims, expected[name]))
+            shape_ok = len(dims) == len(expected[o.name]) and all(
+                d is None or d == e for d, e in zip(dims, expected[o.name]))
             if o.type != want or not shape_ok:
-                raise OnnxModelError(f"{src}: output {name!r} is {o.type} {o.shape}; expected "
-                                     f"{want} {expected[name]} (N = num_gaussians {n}, K = {k})")
-        self.output_names = [o.name for o in self.session.get_outputs() if o.name not in parts]
-        # in parts: the part outputs each thread asks for, and the constant outputs
-        self.parted = sorted({name for name, _ in parts.values()}, key=OUTPUTS.index)
-        groups = np.array_split(np.arange(len(self.part_bounds) - 1), self.workers)
-        self._fetches = [[f"{name}{PART_SUFFIX}{p}" for p in group for name in self.parted]
-                         for group in groups]
-        # the first share's session also holds the outputs without parts (constants)
-        self._constant_names = [name for name in self.output_names if name not in self.parted]
+                raise OnnxModelError(f"{src}: output {o.name!r} is {o.type} {o.shape}; expected "
+                                     f"{want} {expected[o.name]} (N = num_gaussians {n}, K = {k})")
 
     # ------------------------------------------------------------------ running
     def outputs(self, time: float) -> dict[str, np.ndarray]:
@@ -341,10 +379,14 @@ class OnnxModel:
         if self.workers > 1 and (self._pool is None or self._pool_pid != os.getpid()):
             from concurrent.futures import ThreadPoolExecutor
 
-            self._pool = ThreadPoolExecutor(self.workers - 1, thread_name_prefix="nehad-parts")
-            self._pool_pid = os.getpid()
+            with self._lock:
+                if self._pool is None or self._pool_pid != os.getpid():
+                    self._pool = ThreadPoolExecutor(self.workers - 1,
+                                                    thread_name_prefix="nehad-parts")
+                    self._pool_pid = os.getpid()
         first, *others = self._part_sessions
-        futures = [self._pool.submit(session.run, None, feeds) for session in others]
+        futures = [self._pool.submit(session.run, fetch, feeds)
+                   for session, fetch in zip(others, self._fetches[1:])]
         fetch = self._fetches[0]
         if self._constants is None:  # the outputs without parts do not change with time
             got = first.run(fetch + self._constant_names, feeds)
@@ -388,8 +430,7 @@ class OnnxModel:
     def set_extra_inputs(self, feeds: dict) -> None:
         """Feed these optional inputs (overridable initializers, e.g. the extra_* Gaussians of
         streaming layers) with every run from now on; clears the cache."""
-        known = ({i.name for i in self.session.get_overridable_initializers()}
-                 if self.session is not None else set())
+        known = set(self.overridable_inputs)
         unknown = sorted(set(feeds) - known)
         if unknown:
             raise OnnxModelError(f"{self.source}: the model has no optional inputs {unknown}")

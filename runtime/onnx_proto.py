@@ -168,7 +168,8 @@ def graph_sha256(data, spans=None) -> str:
     return h.hexdigest()
 
 
-__all__ = ["ModelSummary", "ProtoError", "graph_for_outputs", "graph_sha256", "summarize"]
+__all__ = ["ModelSummary", "ProtoError", "graph_for_outputs", "graph_sha256", "inputs_read",
+           "summarize"]
 
 
 # -- one edit: initializers as graph inputs ----------------------------------------------------
@@ -290,11 +291,8 @@ def _node_io(buf, span) -> tuple[list[str], list[str]]:
     return inputs, outputs
 
 
-def graph_for_outputs(data: bytes, names) -> bytes:
-    """The model `data` with only the outputs `names` and what computes them: the nodes they
-    depend on and the initializers those read (onnxruntime runs every node of a graph, whatever
-    outputs a run asks for). Every kept field keeps its bytes."""
-    names = list(names)
+def _graph_of(data: bytes):
+    """(the model's other fields as bytes, the graph's fields, {value: (node index, inputs)})."""
     buf = memoryview(data)
     rest, graph = bytearray(), []
     for num, wt, v in _fields(buf):
@@ -302,9 +300,16 @@ def graph_for_outputs(data: bytes, names) -> bytes:
             graph += [(gnum, gwt, gv) for gnum, gwt, gv in _fields(buf, *v)]
         else:
             rest += _raw_field(buf, num, wt, v)
-    nodes = [(i, *_node_io(buf, gv)) for i, (gnum, gwt, gv) in enumerate(graph)
-             if gnum == _G_NODE and gwt == 2]
-    producer = {out: (i, ins) for i, ins, outs in nodes for out in outs}
+    producer = {}
+    for i, (gnum, gwt, gv) in enumerate(graph):
+        if gnum == _G_NODE and gwt == 2:
+            ins, outs = _node_io(buf, gv)
+            producer.update((out, (i, ins)) for out in outs)
+    return buf, rest, graph, producer
+
+
+def _reach(buf, graph, producer, names) -> tuple[set, set]:
+    """(indices of the nodes the values `names` depend on, every value name they read)."""
     outputs = {_name_of_value_info(buf, gv) for gnum, gwt, gv in graph
                if gnum == _G_OUTPUT and gwt == 2}
     missing = sorted(set(names) - outputs)
@@ -320,12 +325,39 @@ def graph_for_outputs(data: bytes, names) -> bytes:
             if name and name not in used:
                 used.add(name)
                 stack.append(name)
-    out = bytearray()
+    return keep, used
+
+
+def inputs_read(data: bytes, names) -> set[str]:
+    """The graph inputs that the outputs `names` depend on (an output read from initializers
+    only reads none: a constant)."""
+    buf, _, graph, producer = _graph_of(data)
+    _, used = _reach(buf, graph, producer, list(names))
+    inputs = {_name_of_value_info(buf, gv) for gnum, gwt, gv in graph
+              if gnum == _G_INPUT and gwt == 2}
+    inits = {_tensor_header(buf, gv)[0] for gnum, gwt, gv in graph
+             if gnum == _G_INITIALIZER and gwt == 2}
+    return (inputs - inits) & used
+
+
+def graph_for_outputs(data: bytes, names) -> bytes:
+    """The model `data` with only the outputs `names` and what computes them: the nodes they
+    depend on, the initializers those read and the graph inputs still read (onnxruntime runs
+    every node of a graph, whatever outputs a run asks for). Every kept field keeps its bytes."""
+    names = list(names)
+    buf, rest, graph, producer = _graph_of(data)
+    keep, used = _reach(buf, graph, producer, names)
+    inits = {_tensor_header(buf, gv)[0] for gnum, gwt, gv in graph
+             if gnum == _G_INITIALIZER and gwt == 2}
+    parts = [bytes(rest)]
     for i, (gnum, gwt, gv) in enumerate(graph):
         if gwt == 2 and (
                 (gnum == _G_NODE and i not in keep)
                 or (gnum == _G_OUTPUT and _name_of_value_info(buf, gv) not in names)
-                or (gnum == _G_INITIALIZER and _tensor_header(buf, gv)[0] not in used)):
+                or (gnum == _G_INITIALIZER and _tensor_header(buf, gv)[0] not in used)
+                or (gnum == _G_INPUT and _name_of_value_info(buf, gv) in inits - used)):
             continue
-        out += _raw_field(buf, gnum, gwt, gv)
-    return bytes(rest + _field(_M_GRAPH, bytes(out)))
+        parts.append(_raw_field(buf, gnum, gwt, gv))
+    body = parts[1:]
+    return b"".join([parts[0], _encode_varint(_M_GRAPH << 3 | 2),
+                     _encode_varint(sum(len(b) for b in body))] + body)

@@ -222,8 +222,11 @@ def test_export_layer_output_parity(trained, tmp_path):
     path = tmp_path / "m.onnx"
     rep = export_run(run, path)
     proto = onnx.load(str(path))
-    assert [o.name for o in proto.graph.output] == list(OUTPUTS) + ["layer"]
     md = {p.key: p.value for p in proto.metadata_props}
+    parts = len(json.loads(md.get("parts", "[0, 0]"))) - 1  # docs/design.md section 7
+    assert parts > 1  # this run is large enough to be cut into parts
+    assert [o.name for o in proto.graph.output] == list(OUTPUTS) + ["layer"] + [
+        f"{name}.part{p}" for p in range(parts) for name in OUTPUTS[:4]]
     model, meta = load_run(run)
     assert json.loads(md["lod_layers"]) == meta.lod["layer_sizes"]
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
@@ -241,6 +244,16 @@ def test_export_layer_output_parity(trained, tmp_path):
     m0 = sess.run(["means"], {"time": np.array([0.0], np.float32)})[0]
     m1 = sess.run(["means"], {"time": np.array([1.0], np.float32)})[0]
     assert np.abs(m0 - m1).max() > 1e-2  # the deformation is not the identity
+    from nehad.runtime.onnx_model import OnnxModel
+
+    side, one = OnnxModel(path, threads=2), OnnxModel(path, threads=1)  # parts side by side
+    assert side.workers == 2
+    for t in (0.0, 0.7):
+        a, b = side.outputs(t), one.outputs(t)
+        assert list(a) == list(OUTPUTS) + ["layer"]
+        for name in a:
+            np.testing.assert_array_equal(a[name], b[name])
+        assert np.array_equal(a["layer"], meta.layer)
 
 
 @pytest.fixture(scope="module")
