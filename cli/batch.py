@@ -40,7 +40,7 @@ def batch(jobs_file, workers, scheduler, threads, resume, check, quiet):
     from nehad.runtime.batch import format_summary, load_batch, run_batch
 
     with user_errors():
-        spec = load_batch(jobs_file)
+        spec = load_batch(jobs_file, check_files=check)
     if check:
         kinds = ", ".join(f"{j.name} ({j.type})" for j in spec.jobs)
         click.echo(f"{jobs_file}: {len(spec.jobs)} jobs: {kinds}")
@@ -68,7 +68,10 @@ def batch(jobs_file, workers, scheduler, threads, resume, check, quiet):
 
         exit_interrupted(130)
     click.echo(format_summary(results))
-    if any(not r.ok for r in results):
+    failed = [r.job.name for r in results if not r.ok]
+    if failed:
+        click.echo(f"Error: {len(failed)} of {len(results)} jobs failed: {', '.join(failed)} "
+                   f"(each one's error is in the table above)", err=True)
         sys.exit(1)
 
 

@@ -32,9 +32,31 @@ from .viz import report, viz
 from .web import web
 
 
+class _OneLineUsageError(click.UsageError):
+    """A usage error (a bad option value, a missing argument) shown as the one `Error:` line
+    every bad input ends in, where to read more in the same line (click's own shows the usage
+    and a hint on two lines before it)."""
+
+    def show(self, file=None) -> None:
+        where = f" (see '{self.ctx.command_path} --help')" if self.ctx is not None else ""
+        click.echo(f"Error: {self.message}{where}", err=True)
+
+
+def _one_line(e: click.UsageError) -> _OneLineUsageError:
+    return _OneLineUsageError(e.format_message(), e.ctx)
+
+
 class _Commands(click.Group):
     """The command group; it refuses an argument that is not valid UTF-8 before any command
-    runs (issue 26)."""
+    runs (issue 26), and shows usage errors on one line (`_OneLineUsageError`)."""
+
+    def make_context(self, info_name, args, parent=None, **extra):
+        try:
+            return super().make_context(info_name, args, parent=parent, **extra)
+        except _OneLineUsageError:
+            raise
+        except click.UsageError as e:
+            raise _one_line(e) from None
 
     def parse_args(self, ctx, args):
         for arg in args:
@@ -53,6 +75,10 @@ class _Commands(click.Group):
 
         try:
             return super().invoke(ctx)
+        except _OneLineUsageError:
+            raise
+        except click.UsageError as e:  # a subcommand's options, or one it raised itself
+            raise _one_line(e) from None
         except Exception as e:
             if not interrupted(e):  # e.g. SystemError wrapping a KeyboardInterrupt
                 raise

@@ -348,6 +348,10 @@ def report(run, output, data_dir, frames, no_score, max_side):
         if not (run / "model.pt").is_file():
             raise InputError(f"{run}: not a finished training run (no model.pt)")
         _need_torch(run, "the report")
+        if data_dir is not None:  # given, it must be a dataset (the run's own may have moved)
+            from nehad.data.loader import detect_format
+
+            detect_format(data_dir)
         from nehad.viz.report import build_report
 
         info = build_report(run, output, data_dir=data_dir, frames=frames, score=not no_score,

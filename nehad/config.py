@@ -157,6 +157,10 @@ class CarveConfig:
     # measurements of 2026-11-25 used 3)
 
 
+#: the splits of a dataset (the D-NeRF layout's transforms_SPLIT.json)
+SPLITS = ("train", "val", "test")
+
+
 @dataclass
 class LossConfig:
     ssim_weight: float = 0.2  # loss = (1 - w) L1 + w D-SSIM; the hex-plane regulariser weights
@@ -315,6 +319,11 @@ class Config:
         if self.carve.mode not in ("vote", "rays", "tracks"):
             raise ConfigError(f"carve.mode: must be 'vote', 'rays' or 'tracks', got "
                               f"{self.carve.mode!r}")
+        for key, value, allowed in (("data.eval_split", self.data.eval_split, SPLITS),
+                                    ("carve.check_split", self.carve.check_split, SPLITS + ("",))):
+            if value not in allowed:
+                raise ConfigError(f"{key}: must be one of {', '.join(map(repr, allowed))}, got "
+                                  f"{value!r}")
 
     def _validate_resolution_schedule(self) -> None:
         """Increasing fractions in [0, 1), factors >= 1."""
@@ -392,6 +401,7 @@ class Config:
         ("train.keep_checkpoints", 1, None), ("coarse.min_window_frames", 0, None),
         ("lod.base_max_gaussians", 0, None), ("carve.seed_views", 1, None),
         ("train.seed", 0, 2**32 - 1),  # numpy's generators take no negative seed
+        ("train.revive_opacity", 0.0, 0.99), ("train.drift_window", 0.0, None),
     )
 
     def _check_ranges(self) -> None:
@@ -503,7 +513,10 @@ def build_config(preset: str = "cpu", config_file=None, overrides=()) -> Config:
     cfg = PRESETS[preset]()
     if config_file is not None:
         data = load_yaml(config_file)
-        data.pop("preset", None)
+        named = data.pop("preset", preset)  # a run's config.yaml records its preset
+        if named != preset:  # its settings sit on that preset's; these would sit on another's
+            raise ConfigError(f"{config_file}: preset {named!r}, but the run is built on "
+                              f"{preset!r}: choose it with --preset {named}, or remove the line")
         cfg = merge(cfg, data)
     for text in overrides:
         change = parse_override(text)

@@ -238,7 +238,8 @@ def _frame_object_record(path: Path, frame, rgb, background) -> dict:
         h, w = frame.image.shape[:2]
         lab = object_label_map(labels, w, h)
     except (VizError, ValueError) as e:
-        raise RunError(f"{path}: {e}") from None
+        text = str(e)
+        raise RunError(text if text.startswith(str(path)) else f"{path}: {text}") from None
     ids = [int(i) for i in np.unique(labels) if i != 0]
     return {"time": frame.camera.time, "ids": ids,
             "errors": object_errors(lab, rgb, frame.image, background)}
@@ -259,9 +260,15 @@ def evaluate_run(run_dir, split: str = "test", data_dir=None, lpips: bool = True
     data, frames = _eval_frames(run, info, split, data_dir, max_frames)
     masks = _object_masks(data, split, frames)
     out_dir = run / f"eval_{split}"
+    made = not out_dir.exists()
     out_dir.mkdir(exist_ok=True)
-    per_frame, object_records, render_seconds = _render_and_score(
-        model, info, split, frames, masks, out_dir if write_renders else None, lpips, progress)
+    try:
+        per_frame, object_records, render_seconds = _render_and_score(
+            model, info, split, frames, masks, out_dir if write_renders else None, lpips, progress)
+    except BaseException:  # a bad frame or mask, an interrupt: no empty folder left behind
+        if made and not any(out_dir.iterdir()):
+            out_dir.rmdir()
+        raise
     h, w = frames[0].image.shape[:2]
     time_range = list(info.time_range)
     result = {

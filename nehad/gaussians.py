@@ -31,9 +31,13 @@ def rgb_to_sh_dc(rgb):
 
 
 def _nearest_neighbour_distance(points: np.ndarray, k: int = 3) -> np.ndarray:
-    """Mean distance to the k nearest other points (3DGS scale initialisation)."""
+    """Mean distance to the k nearest other points (3DGS scale initialisation); with k or fewer
+    other points, to all of them; a lone point gets 0.01 (the scene's unit)."""
     pts = torch.as_tensor(points, dtype=torch.float32)
     out = torch.empty(len(pts))
+    k = min(k, len(pts) - 1)
+    if k < 1:
+        return np.full(len(pts), 0.01, np.float32)
     for start in range(0, len(pts), 2048):
         d = torch.cdist(pts[start:start + 2048], pts)
         d[torch.arange(d.shape[0]), torch.arange(start, start + d.shape[0])] = float("inf")

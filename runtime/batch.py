@@ -249,8 +249,11 @@ def _job_type(settings: dict, w: _Where) -> str:
     raise w.err("output", "missing (a .mp4 video or an image file)")
 
 
-def load_batch(path) -> BatchSpec:
-    """Read and check a jobs file (module doc); raises :class:`BatchError`."""
+def load_batch(path, check_files: bool = False) -> BatchSpec:
+    """Read and check a jobs file (module doc); raises :class:`BatchError`. With `check_files`
+    (`nehad batch --check`) also what each job would fail on once it runs (`_check_job_files`:
+    its model missing here, ...); a run reports those per job and goes on with the others (a
+    model may be where the workers run, not here)."""
     import yaml
 
     path = Path(path)
@@ -346,8 +349,47 @@ def load_batch(path) -> BatchSpec:
                     raise w.err(key, f"{merged[key]} is also written by job {outputs[target]!r}")
                 outputs[target] = name
         jobs.append(BatchJob(i, name, kind, merged))
+    for job in jobs if check_files else ():  # the whole file's keys first, then its files
+        _check_job_files(job.settings, job.type, _Where(source, job.index, job.name))
     _check_outputs_are_not_inputs(path, source, jobs)
     return BatchSpec(path, jobs, workers, scheduler, threads)
+
+
+def _check_job_files(job: dict, kind: str, w: _Where) -> None:
+    """What a job would fail on once it runs, found before anything runs: its model missing,
+    its output folder missing, a sweep of times for one image, a streaming layer the model
+    lacks."""
+    from .paths import PathError, parse_time_spec
+
+    model = job["model"]
+    if not model.exists():
+        raise w.err("model", f"{model}: no such file or folder")
+    for key in ("output", "frames_dir"):
+        if key in job and not job[key].parent.is_dir():
+            raise w.err(key, f"{job[key]}: folder {job[key].parent} does not exist")
+    if kind == "image" and "time" in job:
+        try:
+            sweep = parse_time_spec(job["time"]).mode == "sweep"
+        except PathError as e:  # pragma: no cover (checked by _convert)
+            raise w.err("time", str(e)) from None
+        if sweep:
+            raise w.err("time", f"{job['time']}: an image job renders one time T")
+    if "lod" in job and model.is_file() and model.suffix.lower() == ".onnx":
+        import json
+
+        from .onnx_model import OnnxModelError, read_model_info
+
+        try:
+            text = read_model_info(model).metadata.get("lod_layers")
+        except OnnxModelError as e:
+            raise w.err("model", str(e)) from None
+        try:
+            layers = len(json.loads(text)) if text else 1
+        except (ValueError, TypeError, RecursionError):
+            layers = 1
+        if job["lod"] >= layers:
+            raise w.err("lod", f"{job['lod']}: {model.name} has {layers} layer(s), "
+                               f"0..{layers - 1}")
 
 
 def _check_outputs_are_not_inputs(path: Path, source: str, jobs: list) -> None:

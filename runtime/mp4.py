@@ -83,7 +83,7 @@ def video_rate(fps: float) -> Fraction:
     if abs(fps - whole) < 1e-9:
         return Fraction(whole)
     ntsc = round(fps * 1.001)
-    if abs(fps - ntsc / 1.001) < 5e-3:
+    if ntsc >= 1 and abs(fps - ntsc / 1.001) < 5e-3:  # (not a rate under 1/2 fps: 0/1001)
         return Fraction(ntsc * 1000, 1001)
     return Fraction(fps).limit_denominator(1000)
 

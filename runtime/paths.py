@@ -133,7 +133,10 @@ def _vector(value: str, key: str, spec: str, axis_ok: bool = False) -> np.ndarra
     if len(items) != 3:
         hint = ", or an axis like z or -y" if axis_ok else ""
         raise PathError(f"{spec}: {key}={value}: expected three numbers [x,y,z]{hint}")
-    return np.array([_float(s, key, spec) for s in items], np.float64)
+    out = np.array([_float(s, key, spec) for s in items], np.float64)
+    if not np.abs(out).max() <= 1e9:
+        raise PathError(f"{spec}: {key}={value}: each number must be within +-1e9")
+    return out
 
 
 def _parse_generated(kind: str, rest: str, spec: str) -> dict:
@@ -164,8 +167,10 @@ def _parse_generated(kind: str, rest: str, spec: str) -> dict:
             opts[key] = value
         else:
             v = _float(value, key, spec)
-            if key == "radius" and v <= 0:
-                raise PathError(f"{spec}: radius={value}: must be positive")
+            if key == "radius" and not 0 < v <= 1e9:
+                raise PathError(f"{spec}: radius={value}: must be positive, at most 1e9")
+            if key in ("turns", "start") and not abs(v) <= 1e6:
+                raise PathError(f"{spec}: {key}={value}: must be within +-1e6")
             if key == "elevation" and not -90 < v < 90:
                 raise PathError(f"{spec}: elevation={value}: must be in (-90, 90) degrees")
             if key == "fov" and not 0 < v < 180:

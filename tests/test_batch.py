@@ -98,9 +98,14 @@ def test_cli_runs_every_job_and_reports_failures(model, tmp_path):
           - {{name: late, output: out/late.png, view: default, time: 3}}
           - {{name: seq, frames_dir: out/seq, frames: 3, time: 0.5}}
         """)
+    res = CliRunner().invoke(main, ["batch", str(jobs), "--check"])  # what would fail, first
+    assert res.exit_code == 1 and "(jobs[1]): model:" in res.stderr, res.output
+    assert "missing.onnx: no such file or folder" in res.stderr
     res = CliRunner().invoke(main, ["batch", str(jobs), "--quiet"])
     assert res.exit_code == 1, res.output
-    lines = res.output.strip().splitlines()
+    assert res.stderr.strip() == ("Error: 2 of 5 jobs failed: broken, late (each one's error is "
+                                  "in the table above)"), res.stderr
+    lines = res.stdout.strip().splitlines()
     assert lines[0].split()[:6] == ["job", "type", "frames", "rendered", "seconds", "status"]
     rows = {ln.split()[0]: ln for ln in lines[1:-1]}
     assert set(rows) == {"orbit", "broken", "still", "late", "seq"}

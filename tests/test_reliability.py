@@ -940,12 +940,13 @@ def test_write_sequence_and_write_all_leave_nothing_on_a_failure(tmp_path):
 
 
 def _clean_error(res, *needles) -> str:
-    """Like _one_error, for click's own option errors too (exit 2, a `Usage:` line before the
-    one `Error:` line)."""
+    """Like _one_error, for click's own option errors too (exit 2; one `Error:` line as well,
+    no `Usage:` lines: cli/main.py `_OneLineUsageError`)."""
     assert res.exit_code in (1, 2), (res.exit_code, res.output, res.exception)
     assert res.exception is None or isinstance(res.exception, SystemExit), repr(res.exception)
-    errors = [ln for ln in res.stderr.splitlines() if ln.startswith("Error")]
-    assert len(errors) == 1, res.stderr
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    errors = [ln for ln in lines if ln.startswith("Error")]
+    assert len(errors) == 1 and len(lines) == 1, res.stderr
     for n in needles:
         assert n in errors[0], (n, errors[0])
     assert "Traceback" not in res.output
@@ -1451,3 +1452,122 @@ def test_info_refuses_a_model_that_render_refuses(model, tmp_path):
     for command in (["info", bad], ["render", bad, "--view", "default", "--time", "0.5",
                                     "-o", tmp_path / "x.png"]):
         _one_error(_invoke(command), "bad.onnx", "num_gaussians 7")
+
+
+# ---------------------------------------------------------------------------------------------
+# the fuzzing pass of 2026-11-27: each input below ended in a traceback, a library's warning
+# line, an exit status 0 or a file left behind
+
+
+def test_a_downscale_larger_than_the_images_is_one_error(model, tmp_path):
+    _, scene, _ = model
+    _one_error(_invoke(["train", scene, "-o", tmp_path / "run", "--preset", "test", "--quiet",
+                        "--set", "data.downscale=1000"]), "data.downscale 1000", "no pixel left")
+
+
+@pytest.mark.parametrize("points", [1, 2])
+def test_training_starts_from_one_or_two_points(model, tmp_path, points):
+    """3DGS sizes each starting Gaussian by its 3 nearest neighbours: with fewer points, by
+    those there are (a lone point: 0.01)."""
+    from nehad.gaussians import _nearest_neighbour_distance
+
+    assert _nearest_neighbour_distance(np.zeros((1, 3)))[0] == pytest.approx(0.01)
+    assert _nearest_neighbour_distance(np.array([[0, 0, 0], [3, 4, 0]], float)) == \
+        pytest.approx([5.0, 5.0])
+    _, scene, _ = model
+    res = _invoke(["train", scene, "-o", tmp_path / "run", "--preset", "test", "--quiet",
+                   "--set", f"train.init_max_points={points}", "--set", "coarse.iterations=3",
+                   "--set", "fine.iterations=3"])
+    assert res.exit_code == 0 and not res.stderr.strip(), res.output
+
+
+def test_a_diverged_training_is_one_error_without_numpy_lines(model, tmp_path, capfd):
+    _, scene, _ = model
+    capfd.readouterr()
+    _one_error(_invoke(["train", scene, "-o", tmp_path / "run", "--preset", "test", "--quiet",
+                        "--set", "field.dt=1e30", "--set", "coarse.iterations=3",
+                        "--set", "fine.iterations=3"]), "the loss became nan")
+    assert "RuntimeWarning" not in capfd.readouterr().err
+
+
+@pytest.mark.parametrize("option,needle", [
+    ("train.revive_opacity=2", "train.revive_opacity: must be in [0.0, 0.99]"),
+    ("data.eval_split=bogus", "data.eval_split: must be one of"),
+    ("carve.check_split=nope", "carve.check_split: must be one of"),
+])
+def test_config_values_out_of_their_range_or_choices(model, tmp_path, option, needle):
+    _, scene, _ = model
+    _one_error(_invoke(["train", scene, "-o", tmp_path / "run", "--preset", "test", "--quiet",
+                        "--set", option]), needle)
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_config_file_of_another_preset_is_refused(model, tmp_path):
+    _, scene, _ = model
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("preset: paper\ncoarse:\n  iterations: 3\n")
+    _one_error(_invoke(["train", scene, "-o", tmp_path / "run", "--preset", "test", "--quiet",
+                        "--config", cfg]), "c.yaml", "preset 'paper'", "--preset paper")
+
+
+@pytest.mark.parametrize("path,needle", [
+    ("orbit:turns=1e308", "turns=1e308: must be within +-1e6"),
+    ("orbit:radius=1e300", "radius=1e300: must be positive, at most 1e9"),
+    ("orbit:centre=[1e300,0,0]", "each number must be within +-1e9"),
+])
+def test_orbit_numbers_too_large_for_the_geometry(model, tmp_path, path, needle):
+    _one_error(_invoke(["video", model[0], "--frames", "2", "--size", "16x16", "--workers", "1",
+                        "-o", tmp_path / "v.mp4", "--path", path]), needle)
+    assert not list(tmp_path.iterdir())
+
+
+def test_a_slow_frame_rate_in_range_is_encoded():
+    """0.0013 fps was read as the NTSC rate 0/1001 and refused after every frame was drawn."""
+    from fractions import Fraction
+
+    from nehad.runtime.mp4 import video_rate
+
+    assert video_rate(0.0013) == Fraction(1, 769) and video_rate(0.001) == Fraction(1, 1000)
+    assert video_rate(29.97) == Fraction(30000, 1001) and video_rate(0.5) == Fraction(1, 2)
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["render", "{m}", "--size", "0x0", "-o", "{o}/a.png"], "Invalid value for '--size'"),
+    (["render", "{m}", "--background", "2,0,0", "-o", "{o}/a.png"], "'--background'"),
+    (["export", "{o}"], "give -o MODEL.onnx"),
+    (["info", "{o}"], "is a directory"),
+    (["no-such-command"], "No such command"),
+])
+def test_usage_errors_are_one_line(model, tmp_path, args, needle):
+    res = _invoke([a.format(m=model[0], o=tmp_path) for a in args])
+    assert res.exit_code == 2, res.output
+    line = _clean_error(res, needle)
+    assert "--help" in line and "Usage:" not in res.output
+
+
+def test_eval_with_an_unreadable_mask_leaves_no_empty_folder(model, tmp_path):
+    _, scene, run = model
+    data, copy = tmp_path / "data", tmp_path / "run"
+    shutil.copytree(scene, data)
+    shutil.copytree(run, copy, ignore=shutil.ignore_patterns("eval_*"))
+    masks = sorted((data / "test" / "masks").glob("*.png"))
+    assert masks
+    masks[0].write_bytes(b"not a png")
+    line = _one_error(_invoke(["eval", copy, "--data", data, "--no-lpips", "--quiet"]),
+                      "cannot read the label mask")
+    assert line.count(str(masks[0])) == 1, line
+    assert not (copy / "eval_test").exists()
+
+
+def test_batch_check_finds_what_the_jobs_would_fail_on(model, tmp_path):
+    m = model[0]
+    for body, needle in [
+        (f"jobs: [{{model: {tmp_path}/nowhere.onnx, output: a.png, time: 0.5}}]",
+         "nowhere.onnx: no such file or folder"),
+        (f"jobs: [{{model: {m}, output: no/a.png, time: 0.5}}]", "folder"),
+        (f"jobs: [{{model: {m}, output: a.png, time: '0:1'}}]", "an image job renders one time"),
+        (f"jobs: [{{model: {m}, output: a.png, lod: 3}}]", "has 1 layer(s)"),
+    ]:
+        jobs = _jobs(tmp_path, body)
+        _one_error(_invoke(["batch", jobs, "--check"]), needle)
+

@@ -106,9 +106,13 @@ def test_report_without_eval_or_dataset(tiny_run, tmp_path):
     copy.mkdir()
     for name in ("model.pt", "config.yaml", "metrics.jsonl"):
         shutil.copy(run / name, copy / name)
+    from nehad.checkpoint import atomic_torch_save, load_state
+
+    state = load_state(copy / "model.pt")  # the dataset the run recorded has moved
+    state["data_dir"] = str(tmp_path / "moved")
+    atomic_torch_save(state, copy / "model.pt")
     out = tmp_path / "r.html"
-    res = CliRunner().invoke(main, ["report", str(copy), "-o", str(out), "--data",
-                                    str(tmp_path / "moved"), "--max-side", "64"])
+    res = CliRunner().invoke(main, ["report", str(copy), "-o", str(out), "--max-side", "64"])
     assert res.exit_code == 0, res.output
     page = _parse(out)
     text = " ".join(page.text)
@@ -124,7 +128,11 @@ def test_report_bad_inputs(tiny_run, tiny_onnx, tmp_path):
     for args, word in [([str(tiny_onnx), "-o", str(tmp_path / "a.html")], "not an exported"),
                        ([str(tmp_path), "-o", str(tmp_path / "a.html")], "no model.pt"),
                        ([str(run), "-o", str(tmp_path / "a.pdf")], ".html"),
-                       ([str(run), "-o", str(tmp_path / "no" / "a.html")], "does not exist")]:
+                       ([str(run), "-o", str(tmp_path / "no" / "a.html")], "does not exist"),
+                       ([str(run), "-o", str(tmp_path / "a.html"), "--data",
+                         str(tmp_path / "moved")], "scene folder not found"),
+                       ([str(run), "-o", str(tmp_path / "a.html"), "--data", str(tmp_path)],
+                        "not a dataset folder")]:
         res = runner.invoke(main, ["report"] + args)
         assert res.exit_code != 0 and word in res.output, res.output
         assert "Traceback" not in res.output

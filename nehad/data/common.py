@@ -127,6 +127,9 @@ def area_downscale(img: np.ndarray, f: int) -> np.ndarray:
     """Mean over f x f blocks; a remainder at the right/bottom edge is cropped."""
     h, w, c = img.shape
     h2, w2 = h // f, w // f
+    if h2 == 0 or w2 == 0:
+        raise DatasetError(f"data.downscale {f}: an image of {w}x{h} pixels has no pixel left "
+                           f"(at most {min(w, h)} for these images)")
     return img[: h2 * f, : w2 * f].reshape(h2, f, w2, f, c).mean(axis=(1, 3), dtype=np.float32)
 
 

@@ -387,7 +387,10 @@ def _spatial_order(u: np.ndarray, cells: int = 32) -> np.ndarray:
     """The points in the order of a coarse grid over [-1, 1]^3 (x-major cells of 2 / `cells`):
     neighbouring points read neighbouring texels, so the table reads hit the cache (in the
     Gaussians' own order every tap was a cache miss)."""
-    q = np.clip(((u[:, :3] + 1.0) * (0.5 * cells)).astype(np.int64), 0, cells - 1)
+    # a NaN coordinate (a diverged step: the trainer stops on the NaN loss after it) sorts
+    # anywhere, without numpy's cast warning
+    q = np.nan_to_num((u[:, :3] + 1.0) * (0.5 * cells), nan=0.0, posinf=cells, neginf=0.0)
+    q = np.clip(q, 0, cells - 1).astype(np.int64)
     return np.argsort((q[:, 0] * cells + q[:, 1]) * cells + q[:, 2], kind="stable")
 
 

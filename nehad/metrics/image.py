@@ -47,7 +47,10 @@ def as_image_tensor(x, dtype=torch.float64) -> torch.Tensor:
             a = a.astype(np.float64) / 65535.0
         elif not np.issubdtype(a.dtype, np.floating):
             raise TypeError(f"unsupported image dtype {a.dtype}; give floats in [0, 1], uint8 or uint16")
-        t = torch.from_numpy(np.ascontiguousarray(a))
+        a = np.ascontiguousarray(a)
+        if not a.flags.writeable:  # a read-only view (torch warns on those): a copy
+            a = a.copy()
+        t = torch.from_numpy(a)
     t = t.to(dtype)
     if t.dim() == 3:
         t = t[None]
