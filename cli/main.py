@@ -42,7 +42,14 @@ class _OneLineUsageError(click.UsageError):
         click.echo(f"Error: {self.message}{where}", err=True)
 
 
-def _one_line(e: click.UsageError) -> _OneLineUsageError:
+#: click's "no arguments: here is the help" (a UsageError since click 8.2): shown as click shows it
+_HELP_ERRORS = tuple(getattr(click.exceptions, name) for name in ("NoArgsIsHelpError",)
+                     if hasattr(click.exceptions, name))
+
+
+def _one_line(e: click.UsageError) -> click.UsageError:
+    if isinstance(e, (_OneLineUsageError,) + _HELP_ERRORS):
+        return e
     return _OneLineUsageError(e.format_message(), e.ctx)
 
 
@@ -53,8 +60,6 @@ class _Commands(click.Group):
     def make_context(self, info_name, args, parent=None, **extra):
         try:
             return super().make_context(info_name, args, parent=parent, **extra)
-        except _OneLineUsageError:
-            raise
         except click.UsageError as e:
             raise _one_line(e) from None
 
@@ -75,8 +80,6 @@ class _Commands(click.Group):
 
         try:
             return super().invoke(ctx)
-        except _OneLineUsageError:
-            raise
         except click.UsageError as e:  # a subcommand's options, or one it raised itself
             raise _one_line(e) from None
         except Exception as e:

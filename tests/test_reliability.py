@@ -1545,6 +1545,13 @@ def test_usage_errors_are_one_line(model, tmp_path, args, needle):
     assert "--help" in line and "Usage:" not in res.output
 
 
+@pytest.mark.parametrize("args", [[], ["viz"]])
+def test_a_group_without_a_command_still_shows_its_help(args):
+    res = _invoke(args)
+    assert res.output.startswith("Usage: ") and "Error" not in res.output, res.output
+    assert "Commands:" in res.output
+
+
 def test_eval_with_an_unreadable_mask_leaves_no_empty_folder(model, tmp_path):
     _, scene, run = model
     data, copy = tmp_path / "data", tmp_path / "run"
