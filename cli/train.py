@@ -16,10 +16,11 @@ from .errors import InputError, interrupted, user_errors
 @click.argument("data", type=click.Path(path_type=Path))
 @click.option("-o", "--output", "run", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Run directory: config.yaml, checkpoints/, metrics.jsonl, model.pt.")
-@click.option("--preset", default="cpu", show_default=True,
+@click.option("--preset", default=None,
               help="Settings to start from: paper (the paper's), cpu (sized for a 2-core CPU at "
-                   "half resolution), quick, test (seconds, tiny), hypernerf or dynerf (the "
-                   "paper's recipe with those datasets' hex-plane settings).")
+                   "half resolution; the default), quick, test (seconds, tiny), hypernerf or "
+                   "dynerf (the paper's recipe with those datasets' hex-plane settings). With "
+                   "--config, the file's own `preset:` line when there is one.")
 @click.option("--config", "config_file", type=click.Path(dir_okay=False, path_type=Path),
               default=None, help="YAML file applied on top of the preset.")
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",

@@ -157,10 +157,6 @@ class CarveConfig:
     # measurements of 2026-11-25 used 3)
 
 
-#: the splits of a dataset (the D-NeRF layout's transforms_SPLIT.json)
-SPLITS = ("train", "val", "test")
-
-
 @dataclass
 class LossConfig:
     ssim_weight: float = 0.2  # loss = (1 - w) L1 + w D-SSIM; the hex-plane regulariser weights
@@ -319,11 +315,6 @@ class Config:
         if self.carve.mode not in ("vote", "rays", "tracks"):
             raise ConfigError(f"carve.mode: must be 'vote', 'rays' or 'tracks', got "
                               f"{self.carve.mode!r}")
-        for key, value, allowed in (("data.eval_split", self.data.eval_split, SPLITS),
-                                    ("carve.check_split", self.carve.check_split, SPLITS + ("",))):
-            if value not in allowed:
-                raise ConfigError(f"{key}: must be one of {', '.join(map(repr, allowed))}, got "
-                                  f"{value!r}")
 
     def _validate_resolution_schedule(self) -> None:
         """Increasing fractions in [0, 1), factors >= 1."""
@@ -401,11 +392,13 @@ class Config:
         ("train.keep_checkpoints", 1, None), ("coarse.min_window_frames", 0, None),
         ("lod.base_max_gaussians", 0, None), ("carve.seed_views", 1, None),
         ("train.seed", 0, 2**32 - 1),  # numpy's generators take no negative seed
-        ("train.revive_opacity", 0.0, 0.99), ("train.drift_window", 0.0, None),
     )
+    #: checked in configs built from a preset, a file and --set (`build_config`), not in a saved
+    #: run's, which loaded before these checks were written
+    NEW_RANGES = (("train.revive_opacity", 0.0, 0.99), ("train.drift_window", 0.0, None))
 
-    def _check_ranges(self) -> None:
-        for key, low, high in self.RANGES:
+    def _check_ranges(self, ranges=None) -> None:
+        for key, low, high in self.RANGES if ranges is None else ranges:
             section, name = key.split(".")
             value = getattr(getattr(self, section), name)
             if value is None:
@@ -506,24 +499,30 @@ PRESETS = {"paper": _paper, "cpu": _cpu, "quick": _quick, "test": _test,
            "hypernerf": _hypernerf, "dynerf": _dynerf}
 
 
-def build_config(preset: str = "cpu", config_file=None, overrides=()) -> Config:
-    """preset -> YAML file -> `a.b=v` overrides; validated."""
+def build_config(preset: str | None = "cpu", config_file=None, overrides=()) -> Config:
+    """preset -> YAML file -> `a.b=v` overrides; validated. `preset` None: the YAML file's own
+    `preset:` (a run's config.yaml records it), else `cpu`; a preset given that differs from
+    the file's is refused (the file's settings were made on its own)."""
+    data = load_yaml(config_file) if config_file is not None else None
+    named = data.pop("preset", None) if data is not None else None
+    if preset is None:
+        preset = named if named is not None else "cpu"
+    elif named is not None and named != preset:
+        raise ConfigError(f"{config_file}: preset {named!r}, but --preset {preset}: leave "
+                          f"--preset out to use the file's, or remove its preset line")
     if preset not in PRESETS:
         raise ConfigError(f"preset: unknown preset {preset!r} (choose from {', '.join(PRESETS)})")
     cfg = PRESETS[preset]()
-    if config_file is not None:
-        data = load_yaml(config_file)
-        named = data.pop("preset", preset)  # a run's config.yaml records its preset
-        if named != preset:  # its settings sit on that preset's; these would sit on another's
-            raise ConfigError(f"{config_file}: preset {named!r}, but the run is built on "
-                              f"{preset!r}: choose it with --preset {named}, or remove the line")
+    if data is not None:
         cfg = merge(cfg, data)
     for text in overrides:
         change = parse_override(text)
         if "preset" in change:  # it would be recorded in config.yaml while the settings stay
             raise ConfigError(f"override {text!r}: the preset is chosen with --preset, not --set")
         cfg = merge(cfg, change)
-    return cfg.validate()
+    cfg.validate()
+    cfg._check_ranges(Config.NEW_RANGES)
+    return cfg
 
 
 def config_from_dict(data: dict) -> Config:
