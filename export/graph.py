@@ -21,6 +21,7 @@ import torch
 from torch import nn
 
 from nehad.export.deform_graph import FastDeform
+from nehad.runtime.onnx_model import part_output_name  # docs/design.md section 7: "means.part0"
 
 OUTPUT_NAMES = ("means", "scales", "quats", "opacities", "sh")
 LAYER_OUTPUT = "layer"  # docs/design.md section 7: with LOD layers, each Gaussian's layer [N] int32
@@ -38,13 +39,7 @@ def closed_form_copy(model) -> nn.Module:
     return model
 
 
-PART_SUFFIX = ".part"  # docs/design.md section 7: rows of an output, "means.part0", ...
 MIN_PART_ROWS = 2048  # moving Gaussians per part at least (`part_bounds`)
-
-
-def part_output_name(name: str, part: int) -> str:
-    """The output that holds part `part`'s rows of output `name`."""
-    return f"{name}{PART_SUFFIX}{part}"
 
 
 def part_bounds(moving: np.ndarray, parts: int, min_rows: int = MIN_PART_ROWS) -> list[int]:
@@ -68,9 +63,10 @@ class ExportGraph(nn.Module):
 
     With `parts` > 1 the rows are cut into contiguous parts (`part_bounds`), each deformed by its
     own copy of the graph's nodes (one set of weights), and the outputs are the parts'
-    concatenation, followed by every part's own outputs (`part_output_name`): a runtime that asks
-    onnxruntime for one part's outputs runs that part's nodes only, so parts run side by side on
-    several cores (docs/design.md section 7; runtime/onnx_model.py)."""
+    concatenation, followed by every part's own outputs (`part_output_name`): the runtime cuts
+    the graph down to a share of the parts' outputs (onnxruntime runs every node of a graph
+    whatever a run asks for) and runs the shares side by side on several cores (docs/design.md
+    section 7; runtime/onnx_model.py)."""
 
     def __init__(self, model, sh_degree: int, layer=None, static=None, parts: int = 1,
                  min_part_rows: int = MIN_PART_ROWS):
@@ -177,5 +173,5 @@ def reference_outputs(model, t: float, sh_degree: int, layer=None) -> list:
     return out
 
 
-__all__ = ["ExportGraph", "LAYER_OUTPUT", "MIN_PART_ROWS", "OUTPUT_NAMES", "PART_SUFFIX", "closed_form_copy",
-           "part_bounds", "part_output_name", "reference_outputs"]
+__all__ = ["ExportGraph", "LAYER_OUTPUT", "MIN_PART_ROWS", "OUTPUT_NAMES", "closed_form_copy",
+           "part_bounds", "reference_outputs"]

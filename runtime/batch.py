@@ -253,8 +253,11 @@ def load_batch(path, check_files: bool = False) -> BatchSpec:
     """Read and check a jobs file (module doc); raises :class:`BatchError`. With `check_files`
     (`nehad batch --check`) also what each job would fail on once it runs (`_check_job_files`:
     its model missing here, ...); a run reports those per job and goes on with the others (a
-    model may be where the workers run, not here)."""
+    model may be where the workers run, not here). A sweep of times for an image job is a
+    mistake in the file, refused either way."""
     import yaml
+
+    from .paths import parse_time_spec
 
     path = Path(path)
     source = str(path)
@@ -335,6 +338,9 @@ def load_batch(path, check_files: bool = False) -> BatchSpec:
         if kind == "image" and merged["output"].suffix.lower() not in IMAGE_SUFFIXES:
             raise w.err("output", f"{merged['output'].name}: an image job writes "
                                   f"{', '.join(IMAGE_SUFFIXES)}")
+        if kind == "image" and "time" in merged and \
+                parse_time_spec(merged["time"]).mode == "sweep":  # checked by _convert
+            raise w.err("time", f"{merged['time']}: an image job renders one time T")
         if kind == "video" and merged.get("side_by_side") and "path" not in merged:
             raise w.err("side_by_side", "needs a dataset path with ground truth (path: DATA:test)")
         name = merged.pop("name", None) or f"job{i + 1}"
@@ -357,36 +363,20 @@ def load_batch(path, check_files: bool = False) -> BatchSpec:
 
 def _check_job_files(job: dict, kind: str, w: _Where) -> None:
     """What a job would fail on once it runs, found before anything runs: its model missing,
-    its output folder missing, a sweep of times for one image, a streaming layer the model
-    lacks."""
-    from .paths import PathError, parse_time_spec
-
+    its output folder missing, a streaming layer the model lacks."""
     model = job["model"]
     if not model.exists():
         raise w.err("model", f"{model}: no such file or folder")
     for key in ("output", "frames_dir"):
         if key in job and not job[key].parent.is_dir():
             raise w.err(key, f"{job[key]}: folder {job[key].parent} does not exist")
-    if kind == "image" and "time" in job:
-        try:
-            sweep = parse_time_spec(job["time"]).mode == "sweep"
-        except PathError as e:  # pragma: no cover (checked by _convert)
-            raise w.err("time", str(e)) from None
-        if sweep:
-            raise w.err("time", f"{job['time']}: an image job renders one time T")
     if "lod" in job and model.is_file() and model.suffix.lower() == ".onnx":
-        import json
-
         from .onnx_model import OnnxModelError, read_model_info
 
         try:
-            text = read_model_info(model).metadata.get("lod_layers")
+            layers = read_model_info(model).num_layers
         except OnnxModelError as e:
             raise w.err("model", str(e)) from None
-        try:
-            layers = len(json.loads(text)) if text else 1
-        except (ValueError, TypeError, RecursionError):
-            layers = 1
         if job["lod"] >= layers:
             raise w.err("lod", f"{job['lod']}: {model.name} has {layers} layer(s), "
                                f"0..{layers - 1}")

@@ -44,9 +44,14 @@ OUTPUTS = ("means", "scales", "quats", "opacities", "sh")
 REQUIRED_METADATA = ("format", "sh_degree", "num_gaussians", "time_range", "background", "aabb")
 #: Metadata key of the SHA-256 of the serialized graph (runtime.onnx_proto.graph_sha256).
 DIGEST_KEY = "graph_sha256"
-#: Metadata key of the part row bounds; part outputs are named NAME + PART_SUFFIX + index.
+#: Metadata key of the part row bounds; part outputs are named by `part_output_name`.
 PARTS_KEY = "parts"
 PART_SUFFIX = ".part"
+
+
+def part_output_name(name: str, part: int) -> str:
+    """The output that holds part `part`'s rows of output `name` ("means.part0", ...)."""
+    return f"{name}{PART_SUFFIX}{part}"
 
 
 class OnnxModelError(InputProblem):
@@ -70,6 +75,18 @@ class ModelInfo:
     aabb: np.ndarray  # (2, 3)
     default_camera: object  # runtime.cameras.Camera or None
     digest_checked: bool = False  # the graph matched the metadata's graph_sha256
+
+    @property
+    def num_layers(self) -> int:
+        """Streaming layers in the file (metadata `lod_layers`; 1 without layers)."""
+        text = self.metadata.get("lod_layers")
+        if not text:
+            return 1
+        try:
+            return max(1, len(json.loads(text)))
+        except (ValueError, TypeError, RecursionError):
+            raise OnnxModelError(f"{self.path}: metadata lod_layers is not a JSON list: "
+                                 f"{text!r}") from None
 
 
 def _json(md: dict, key: str, source: str):
@@ -265,7 +282,7 @@ class OnnxModel:
             raise OnnxModelError(f"{src}: outputs {self._constant_names} have no part outputs "
                                  f"but read the inputs {sorted(read)} (they change with time)")
         groups = np.array_split(np.arange(len(self.part_bounds) - 1), self.workers)
-        self._fetches = [[f"{name}{PART_SUFFIX}{p}" for p in group for name in self.parted]
+        self._fetches = [[part_output_name(name, p) for p in group for name in self.parted]
                          for group in groups]
         for i, fetch in enumerate(self._fetches):
             wanted = fetch + (self._constant_names if i == 0 else [])
@@ -300,13 +317,13 @@ class OnnxModel:
         bounds, parts = self.part_bounds, len(self.part_bounds) - 1
         found = {}
         for name in OUTPUTS:
-            have = [f"{name}{PART_SUFFIX}{p}" in names for p in range(parts)]
+            have = [part_output_name(name, p) in names for p in range(parts)]
             if any(have):
                 if not all(have):
                     raise OnnxModelError(f"{self.source}: output {name!r} has some of its "
                                          f"{parts} part outputs, not all")
                 for p in range(parts):
-                    found[f"{name}{PART_SUFFIX}{p}"] = (name, bounds[p + 1] - bounds[p])
+                    found[part_output_name(name, p)] = (name, bounds[p + 1] - bounds[p])
         if not found:
             raise OnnxModelError(f"{self.source}: metadata {PARTS_KEY!r} names {parts} parts "
                                  f"but the model has no part outputs")
@@ -417,15 +434,8 @@ class OnnxModel:
 
     @property
     def num_layers(self) -> int:
-        """Streaming layers in the file (metadata `lod_layers`; 1 without layers)."""
-        text = self.metadata.get("lod_layers")
-        if not text:
-            return 1
-        try:
-            return max(1, len(json.loads(text)))
-        except (ValueError, TypeError):
-            raise OnnxModelError(f"{self.source}: metadata lod_layers is not a JSON list: "
-                                 f"{text!r}") from None
+        """Streaming layers in the file (`ModelInfo.num_layers`)."""
+        return self.info.num_layers
 
     def set_extra_inputs(self, feeds: dict) -> None:
         """Feed these optional inputs (overridable initializers, e.g. the extra_* Gaussians of
