@@ -101,9 +101,15 @@ def _forward(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, chan
 @numba.njit(fastmath=True, cache=True)
 def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
                        grad_out, grad_samples, grad_u, order, start, stop):
-    samples = np.empty((6, channels), np.float32)
-    sx = np.empty((6, channels), np.float32)  # d sample / d pixel x
-    sy = np.empty((6, channels), np.float32)
+    """dL/ds_k (into `grad_samples`) and dL/du of points order[start:stop]. The product over
+    the other five planes is a prefix times a suffix product (three passes over the six
+    samples, not thirty products); the scratch rows are flat (plane k at k * channels), so
+    every loop over the channels is one contiguous, vectorisable pass."""
+    samples = np.empty(6 * channels, np.float32)
+    sx = np.empty(6 * channels, np.float32)  # d sample / d pixel x
+    sy = np.empty(6 * channels, np.float32)
+    others = np.empty(6 * channels, np.float32)  # prod_{j != k} s_j
+    running = np.empty(channels, np.float32)
     slopes = np.empty((6, 2), np.float32)
     for i in range(start, stop):
         n = order[i]
@@ -113,36 +119,42 @@ def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_sc
                     u, n, s * 6 + k, k, offsets, heights, widths, axis_a, axis_b, channels)
                 slopes[k, 0] = slope_x
                 slopes[k, 1] = slope_y
-                t00 = tables[base:base + channels]
-                t01 = tables[base + dx:base + dx + channels]
-                t10 = tables[base + dy:base + dy + channels]
-                t11 = tables[base + dy + dx:base + dy + dx + channels]
-                sk = samples[k]
-                xk = sx[k]
-                yk = sy[k]
+                o = k * channels
                 for c in range(channels):
-                    top = t00[c] + fx * (t01[c] - t00[c])
-                    bottom = t10[c] + fx * (t11[c] - t10[c])
-                    sk[c] = top + fy * (bottom - top)
-                    xk[c] = (_ONE - fy) * (t01[c] - t00[c]) + fy * (t11[c] - t10[c])
-                    yk[c] = bottom - top
+                    a = tables[base + c]
+                    b = tables[base + dx + c]
+                    d = tables[base + dy + c]
+                    e = tables[base + dy + dx + c]
+                    top = a + fx * (b - a)
+                    bottom = d + fx * (e - d)
+                    samples[o + c] = top + fy * (bottom - top)
+                    sx[o + c] = (_ONE - fy) * (b - a) + fy * (e - d)
+                    sy[o + c] = bottom - top
             g = grad_out[n, s * channels:(s + 1) * channels]
-            for k in range(6):
-                gk = grad_samples[s * 6 + k, i]
+            for c in range(channels):
+                running[c] = g[c]
+            for k in range(6):  # others = g * prefix product
+                o = k * channels
                 for c in range(channels):
-                    gk[c] = g[c]
-                for j in range(6):
-                    if j != k:
-                        sj = samples[j]
-                        for c in range(channels):
-                            gk[c] *= sj[c]
+                    others[o + c] = running[c]
+                    running[c] *= samples[o + c]
+            for c in range(channels):
+                running[c] = _ONE
+            for k in range(5, -1, -1):  # ... times the suffix product
+                o = k * channels
+                for c in range(channels):
+                    others[o + c] *= running[c]
+                    running[c] *= samples[o + c]
+            for k in range(6):
+                o = k * channels
+                gk = grad_samples[s * 6 + k, i]
                 ax = _ZERO
                 ay = _ZERO
-                xk = sx[k]
-                yk = sy[k]
                 for c in range(channels):
-                    ax += gk[c] * xk[c]
-                    ay += gk[c] * yk[c]
+                    v = others[o + c]
+                    gk[c] = v
+                    ax += v * sx[o + c]
+                    ay += v * sy[o + c]
                 grad_u[n, axis_a[k]] += ax * slopes[k, 0]
                 grad_u[n, axis_b[k]] += ay * slopes[k, 1]
 
