@@ -164,6 +164,10 @@ class LossConfig:
     kernel: str = "numba"  # "numba": the loss and its gradient in two fused Numba passes
     # (nehad.fused_loss, 3-4x faster on the CPU); "torch": the autograd reference
     # (nehad.losses), also used wherever the image is not one float32 CPU image
+    isometry_weight: float = 0.0  # > 0: neighbouring canonical Gaussians keep their distance
+    # at every time in the deforming stage (nehad.isometry, docs/training.md)
+    isometry_neighbours: int = 8  # K nearest canonical neighbours per Gaussian
+    isometry_local_scale: bool = True  # each neighbourhood may grow or shrink as a whole
 
 
 @dataclass
@@ -386,6 +390,7 @@ class Config:
         ("densify.grad_threshold", 0.0, None), ("densify.min_opacity", 0.0, 1.0),
         ("densify.percent_dense", 0.0, None), ("densify.max_screen_size", 0, None),
         ("densify.max_gaussians", 0, None), ("loss.ssim_weight", 0.0, 1.0),
+        ("loss.isometry_weight", 0.0, None), ("loss.isometry_neighbours", 1, None),
         ("train.sh_degree_interval", 0, None), ("train.init_random_points", 1, None),
         ("train.init_max_points", 0, None), ("train.fit_box_padding", 0.0, None),
         ("train.checkpoint_interval", 1, None), ("train.log_interval", 1, None),

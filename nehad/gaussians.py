@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from nehad.neighbours import nearest_neighbours
 from nehad.runtime.gaussians import SH_C0, GaussianCloud
 
 
@@ -33,16 +34,11 @@ def rgb_to_sh_dc(rgb):
 def _nearest_neighbour_distance(points: np.ndarray, k: int = 3) -> np.ndarray:
     """Mean distance to the k nearest other points (3DGS scale initialisation); with k or fewer
     other points, to all of them; a lone point gets 0.01 (the scene's unit)."""
-    pts = torch.as_tensor(points, dtype=torch.float32)
-    out = torch.empty(len(pts))
-    k = min(k, len(pts) - 1)
-    if k < 1:
+    pts = np.asarray(points, np.float32).reshape(-1, 3)
+    if len(pts) < 2:
         return np.full(len(pts), 0.01, np.float32)
-    for start in range(0, len(pts), 2048):
-        d = torch.cdist(pts[start:start + 2048], pts)
-        d[torch.arange(d.shape[0]), torch.arange(start, start + d.shape[0])] = float("inf")
-        out[start:start + 2048] = d.topk(k, largest=False).values.mean(1)
-    return out.numpy()
+    # distances of the float32 points, as the scales are (ties broken either way agree)
+    return nearest_neighbours(pts, k)[1].mean(1).astype(np.float32)
 
 
 class GaussianParameters(nn.Module):

@@ -1,10 +1,8 @@
 """The NeHaD trainer (docs/training.md): one loop that follows a schedule object
-(`nehad.schedule`: the coarse stage of static 3DGS, then the fine stage with the deformation field
-on; `nehad.lod.LayeredSchedule` adds streaming layers) and two strategies beside it, 3DGS
-densification (`nehad.densify.DensifyStrategy`) and residual carving
-(`nehad.carve_pass.ResidualCarving`); Adam with per-parameter learning rates and exponential
-schedules; 0.8 L1 + 0.2 D-SSIM plus the hex-plane regularisers; SH degree schedule; atomic
-checkpoints and exact resume.
+(`nehad.schedule`: the static stage, then the deforming one; `nehad.lod.LayeredSchedule` adds
+streaming layers) and two strategies beside it, 3DGS densification (`nehad.densify`) and
+carving (`nehad.carve_pass`); Adam with per-parameter learning rates; 0.8 L1 + 0.2 D-SSIM, the
+hex-plane regularisers and the isometry prior; SH degree schedule; atomic checkpoints, resume.
 
 Determinism: the views of step s are drawn from a generator seeded by (seed, s) and the split
 noise of step s likewise, so a run resumed from a checkpoint takes the same steps as one that
@@ -34,14 +32,14 @@ from nehad.model import NeHaDModel, RunError, model_from_state
 from nehad.optim import make_optimizer, set_learning_rates
 from nehad.runtime.interrupts import check as interrupt_point
 from nehad.initial import initial_gaussians, scene_bounds
+from nehad.isometry import IsometryPrior
 from nehad.schedule import Phase, Schedule
 from nehad.splat.rasterize import render_torch
 from nehad.views import Views, downscale_views, recomposite, resolve_background, views_of
 
 
 class Trainer:
-    """Trains a run directory from a dataset, following `schedule` (default: the one `cfg` asks
-    for, `nehad.lod.schedule_for`)."""
+    """Trains a run folder from a dataset by `schedule` (default `nehad.lod.schedule_for`)."""
 
     def __init__(self, cfg: Config, data_dir, run_dir, resume: bool = False,
                  progress: bool = True, log=print, schedule: Schedule | None = None):
@@ -92,6 +90,7 @@ class Trainer:
         self.optimizer = make_optimizer(self.model, cfg.optim, self.extent)
         self.strategy = DensifyStrategy(cfg.densify, self.extent)
         self.densify_state = DensifyState.zeros(0)
+        self.isometry = IsometryPrior.of(cfg.loss)
         self.carving = ResidualCarving(cfg.carve, cfg.train.seed, cfg.train.canonical_time,
                                        cfg.densify.max_gaussians, self.aabb.copy(),
                                        self.background,
@@ -206,6 +205,9 @@ class Trainer:
             res = render_torch(*params, cam, background=background, sh_degree=degree)
             total = total + photometric_loss(res.rgb, target, cfg.loss.ssim_weight,
                                              cfg.loss.kernel) / len(picks)
+            if phase.deforms:  # the isometry prior (nehad.isometry)
+                iso = self.isometry.loss(self.model.gaussians, params[0], step)
+                total = total + iso / len(picks)
             # logged against the evaluation background, whatever the step trained over
             psnrs.append(psnr(recomposite(res.rgb.detach(), res.alpha.detach()[:, :, None],
                                           background, self.background),
@@ -246,16 +248,14 @@ class Trainer:
             degree=self.active_sh_degree(step), timing=self.densify_timing))
         if len(self.model.gaussians) == 0 and not getattr(self, "_warned_empty", False):
             self._warned_empty = True  # the stress suite's thin rod: docs/results.md
-            self.warn(f"warning: step {step + 1}: every Gaussian was pruned; the model now "
-                      f"draws only the background (objects too small or too fast for the "
-                      f"recipe, docs/training.md)")
+            self.warn(f"warning: step {step + 1}: every Gaussian was pruned; the model now draws "
+                      f"only the background (objects too small or too fast, docs/training.md)")
         return did
 
     # -- loop ----------------------------------------------------------------------------
     def checkpoint_state(self) -> dict:
         return {"step": self.step, "gaussians": self.model.gaussians.state_dict(),
-                "field": self.model.field.state_dict(),
-                "optimizer": self.optimizer.state_dict(),
+                "field": self.model.field.state_dict(), "optimizer": self.optimizer.state_dict(),
                 "strategy": self.densify_state.state_dict(), "config": to_dict(self.cfg),
                 **self.schedule.state_dict()}
 
