@@ -168,6 +168,9 @@ class LossConfig:
     # at every time in the deforming stage (nehad.isometry, docs/training.md)
     isometry_neighbours: int = 8  # K nearest canonical neighbours per Gaussian
     isometry_local_scale: bool = True  # each neighbourhood may grow or shrink as a whole
+    isometry_reference: str = "canonical"  # the distances kept: the canonical Gaussians'
+    # ("canonical") or the deformed ones' at the step that found the pairs ("time")
+    isometry_refresh: int = 200  # steps between two searches for the pairs
 
 
 @dataclass
@@ -316,6 +319,9 @@ class Config:
             raise ConfigError("train.canonical_time: must lie in [0, 1]")
         if self.loss.kernel not in ("numba", "torch"):
             raise ConfigError(f"loss.kernel: {self.loss.kernel!r}; expected numba or torch")
+        if self.loss.isometry_reference not in ("canonical", "time"):
+            raise ConfigError(f"loss.isometry_reference: {self.loss.isometry_reference!r}; "
+                              f"expected canonical or time")
         if self.carve.mode not in ("vote", "rays", "tracks"):
             raise ConfigError(f"carve.mode: must be 'vote', 'rays' or 'tracks', got "
                               f"{self.carve.mode!r}")
@@ -391,6 +397,7 @@ class Config:
         ("densify.percent_dense", 0.0, None), ("densify.max_screen_size", 0, None),
         ("densify.max_gaussians", 0, None), ("loss.ssim_weight", 0.0, 1.0),
         ("loss.isometry_weight", 0.0, None), ("loss.isometry_neighbours", 1, None),
+        ("loss.isometry_refresh", 1, None),
         ("train.sh_degree_interval", 0, None), ("train.init_random_points", 1, None),
         ("train.init_max_points", 0, None), ("train.fit_box_padding", 0.0, None),
         ("train.checkpoint_interval", 1, None), ("train.log_interval", 1, None),

@@ -1,5 +1,6 @@
 """A local isometry prior on the deformation (`loss.isometry_weight`, docs/training.md "Objects
-that break apart"): neighbouring canonical Gaussians keep their distance at every time.
+that break apart"): neighbouring Gaussians keep their distance at every time. Off by default:
+held to the canonical distances it did not help (docs/results.md, 2026-11-27).
 
 The photometric loss sees each time through one or two views. Between them the field is free to
 move the Gaussians of one object apart along the views' rays, and a spinning or occluded object
@@ -15,10 +16,12 @@ own neighbour spacing, so the weight means the same at any scale) and m_i(t) the
 fits i's neighbourhood best, sum_j a_ij D_ij d_ij / sum_j a_ij d_ij^2 (`local_scale`; else 1).
 It turns and travels with a rigid object, and with `local_scale` it grows with one (the stress
 suite's `scaling`), at no cost; what it resists is tearing and sliding: on trained models
-without it, 60% of the opaque neighbours at one time are more than a neighbour spacing closer
+without it, 59-65% of the opaque neighbours at one time are more than a neighbour spacing closer
 or further apart 0.1 later, on scenes whose every object is rigid (docs/training.md). Gaussians with a finite life (the tracks' chains)
 take no part: they live at one time only. The pairs are found again whenever the set of
-Gaussians changes (densification replaces the means' parameter) and every `REFRESH` steps.
+Gaussians changes (densification replaces the means' parameter) and every `refresh` steps.
+With `reference="time"` the pairs and d_ij are the deformed Gaussians' at the step that found
+them, instead of the canonical ones': the other times are held to a shape the scene had.
 """
 
 from __future__ import annotations
@@ -32,9 +35,10 @@ REFRESH = 200
 class IsometryPrior:
     """The pairs of the prior (module docstring) and its loss at one time."""
 
-    def __init__(self, weight: float, neighbours: int, local_scale: bool = True):
+    def __init__(self, weight: float, neighbours: int, local_scale: bool = True,
+                 reference: str = "canonical", refresh: int = REFRESH):
         self.weight, self.neighbours = float(weight), int(neighbours)
-        self.local_scale = bool(local_scale)
+        self.local_scale, self.reference, self.refresh = bool(local_scale), reference, refresh
         self._means_param = None
         self._found_at = -REFRESH
         self.pairs = None  # (i, j, canonical distance, weight / (s sum of weights))
@@ -43,16 +47,18 @@ class IsometryPrior:
     def of(cls, loss_cfg) -> "IsometryPrior":
         """The prior a `LossConfig` asks for (its isometry_* knobs)."""
         return cls(loss_cfg.isometry_weight, loss_cfg.isometry_neighbours,
-                   loss_cfg.isometry_local_scale)
+                   loss_cfg.isometry_local_scale, loss_cfg.isometry_reference,
+                   loss_cfg.isometry_refresh)
 
-    def _find(self, gaussians, step: int) -> None:
+    def _find(self, gaussians, step: int, deformed_means: torch.Tensor) -> None:
         self._means_param, self._found_at = gaussians.means, step
         with torch.no_grad():
             rows = torch.nonzero(gaussians.life_rate.reshape(-1) == 0).reshape(-1)
             if len(rows) <= self.neighbours:
                 self.pairs = None
                 return
-            j, d = nearest_neighbours(gaussians.means.detach()[rows].numpy(), self.neighbours)
+            ref = gaussians.means if self.reference == "canonical" else deformed_means
+            j, d = nearest_neighbours(ref.detach()[rows].numpy(), self.neighbours)
             self.neighbours_found = j.shape[1]
             i = rows[:, None].expand(-1, j.shape[1]).reshape(-1)
             j = rows[torch.from_numpy(j.reshape(-1))]
@@ -66,8 +72,8 @@ class IsometryPrior:
         """L_iso of the deformed means (N, 3) at one time; 0.0 when off or without pairs."""
         if self.weight <= 0.0:
             return 0.0
-        if gaussians.means is not self._means_param or step - self._found_at >= REFRESH:
-            self._find(gaussians, step)
+        if gaussians.means is not self._means_param or step - self._found_at >= self.refresh:
+            self._find(gaussians, step, deformed_means)
         if self.pairs is None:
             return 0.0
         i, j, d, a = self.pairs

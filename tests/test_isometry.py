@@ -127,3 +127,18 @@ def test_coincident_gaussians_give_finite_values_and_gradients():
         value = IsometryPrior(1.0, 3, local).loss(g, x, 0)
         value.backward()
         assert torch.isfinite(value) and torch.isfinite(x.grad).all()
+
+
+def test_reference_time_keeps_the_distances_of_the_step_that_found_the_pairs():
+    rng = np.random.default_rng(5)
+    pts = rng.normal(size=(200, 3)).astype(np.float32)
+    g = _gaussians(pts)  # canonical = pts
+    at_t = torch.from_numpy(pts * np.array([1.0, 2.0, 0.5], np.float32))  # not a similarity
+    prior = IsometryPrior(1.0, 6, local_scale=True, reference="time", refresh=50)
+    assert float(prior.loss(g, at_t, 0)) < 1e-5  # the pairs and distances of at_t itself
+    c, s = math.cos(1.1), math.sin(1.1)
+    turn = torch.tensor([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    assert float(prior.loss(g, at_t @ turn.T - 1.0, 49)) < 1e-5  # the same shape, turned
+    assert float(prior.loss(g, torch.from_numpy(pts), 49)) > 0.05  # the canonical shape
+    canonical = IsometryPrior(1.0, 6, local_scale=True)
+    assert float(canonical.loss(g, torch.from_numpy(pts), 0)) < 1e-5
