@@ -170,7 +170,8 @@ class LossConfig:
     isometry_local_scale: bool = True  # each neighbourhood may grow or shrink as a whole
     isometry_reference: str = "canonical"  # the distances kept: the canonical Gaussians'
     # ("canonical") or the deformed ones' at the step that found the pairs ("time")
-    isometry_refresh: int = 200  # steps between two searches for the pairs
+    isometry_refresh: int = 100  # steps between two searches for the pairs (it must divide
+    # train.checkpoint_interval when the prior is on)
 
 
 @dataclass
@@ -322,6 +323,11 @@ class Config:
         if self.loss.isometry_reference not in ("canonical", "time"):
             raise ConfigError(f"loss.isometry_reference: {self.loss.isometry_reference!r}; "
                               f"expected canonical or time")
+        every, refresh = self.train.checkpoint_interval, self.loss.isometry_refresh
+        if self.loss.isometry_weight > 0 and refresh > 0 and every % refresh:
+            raise ConfigError(f"loss.isometry_refresh: {refresh} must divide "
+                              f"train.checkpoint_interval ({every}), so that a resumed run "
+                              f"finds the pairs where the uninterrupted one does")
         if self.carve.mode not in ("vote", "rays", "tracks"):
             raise ConfigError(f"carve.mode: must be 'vote', 'rays' or 'tracks', got "
                               f"{self.carve.mode!r}")

@@ -11,15 +11,19 @@ of that, the isometry term:
     L_iso = w * sum_ij a_ij | D_ij(t) - m_i(t) d_ij | / (s * sum_ij a_ij)
 
 over each Gaussian i's K nearest canonical neighbours j, with d_ij their canonical distance,
-D_ij(t) = |mu_i(t) - mu_j(t)|, a_ij = exp(-d_ij^2 / (2 s^2)), s the median d_ij (the scene's
+D_ij(t) = |mu_i(t) - mu_j(t)|, a_ij = exp(-d_ij^2 / (2 s^2)), s the (lower) median d_ij (the scene's
 own neighbour spacing, so the weight means the same at any scale) and m_i(t) the scale that
 fits i's neighbourhood best, sum_j a_ij D_ij d_ij / sum_j a_ij d_ij^2 (`local_scale`; else 1).
 It turns and travels with a rigid object, and with `local_scale` it grows with one (the stress
 suite's `scaling`), at no cost; what it resists is tearing and sliding: on trained models
 without it, 59-65% of the opaque neighbours at one time are more than a neighbour spacing closer
-or further apart 0.1 later, on scenes whose every object is rigid (docs/training.md). Gaussians with a finite life (the tracks' chains)
-take no part: they live at one time only. The pairs are found again whenever the set of
-Gaussians changes (densification replaces the means' parameter) and every `refresh` steps.
+or further apart 0.1 later, on scenes whose every object is rigid (docs/training.md).
+Gaussians with a finite life (the tracks' chains) take no part: they live at one time only.
+The pairs are found again whenever the set of Gaussians changes (densification replaces the
+means' parameter) and at every step that is a multiple of `refresh`, which must divide the
+checkpoint interval (the config checks it): a run resumed from a checkpoint then searches where
+the uninterrupted run does and computes the same (tests/test_fingerprint.py); the prior keeps
+no other state.
 With `reference="time"` the pairs and d_ij are the deformed Gaussians' at the step that found
 them, instead of the canonical ones': the other times are held to a shape the scene had.
 """
@@ -31,7 +35,9 @@ import torch
 from nehad.neighbours import nearest_neighbours
 
 #: Steps between two searches for neighbours while the set of Gaussians is unchanged.
-REFRESH = 200
+REFRESH = 100
+
+
 class IsometryPrior:
     """The pairs of the prior (module docstring) and its loss at one time."""
 
@@ -40,7 +46,7 @@ class IsometryPrior:
         self.weight, self.neighbours = float(weight), int(neighbours)
         self.local_scale, self.reference, self.refresh = bool(local_scale), reference, refresh
         self._means_param = None
-        self._found_at = -REFRESH
+        self._found_at = None
         self.pairs = None  # (i, j, canonical distance, weight / (s sum of weights))
 
     @classmethod
@@ -54,10 +60,11 @@ class IsometryPrior:
         self._means_param, self._found_at = gaussians.means, step
         with torch.no_grad():
             rows = torch.nonzero(gaussians.life_rate.reshape(-1) == 0).reshape(-1)
-            if len(rows) <= self.neighbours:
+            ref = gaussians.means if self.reference == "canonical" else deformed_means
+            # too few to pair, or a diverged step (the trainer stops on its non-finite loss)
+            if len(rows) <= self.neighbours or not torch.isfinite(ref).all():
                 self.pairs = None
                 return
-            ref = gaussians.means if self.reference == "canonical" else deformed_means
             j, d = nearest_neighbours(ref.detach()[rows].numpy(), self.neighbours)
             self.neighbours_found = j.shape[1]
             i = rows[:, None].expand(-1, j.shape[1]).reshape(-1)
@@ -72,7 +79,7 @@ class IsometryPrior:
         """L_iso of the deformed means (N, 3) at one time; 0.0 when off or without pairs."""
         if self.weight <= 0.0:
             return 0.0
-        if gaussians.means is not self._means_param or step - self._found_at >= self.refresh:
+        if gaussians.means is not self._means_param or step % self.refresh == 0:
             self._find(gaussians, step, deformed_means)
         if self.pairs is None:
             return 0.0

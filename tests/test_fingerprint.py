@@ -42,6 +42,8 @@ VARIANTS = {
     "lod": ["lod.levels=3", "lod.iterations=12", "coarse.iterations=12", "fine.iterations=12",
             "lod.opacity_threshold=0.02"],
     "batch2_random_background": ["fine.batch_size=2", "data.random_background=true"],
+    "isometry": ["loss.isometry_weight=0.05", "loss.isometry_refresh=5",
+                 "loss.isometry_reference=time"],
 }
 KEEP = ["train.checkpoint_interval=5", "train.keep_checkpoints=100"]
 
