@@ -86,7 +86,10 @@ class IsometryPrior:
         i, j, d, a = self.pairs
         # a floor under the distance: clones sit on their parent (d = 0), where |x| has no slope
         tiny = 1e-6 * float(self.spacing)
-        diff = deformed_means[i] - deformed_means[j]
+        # index_select, not x[i]: its backward (index_add_) sums in one order whatever the
+        # number of threads, where advanced indexing's backward does not
+        diff = (torch.index_select(deformed_means, 0, i)
+                - torch.index_select(deformed_means, 0, j))
         now = torch.sqrt(torch.sum(diff * diff, dim=1) + tiny * tiny)
         if self.local_scale:  # pairs come in rows of K per Gaussian i (`_find`)
             k = self.neighbours_found

@@ -45,6 +45,12 @@ VARIANTS = {
     "isometry": ["loss.isometry_weight=0.05", "loss.isometry_refresh=5",
                  "loss.isometry_reference=time"],
 }
+#: Variants checked for resume only, not against the record: with the isometry prior on, the
+#: last bits of the means' gradient differ between 1 and 2 torch threads (measured 2026-11-27:
+#: with 2, the prior's backward right after Numba's parallel neighbour search gave other bits
+#: than the same ops run again in the process), so a record made on one thread count fails on
+#: another; a resumed run and its uninterrupted twin still agree.
+RESUME_ONLY = {"isometry"}
 KEEP = ["train.checkpoint_interval=5", "train.keep_checkpoints=100"]
 
 
@@ -115,7 +121,7 @@ def test_training_is_bit_identical_to_the_record_and_on_resume(tmp_path):
     same_machine = record["machine"] == machine()
     for name, (got, resumed) in fingerprints_in_a_child(tmp_path).items():
         assert resumed == got, f"{name}: the resumed run differs from the uninterrupted one"
-        if same_machine:
+        if same_machine and name not in RESUME_ONLY:
             changed = sorted(k for k in got if got[k] != record["runs"][name].get(k))
             assert not changed, (f"{name}: training computes something else than the record "
                                  f"({len(changed)} of {len(got)} hashes differ: {changed[:5]})")
