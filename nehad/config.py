@@ -164,9 +164,9 @@ class LossConfig:
     kernel: str = "numba"  # "numba": the loss and its gradient in two fused Numba passes
     # (nehad.fused_loss, 3-4x faster on the CPU); "torch": the autograd reference
     # (nehad.losses), also used wherever the image is not one float32 CPU image
-    isometry_weight: float = 0.0  # > 0: neighbouring canonical Gaussians keep their distance
-    # at every time in the deforming stage (nehad.isometry, docs/training.md)
-    isometry_neighbours: int = 8  # K nearest canonical neighbours per Gaussian
+    isometry_weight: float = 0.0  # > 0: neighbouring Gaussians keep their distances at every
+    # time in the deforming stage (nehad.isometry, docs/training.md; tried, not kept: 0 = off)
+    isometry_neighbours: int = 8  # K nearest neighbours per Gaussian
     isometry_local_scale: bool = True  # each neighbourhood may grow or shrink as a whole
     isometry_reference: str = "canonical"  # the distances kept: the canonical Gaussians'
     # ("canonical") or the deformed ones' at the step that found the pairs ("time")
