@@ -66,7 +66,6 @@ class IsometryPrior:
                 self.pairs = None
                 return
             j, d = nearest_neighbours(ref.detach()[rows].numpy(), self.neighbours)
-            self.neighbours_found = j.shape[1]
             i = rows[:, None].expand(-1, j.shape[1]).reshape(-1)
             j = rows[torch.from_numpy(j.reshape(-1))]
             d = torch.from_numpy(d.reshape(-1)).to(gaussians.means.dtype)
@@ -92,7 +91,7 @@ class IsometryPrior:
                 - torch.index_select(deformed_means, 0, j))
         now = torch.sqrt(torch.sum(diff * diff, dim=1) + tiny * tiny)
         if self.local_scale:  # pairs come in rows of K per Gaussian i (`_find`)
-            k = self.neighbours_found
+            k = self.neighbours  # _find pairs only more rows than K: none clipped
             ad = (a * d).reshape(-1, k)
             fit = torch.sum(ad * d.reshape(-1, k), 1)
             m = torch.where(fit > 0, torch.sum(ad * now.reshape(-1, k), 1)
