@@ -84,6 +84,27 @@ def test_object_psnr_hand_computed():
     assert worst["name"] == "grey" and worst["range"] == [0.5, 0.75]
 
 
+def test_unlabelled_foreground_hand_computed():
+    """The opaque pixels no label covers (a floor, its shadows): label 0 where alpha >= 0.5.
+
+    2x3 frame, labels [[1, 0, 0], [0, 0, 0]], alpha [[1, 1, 0.2], [0.6, 0, 0.5]]: the unlabelled
+    foreground is (0, 1), (1, 0) and (1, 2) (alpha 0.5 counts, 0.2 does not; (0, 0) is the
+    object's). Truth there grey 0.5; the render draws (0, 1) and (1, 2) exactly and leaves (1, 0)
+    white: squared error 0.25 on one pixel; the white blank 0.25 on all three."""
+    bg = np.array(WHITE)
+    labels = np.array([[1, 0, 0], [0, 0, 0]])
+    alpha = np.array([[1.0, 1.0, 0.2], [0.6, 0.0, 0.5]])
+    truth = np.ones((2, 3, 3))
+    truth[0, 0] = RED
+    for r, c in ((0, 1), (1, 0), (1, 2)):
+        truth[r, c] = 0.5
+    render = truth.copy()
+    render[1, 0] = 1.0
+    render[0, 2] = 0.0  # wrong, but transparent in the target: not scored here
+    pixels, sse, bsse = evaluate.unlabelled_errors(labels, alpha, render, truth, bg)
+    assert pixels == 3 and sse == pytest.approx(0.25) and bsse == pytest.approx(0.75)
+
+
 def test_too_few_pixels_skip_a_quarter():
     bg = np.array(WHITE)
     lab = np.zeros((4, 4), int)
@@ -164,6 +185,7 @@ def _write_dataset(root, n=8, size=16):
         rgba = np.zeros((size, size, 4), np.uint8)  # BGRA for OpenCV
         rgba[lab == 1] = (0, 0, 255, 255)
         rgba[lab == 2] = (255, 0, 0, 255)
+        rgba[0:2] = (128, 128, 128, 255)  # an unlabelled grey floor strip
         cv2.imwrite(str(root / "test" / f"r_{k:04d}.png"), rgba)
         cv2.imwrite(str(root / "test" / "masks" / f"r_{k:04d}.png"), lab)
         frames.append({"file_path": f"./test/r_{k:04d}", "time": k / (n - 1),
@@ -202,6 +224,8 @@ def test_missing_object_is_flagged(tmp_path, monkeypatch):
         if t < 0.25:  # the blue box is not drawn: background where it should be
             blue = f.image[:, :, 2] > f.image[:, :, 0] + 0.2
             rgb[blue] = 1.0
+        if t > 0.75:  # nor the unlabelled floor strip: scored, but never a warning
+            rgb[0] = 1.0
         return SimpleNamespace(rgb=rgb.astype(np.float32))
 
     monkeypatch.setattr(evaluate, "load_run", lambda r: (SimpleNamespace(gaussians=[0] * 7),
@@ -226,12 +250,18 @@ def test_missing_object_is_flagged(tmp_path, monkeypatch):
     assert out["worst_object_bin"]["range"] == [0.0, 0.25]
     warning = "warning: box_blue missing in t 0.00-0.25 (+0.0 dB over blank on its pixels)"
     assert out["object_warnings"] == [warning]
+    floor = out["unlabelled"]  # the grey strip: one 8-pixel row per frame at 2x
+    assert floor["name"] == "unlabelled foreground"
+    assert [tb["pixels"] for tb in floor["time_bins"]] == [16, 16, 16, 16]
+    assert all(tb["gain"] > 15 for tb in floor["time_bins"][:3])
+    assert floor["time_bins"][3]["gain"] == pytest.approx(0.0, abs=1e-6)
     lines = res.output.rstrip("\n").splitlines()
     assert lines[-1] == warning  # printed last, after "wrote ... metrics.json"
     assert "box_red" not in "\n".join(lines[-2:])
     table = evaluate.format_table(out)
     assert "Objects:" in table and table.splitlines()[-1] == warning
-    assert "+0.0!" in table
+    assert "+0.0!" in table and table.count("!") == 2  # the blue box's cell and the legend
+    assert "unlabelled foreground" in table
     assert not math.isnan(red["psnr"])
 
 
@@ -241,13 +271,15 @@ def test_report_shows_objects_and_warnings(tmp_path):
     objs = [_obj("sphere_red", [0.4, 12.0, None, 9.0]), _obj("cube", [10.0, 8.0, 8.0, 4.0])]
     result = {"split": "test", "frames": 8, "resolution": [8, 8], "mean": {}, "objects": objs,
               "object_warnings": object_warnings(objs),
-              "object_rules": {"min_pixels": 16, "warn_gain_db": 3.0}}
+              "object_rules": {"min_pixels": 16, "warn_gain_db": 3.0},
+              "unlabelled": _obj("unlabelled foreground", [0.2, 5.0, 5.0, 5.0])}
     (tmp_path / "eval_test").mkdir()
     (tmp_path / "eval_test" / "metrics.json").write_text(json.dumps(result))
     page = metrics_section(tmp_path)
     assert page.count('class="warn"') == 1
     assert "sphere_red missing in t 0.00-0.25" in page
-    assert page.count('class="bad"') == 1  # the +0.4 cell only
+    assert page.count('class="bad"') == 1  # the +0.4 cell only, not the floor's +0.2
+    assert ">unlabelled foreground</td>" in page and ">+0.20</td>" in page
     assert ">+0.40</td>" in page and "n/a (" in page  # the skipped quarter
     assert page.index("<table>") < page.index("Objects (test)")  # after the metrics table
     # no objects in the file: no object table

@@ -195,7 +195,7 @@ def _eval_layout(doc: dict) -> bool:
     """Whether the parts of an eval metrics.json the report reads have their types."""
     kinds = {"mean": dict, "fps_threads": dict, "resolution": list, "objects": list,
              "by_time": list, "quarters": list, "per_frame": list, "object_warnings": list,
-             "object_rules": dict}
+             "object_rules": dict, "unlabelled": dict}
     if any(k in doc and doc[k] is not None and not isinstance(doc[k], t)
            for k, t in kinds.items()):
         return False
@@ -253,8 +253,10 @@ def objects_section(result: dict) -> str:
             + "".join(f'<th colspan="3">t {a:.2f}-{b:.2f}</th>' for a, b in ranges)
             + '<th colspan="3">all frames</th></tr><tr>'
             + "<th>model</th><th>blank</th><th>gain</th>" * (len(ranges) + 1) + "</tr>")
+    rest = result.get("unlabelled")  # the floor and its shadows: scored, never warned on
+    rest = rest if isinstance(rest, dict) and isinstance(rest.get("time_bins"), list) else None
     rows = []
-    for o in objects:
+    for o in objects + ([rest] if rest else []):
         by_range = {tuple(tb["range"]): tb for tb in o["time_bins"]}
         cells = [f'<td class="l">{_e(o.get("name"))}</td>']
         for cell in [by_range.get(tuple(r)) for r in ranges] + [o]:
@@ -265,7 +267,7 @@ def objects_section(result: dict) -> str:
                 cells.append(f'<td class="skip" colspan="3" title="{_e(why)}">'
                              f"n/a ({_e(why)}{_e(px)})</td>")
                 continue
-            cls = ' class="bad"' if cell is not o and gain < warn else ""
+            cls = ' class="bad"' if cell is not o and o is not rest and gain < warn else ""
             title = f' title="{cell["pixels"]} object pixels"' if "pixels" in cell else ""
             cells.append(f"<td{title}>{_fmt(cell.get('psnr'), 2)}</td>"
                          f"<td>{_fmt(cell.get('blank_psnr'), 2)}</td>"
@@ -277,7 +279,9 @@ def objects_section(result: dict) -> str:
                f"({_e(rules.get('pixel', 'label masks'))}), the squared error pooled over all its "
                f"pixels of the quarter's frames, beside a blank image (the background colour); "
                f"red: gain under +{warn:g} dB; a quarter with fewer than "
-               f"{_e(rules.get('min_pixels', '?'))} object pixels is not scored.</p>")
+               f"{_e(rules.get('min_pixels', '?'))} object pixels is not scored."
+               + (f" The last row, {_e(rest['name'])}, is the opaque pixels no label covers "
+                  f"(a floor and the shadows on it), never marked." if rest else "") + "</p>")
     return "".join(out)
 
 
