@@ -172,6 +172,9 @@ class LossConfig:
     # ("canonical") or the deformed ones' at the step that found the pairs ("time")
     isometry_refresh: int = 100  # steps between two searches for the pairs (it must divide
     # train.checkpoint_interval when the prior is on)
+    acceleration_weight: float = 0.0  # > 0: each Gaussian's path bends little from one
+    # training frame to the next, in the deforming stage (nehad.acceleration, docs/training.md)
+    acceleration_samples: int = 1024  # Gaussians drawn each step for it
 
 
 @dataclass
@@ -403,7 +406,8 @@ class Config:
         ("densify.percent_dense", 0.0, None), ("densify.max_screen_size", 0, None),
         ("densify.max_gaussians", 0, None), ("loss.ssim_weight", 0.0, 1.0),
         ("loss.isometry_weight", 0.0, None), ("loss.isometry_neighbours", 1, None),
-        ("loss.isometry_refresh", 1, None),
+        ("loss.isometry_refresh", 1, None), ("loss.acceleration_weight", 0.0, None),
+        ("loss.acceleration_samples", 1, None),
         ("train.sh_degree_interval", 0, None), ("train.init_random_points", 1, None),
         ("train.init_max_points", 0, None), ("train.fit_box_padding", 0.0, None),
         ("train.checkpoint_interval", 1, None), ("train.log_interval", 1, None),

@@ -50,6 +50,15 @@ class NeHaDModel(torch.nn.Module):
             means = means + drift
         return means, scales, quats, opacities, sh
 
+    def means_at(self, t: float, rows: torch.Tensor) -> torch.Tensor:
+        """The deformed means (with their drift) at time t of the Gaussians `rows` only, as
+        `gaussians_at` gives them (the field deforms each Gaussian on its own)."""
+        g = self.gaussians
+        out = self.field(g.means[rows], g.log_scales[rows], g.quats[rows], t, g.mu_eq[rows],
+                         g.t_eq[rows])
+        drift = g.drift(t)
+        return out.means if drift is None else out.means + drift[rows]
+
 
 def cloud_at(model: NeHaDModel, t: float | None, sh_degree: int):
     """The activated Gaussians of a run at time t as a `GaussianCloud` (canonical if t is None),

@@ -2,7 +2,7 @@
 (`nehad.schedule`: the static stage, then the deforming one; `nehad.lod.LayeredSchedule` adds
 streaming layers) and two strategies beside it, 3DGS densification (`nehad.densify`) and
 carving (`nehad.carve_pass`); Adam with per-parameter learning rates; 0.8 L1 + 0.2 D-SSIM, the
-hex-plane regularisers and the isometry prior; SH degree schedule; atomic checkpoints, resume.
+hex-plane regularisers and the priors on the motion; SH degree schedule; atomic checkpoints.
 
 Determinism: the views of step s are drawn from a generator seeded by (seed, s) and the split
 noise of step s likewise, so a run resumed from a checkpoint takes the same steps as one that
@@ -32,6 +32,7 @@ from nehad.model import NeHaDModel, RunError, model_from_state
 from nehad.optim import make_optimizer, set_learning_rates
 from nehad.runtime.interrupts import check as interrupt_point
 from nehad.initial import initial_gaussians, scene_bounds
+from nehad.acceleration import AccelerationPrior
 from nehad.isometry import IsometryPrior
 from nehad.schedule import Phase, Schedule
 from nehad.splat.rasterize import render_torch
@@ -91,9 +92,9 @@ class Trainer:
         self.strategy = DensifyStrategy(cfg.densify, self.extent)
         self.densify_state = DensifyState.zeros(0)
         self.isometry = IsometryPrior.of(cfg.loss)
+        self.acceleration = AccelerationPrior.of(cfg.loss, cfg.train.seed, self.train_views.times)
         self.carving = ResidualCarving(cfg.carve, cfg.train.seed, cfg.train.canonical_time,
-                                       cfg.densify.max_gaussians, self.aabb.copy(),
-                                       self.background,
+                                       cfg.densify.max_gaussians, self.aabb.copy(), self.background,
                                        free_offset_of(cfg.field, float(field.extent)))
         if state is not None:
             self.optimizer.load_state_dict(state["optimizer"])
@@ -106,10 +107,9 @@ class Trainer:
     def load_views(self, downscale: int) -> Views:
         """The training split at another image downscale (a streaming layer's)."""
         cfg = self.cfg
-        scene = load_dataset(self.data_dir, splits=(cfg.data.train_split,),
-                             background=self.load_background, downscale=downscale,
-                             frame_stride=cfg.data.frame_stride)
-        return views_of(scene, cfg.data.train_split)
+        return views_of(load_dataset(self.data_dir, splits=(cfg.data.train_split,),
+                                     background=self.load_background, downscale=downscale,
+                                     frame_stride=cfg.data.frame_stride), cfg.data.train_split)
 
     @property
     def layer_sizes(self) -> list[int]:
@@ -128,8 +128,7 @@ class Trainer:
     # -- what the schedule decides ------------------------------------------------------
     def _enter_stage(self, phase: Phase) -> None:
         """The densification timing of the phase's stage (nehad.densify)."""
-        self.densify_timing = self.strategy.timing(self.schedule.stage_config(phase),
-                                                   phase.length)
+        self.densify_timing = self.strategy.timing(self.schedule.stage_config(phase), phase.length)
         self._phase_key = phase.key
 
     def views_at(self, step: int, phase: Phase | None = None) -> Views:
@@ -205,9 +204,10 @@ class Trainer:
             res = render_torch(*params, cam, background=background, sh_degree=degree)
             total = total + photometric_loss(res.rgb, target, cfg.loss.ssim_weight,
                                              cfg.loss.kernel) / len(picks)
-            if phase.deforms:  # the isometry prior (nehad.isometry)
-                iso = self.isometry.loss(self.model.gaussians, params[0], step)
-                total = total + iso / len(picks)
+            if phase.deforms:  # the priors on the motion (nehad.isometry, nehad.acceleration)
+                prior = (self.isometry.loss(self.model.gaussians, params[0], step)
+                         + self.acceleration.loss(self.model, params[0], views.times[k], step))
+                total = total + prior / len(picks)
             # logged against the evaluation background, whatever the step trained over
             psnrs.append(psnr(recomposite(res.rgb.detach(), res.alpha.detach()[:, :, None],
                                           background, self.background),
