@@ -19,7 +19,9 @@ of their distinct times), and c the view's time moved inside [t_min + h, t_max -
 training times. The norm is not squared: a bounce, where the path does turn within a frame,
 costs in proportion to the turn, not its square. With the view's time inside that range, x(c)
 is the row of the deformed means the step renders, so the prior costs two field evaluations of
-`samples` Gaussians.
+`samples` Gaussians. With `times="uniform"` (`loss.acceleration_times`) c is drawn uniformly in
+that range instead (the same generator), so the prior also reaches the middle of the gaps
+between the training views, at the cost of a third evaluation.
 """
 
 from __future__ import annotations
@@ -31,8 +33,9 @@ import torch
 class AccelerationPrior:
     """The prior's loss at the time of one view (module docstring)."""
 
-    def __init__(self, weight: float, samples: int, seed: int = 0):
+    def __init__(self, weight: float, samples: int, seed: int = 0, times: str = "view"):
         self.weight, self.samples, self.seed = float(weight), int(samples), int(seed)
+        self.times = times  # "view": centred on the step's view; "uniform": anywhere
         self.step_h = None  # the training views' time step (set from their times)
         self.span = None  # (first, last) training time
 
@@ -40,7 +43,8 @@ class AccelerationPrior:
     def of(cls, loss_cfg, seed: int, times) -> "AccelerationPrior":
         """The prior a `LossConfig` asks for (its acceleration_* knobs), over the training
         views' `times`."""
-        prior = cls(loss_cfg.acceleration_weight, loss_cfg.acceleration_samples, seed)
+        prior = cls(loss_cfg.acceleration_weight, loss_cfg.acceleration_samples, seed,
+                    loss_cfg.acceleration_times)
         prior.set_times(times)
         return prior
 
@@ -63,7 +67,11 @@ class AccelerationPrior:
             return 0.0
         gen = torch.Generator().manual_seed(self.seed * 1_000_003 + int(step))
         rows = torch.randperm(n, generator=gen)[:self.samples]
-        centre = min(max(float(t), self.span[0] + h), self.span[1] - h)
+        if self.times == "uniform":  # anywhere in the span, the gaps between the views too
+            u = float(torch.rand((), generator=gen, dtype=torch.float64))
+            centre = self.span[0] + h + u * (self.span[1] - self.span[0] - 2 * h)
+        else:
+            centre = min(max(float(t), self.span[0] + h), self.span[1] - h)
         x0 = (deformed_means[rows] if centre == float(t)
               else model.means_at(centre, rows))
         a = model.means_at(centre + h, rows) - 2.0 * x0 + model.means_at(centre - h, rows)

@@ -175,6 +175,8 @@ class LossConfig:
     acceleration_weight: float = 0.0  # > 0: each Gaussian's path bends little from one
     # training frame to the next, in the deforming stage (nehad.acceleration, docs/training.md)
     acceleration_samples: int = 1024  # Gaussians drawn each step for it
+    acceleration_times: str = "view"  # where its paths are centred: the step's view's time
+    # ("view") or a time drawn uniformly between the first and last training view ("uniform")
 
 
 @dataclass
@@ -323,6 +325,9 @@ class Config:
             raise ConfigError("train.canonical_time: must lie in [0, 1]")
         if self.loss.kernel not in ("numba", "torch"):
             raise ConfigError(f"loss.kernel: {self.loss.kernel!r}; expected numba or torch")
+        if self.loss.acceleration_times not in ("view", "uniform"):
+            raise ConfigError(f"loss.acceleration_times: {self.loss.acceleration_times!r}; "
+                              f"must be 'view' or 'uniform'")
         if self.loss.isometry_reference not in ("canonical", "time"):
             raise ConfigError(f"loss.isometry_reference: {self.loss.isometry_reference!r}; "
                               f"expected canonical or time")

@@ -77,6 +77,27 @@ def test_centre_moved_inside_the_training_times():
     assert sorted(model.calls) == pytest.approx([0.5, 0.6, 0.7])
 
 
+def test_uniform_times_reach_the_gaps():
+    """`times="uniform"`: the centre is drawn in [t_min + h, t_max - h] whatever the view's time,
+    and x(c) is evaluated; the value is still w mean |g_i| h^2 / extent."""
+    model = _Paths()
+    prior = AccelerationPrior(0.5, 20, seed=3, times="uniform")
+    prior.set_times(np.linspace(0.0, 1.0, 11))
+    centres = set()
+    for step in range(20):
+        model.calls.clear()
+        loss = prior.loss(model, model.at(0.0), 0.0, step=step)
+        lo, mid, hi = sorted(model.calls)
+        assert 0.1 - 1e-12 <= mid <= 0.9 + 1e-12
+        assert (lo, hi) == (pytest.approx(mid - 0.1), pytest.approx(mid + 0.1))
+        centres.add(round(mid, 6))
+        rows = torch.randperm(50, generator=torch.Generator().manual_seed(3 * 1_000_003
+                                                                           + step))[:20]
+        want = 0.5 * float(model.g[rows].norm(dim=1).mean()) * 0.01 / 2.0
+        assert float(loss) == pytest.approx(want, rel=1e-9)
+    assert len(centres) == 20  # a fresh time each step
+
+
 def test_same_step_same_draw_and_off_or_too_short_is_zero():
     model, prior = _Paths(n=500), _prior(samples=10)
     a = prior.loss(model, model.at(0.5), 0.5, step=11)
