@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from typing import Any, Mapping
 
 #: Smooth activations allowed in the scalar networks F1, F2 (docs/design.md section 4.3).
-SMOOTH_ACTIVATIONS = ("tanh", "softplus", "silu", "relu2")
+SMOOTH_ACTIVATIONS = ("tanh", "softplus", "silu")
 DECODERS = ("hnn", "mlp")
 HNN_GRAD_MODES = ("autograd", "closed_form", "fused")
 SPATIAL_REGULARIZERS = ("tv", "second_order")
@@ -84,9 +84,7 @@ class FieldConfig:
     hnn_depth: int = 2
     """Number of hidden (Linear + activation) layers of F1 and F2 before the Linear(hidden, 1)."""
     activation: str = "softplus"
-    """Activation of F1, F2: "softplus" (default), "tanh", "silu" or "relu2" (max(z, 0)^2 / 2,
-    once differentiable: grad_h F of such a network is a network of ReLUs, as the 4DGS heads
-    are; its Hessian is piecewise constant but not zero). NOT "relu": v = grad_h F
+    """Activation of F1, F2: "softplus" (default), "tanh" or "silu". NOT "relu": v = grad_h F
     of a ReLU network is piecewise constant in h (its Jacobian, the Hessian of F, is zero almost
     everywhere), so the loss on v would send no gradient to h and nothing upstream (planes, trunk)
     would learn through v."""

@@ -60,9 +60,6 @@ def activation_with_derivative(z: torch.Tensor, name: str) -> tuple[torch.Tensor
     if name == "silu":
         s = torch.sigmoid(z)
         return z * s, s * (1.0 + z * (1.0 - s))
-    if name == "relu2":
-        r = torch.relu(z)
-        return 0.5 * r * r, r
     raise ValueError(f"activation {name!r}: must be one of {SMOOTH_ACTIVATIONS}")
 
 
@@ -73,8 +70,6 @@ def _activation(z: torch.Tensor, name: str) -> torch.Tensor:
         return _softplus(z)
     if name == "silu":
         return F.silu(z)
-    if name == "relu2":
-        return 0.5 * torch.square(torch.relu(z))
     raise ValueError(f"activation {name!r}: must be one of {SMOOTH_ACTIVATIONS}")
 
 

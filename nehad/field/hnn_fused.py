@@ -44,8 +44,8 @@ from torch.autograd.function import once_differentiable
 
 from nehad.field.vecmath import KERNEL_FASTMATH, exp_nonpositive, log1p_unit
 
-TANH, SOFTPLUS, SILU, RELU2 = 0, 1, 2, 3
-ACTIVATION_CODES = {"tanh": TANH, "softplus": SOFTPLUS, "silu": SILU, "relu2": RELU2}
+TANH, SOFTPLUS, SILU = 0, 1, 2
+ACTIVATION_CODES = {"tanh": TANH, "softplus": SOFTPLUS, "silu": SILU}
 #: Rows per block of the forward and the backward: a block's (2, rows, 64) float32 temporaries
 #: are 1 MB each and stay in the cache between a product and the pass that reads them. The
 #: decoder's forward + backward at 10k rows, 1 thread, paired: 101 ms unblocked, 60-67 ms with
@@ -58,13 +58,9 @@ BLOCK_ROWS = 2048
 def _activation(kind, z, one):
     """(act(z), act'(z), act''(z)) for activation code `kind` (docs/design.md section 4.3):
     tanh: a' = 1 - a^2, a'' = -2 a a';  softplus: a' = s = sigmoid(z), a'' = s (1 - s);
-    SiLU a = z s: a' = s (1 + z (1 - s)), a'' = s (1 - s) (2 + z (1 - 2 s));  relu2
-    a = max(z, 0)^2 / 2: a' = max(z, 0), a'' = 1 for z > 0, else 0. Every exponential is of
-    -|z|, so nothing overflows."""
+    SiLU a = z s: a' = s (1 + z (1 - s)), a'' = s (1 - s) (2 + z (1 - 2 s)). Every exponential
+    is of -|z|, so nothing overflows."""
     two = one + one
-    if kind == RELU2:
-        r = max(z, one - one)
-        return r * r / two, r, (one if z > 0 else one - one)
     if kind == TANH:
         t = exp_nonpositive(-two * abs(z))
         a = (one - t) / (one + t)
