@@ -8,7 +8,9 @@ every test frame lies inside a gap of 7 frame steps that no training view sees
 views on either side. On scene5 the Hamiltonian decoder's paths bend more from frame to frame
 than the MLP decoder's (mean |x(t+h) - 2 x(t) + x(t-h)| 1.3-1.7x as large for the moving
 Gaussians), and it scores 2.2-2.7 dB lower on the test views while fitting the training views
-as well without the BED position mask. The prior asks for the straighter path:
+as well without the BED position mask. The prior asks for the straighter path (off by
+default: +13.17 dB over blank on scene5 against the recipe's +12.10 to +12.62, but +9.20 on
+scene8, whose turning rod's ends accelerate at every frame; docs/results.md, 2026-11-27):
 
     L_acc = w * mean_i |x_i(c + h) - 2 x_i(c) + x_i(c - h)| / extent
 
