@@ -38,6 +38,7 @@ from .onnx_proto import (ModelSummary, ProtoError, graph_for_outputs, graph_sha2
                          inputs_read, summarize)
 from .errors import InputProblem
 from .threads import usable_cores
+from .values import MAX_THREADS
 
 FORMAT = "nehad-onnx/1"
 OUTPUTS = ("means", "scales", "quats", "opacities", "sh")
@@ -202,8 +203,9 @@ class OnnxModel:
         self._lock = threading.Lock()
         self._extra_feeds: dict = {}  # optional inputs (streaming layers, runtime/layers.py)
         self.runs = 0  # session runs so far (the cache saves the others)
-        if threads is not None and int(threads) < 0:
-            raise OnnxModelError(f"{self.source}: threads must be >= 0, got {threads}")
+        if threads is not None and not 0 <= int(threads) <= MAX_THREADS:
+            raise OnnxModelError(f"{{threads}} {threads}: must be in 0..{MAX_THREADS} (0: as many "
+                                 f"as there are cores)", input="threads")
         self.part_bounds = self._read_part_bounds()
         parts = len(self.part_bounds) - 1
         total = int(threads or 0) or usable_cores()

@@ -8,6 +8,11 @@ import math
 
 #: Largest image side accepted (a typo like 80000x800 should not allocate gigabytes).
 MAX_SIDE = 32768
+#: Largest process pool (--workers, a jobs file's workers) and thread count per frame or model
+#: (--threads): a typo like 10**20 should not reach the OS as a C int (an OverflowError), nor
+#: start a hundred thousand onnxruntime threads.
+MAX_WORKERS = 1024
+MAX_THREADS = 1024
 
 
 def parse_background(text: str) -> tuple[float, float, float]:

@@ -1589,3 +1589,29 @@ def test_batch_check_finds_what_the_jobs_would_fail_on(model, tmp_path):
         jobs = _jobs(tmp_path, body)
         _one_error(_invoke(["batch", jobs, "--check"]), needle)
 
+
+
+# ---------------------------------------------------------------------------------------------
+# inputs a fuzzing pass found (2026-11-27): each ended in a traceback (or a hang)
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["video", "{m}", "--workers", str(10**20)], "--workers 100000000000000000000: must be in"),
+    (["video", "{m}", "--threads", str(10**20)], "--threads 100000000000000000000: must be in"),
+    (["video", "{m}", "--threads", "5000"], "--threads 5000: must be in 1..1024"),
+])
+def test_worker_and_thread_counts_too_large_for_the_os(model, tmp_path, args, needle):
+    """--workers 10**20 was an OverflowError of multiprocessing, --threads 10**20 a TypeError of
+    onnxruntime, --threads 100000 started that many onnxruntime threads (no end in sight)."""
+    argv = [a.format(m=model[0]) for a in args]
+    _one_error(_invoke(argv + ["--frames", "2", "--size", "16x16", "-o", tmp_path / "v.mp4"]),
+               needle)
+    jobs = _jobs(tmp_path, f"workers: {10**20}\njobs: [{{model: {model[0]}, output: a.png}}]\n")
+    _one_error(_invoke(["batch", jobs, "--check"]), "jobs.yaml", "workers", "1..1024")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["jobs.yaml"]
+
+
+def test_view_refuses_a_thread_count_before_serving(model):
+    pytest.importorskip("viser")
+    proc = _run_cli(["view", model[0], "--threads", "5000", "--port", "0"], timeout=60)
+    _proc_error(proc, "--threads 5000: must be in")
