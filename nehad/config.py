@@ -16,6 +16,26 @@ from nehad.configtools import ConfigError, from_dict, load_yaml, merge, parse_ov
 from nehad.field.config import FieldConfig
 
 
+#: Most layers of the trunk (field.depth) or of each HNN net (field.hnn_depth).
+MAX_LAYERS = 64
+#: Most weights of the deformation network (the hex-plane has its own bound, field/config.py).
+MAX_NETWORK_VALUES = 5 * 10**8
+
+
+def network_values(f: FieldConfig) -> int:
+    """About how many weights the field's networks hold (an upper bound, docs/design.md section
+    4.2): the trunk Linear(F, W) + (D - 1) Linear(W, W); the decoder, at most five MLP heads of
+    Linear(W, W) or two HNN nets of Linear(W, H), (depth - 1) Linear(H, H), Linear(H, W); the
+    adapters, Linear(W, 3K + 11) at most."""
+    w, h = int(f.width), int(f.hnn_hidden)
+    features = int(f.out_dim) * len(f.multires)
+    trunk = (features + 1) * w + (int(f.depth) - 1) * (w + 1) * w
+    heads = 5 * (w + 1) * (w + 48)
+    hnn = 2 * ((w + 1) * h + (int(f.hnn_depth) - 1) * (h + 1) * h + (h + 1) * w)
+    adapters = (w + 1) * 59
+    return trunk + max(heads, hnn) + adapters
+
+
 @dataclass
 class DataConfig:
     background: tuple[float, float, float] | None = None  # None: white for RGBA D-NeRF data, black for RGB
@@ -293,13 +313,29 @@ class Config:
         return self
 
     def _validate_field(self) -> None:
-        """The field's own checks, its messages prefixed with ``field.``."""
+        """The field's own checks, its messages prefixed with ``field.``; then the size of its
+        network, before any of it is allocated."""
         try:
             self.field.validate()
         except ConfigError:
             raise
         except ValueError as e:
             raise ConfigError(f"field.{e}") from None
+        self._validate_network_size()
+
+    def _validate_network_size(self) -> None:
+        """Refuse layer counts and widths that no CPU trains: `field.width=1e9` was a traceback
+        of torch's allocator, `field.depth=1000000` spent minutes building a million layers."""
+        f = self.field
+        for key in ("depth", "hnn_depth"):
+            if getattr(f, key) > MAX_LAYERS:
+                raise ConfigError(f"field.{key}: {getattr(f, key)} layers; at most {MAX_LAYERS}")
+        values = network_values(f)
+        if values > MAX_NETWORK_VALUES:
+            raise ConfigError(
+                f"field.width ({f.width}), field.hnn_hidden ({f.hnn_hidden}): the deformation "
+                f"network would hold about {values:.3g} weights ({values * 4 / 2**30:.1f} GiB as "
+                f"float32, three times that while training); at most {MAX_NETWORK_VALUES:.0e}")
 
     def _validate_stages(self) -> None:
         """Iterations, batch sizes and the stage fractions of the coarse and fine stages."""

@@ -1615,3 +1615,18 @@ def test_view_refuses_a_thread_count_before_serving(model):
     pytest.importorskip("viser")
     proc = _run_cli(["view", model[0], "--threads", "5000", "--port", "0"], timeout=60)
     _proc_error(proc, "--threads 5000: must be in")
+
+
+@pytest.mark.parametrize("option,needle", [
+    ("field.width=1e9", "the deformation network would hold about 5e+18 weights"),
+    ("field.hnn_hidden=1000000000", "field.hnn_hidden (1000000000)"),
+    ("field.depth=1000000", "field.depth: 1000000 layers; at most 64"),
+    ("field.hnn_depth=1000000", "field.hnn_depth: 1000000 layers; at most 64"),
+])
+def test_a_network_too_large_to_build_is_refused_before_it_is(model, tmp_path, option, needle):
+    """width 1e9 was a traceback of torch's allocator; depth 1000000 built layers for minutes."""
+    _, scene, _ = model
+    start = time.perf_counter()
+    _one_error(_invoke(["train", scene, "-o", tmp_path / "run", "--preset", "test", "--quiet",
+                        "--set", option]), needle)
+    assert time.perf_counter() - start < 30 and not (tmp_path / "run").exists()
