@@ -198,8 +198,8 @@ def _synth_capture(out, kind, scene, resolution, frames, cameras):
     if resolution < 16 or frames < 2:
         raise click.BadParameter("a capture needs --resolution >= 16 and --frames >= 2")
     _check_out(out)
-    with user_errors():
-        check_synth_memory(resolution, frames)
+    with user_errors():  # a rig draws frames x cameras images
+        check_synth_memory(resolution, frames, cameras if kind == "rig" else 1)
     start = time.perf_counter()
     total = frames * (cameras if kind == "rig" else 1)
     with user_errors(), _removed_on_failure(out):

@@ -147,10 +147,15 @@ def _task_threads(task: FrameTask) -> int | None:
         return int(task.threads)
     env = os.environ.get("NEHAD_THREADS")
     if env:
+        from .values import MAX_THREADS
+
         try:
-            return max(1, int(env))
+            count = max(1, int(env))
         except ValueError:
             raise RenderError(f"NEHAD_THREADS={env!r} on {_worker_name()}: not an integer") from None
+        if count > MAX_THREADS:
+            raise RenderError(f"NEHAD_THREADS={env!r} on {_worker_name()}: at most {MAX_THREADS}")
+        return count
     if task.host_threads:
         mine = dict(task.host_threads).get(socket.gethostname())
         if mine:

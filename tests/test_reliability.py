@@ -1630,3 +1630,18 @@ def test_a_network_too_large_to_build_is_refused_before_it_is(model, tmp_path, o
     _one_error(_invoke(["train", scene, "-o", tmp_path / "run", "--preset", "test", "--quiet",
                         "--set", option]), needle)
     assert time.perf_counter() - start < 30 and not (tmp_path / "run").exists()
+
+
+def test_a_rig_capture_counts_its_cameras_against_memory(tmp_path, cap_16g):
+    """--capture rig --cameras 10**20 passed the memory check (frames only) and drew forever."""
+    start = time.perf_counter()
+    _one_error(_invoke(["synth", tmp_path / "s", "--capture", "rig", "--cameras", str(10**20),
+                        "--resolution", "16", "--frames", "2"]),
+               f"--frames 2 with --cameras {10**20}", "GB of memory")
+    assert time.perf_counter() - start < 20 and not (tmp_path / "s").exists()
+
+
+def test_nehad_threads_beyond_the_bound_is_one_error(model, tmp_path, monkeypatch):
+    monkeypatch.setenv("NEHAD_THREADS", str(10**20))
+    _one_error(_invoke(["video", model[0], "--frames", "2", "--size", "16x16", "--workers", "1",
+                        "-o", tmp_path / "v.mp4"]), "NEHAD_THREADS=", "at most 1024")
