@@ -49,9 +49,15 @@ def _dynamic_source(scene: Path):
 def _view(view: str | None, source, size):
     """--view, else the scene's default camera (an .onnx file's metadata, a run's first test
     camera): runtime.scene.choose_camera, the rule of every command."""
+    from nehad.runtime.memory import check_frame_memory
     from nehad.runtime.scene import choose_camera
 
-    return choose_camera(source, view, size)
+    camera = choose_camera(source, view, size)
+    # the pictures are drawn by the rasterizer as `nehad render` draws: the same memory bound
+    # (--size 32768x32768 was killed by the kernel's OOM killer)
+    check_frame_memory(camera.width, camera.height, int(getattr(source, "num_gaussians", 0)),
+                       f"--size {size[0]}x{size[1]}" if size else f"--view {view or 'default'}")
+    return camera
 
 
 def _check_time(source, t: float, extrapolate: bool = False) -> float:
@@ -276,8 +282,12 @@ def masks(run, view, time_, output, plot, n_times, threshold, score, split, data
         if plot is not None:
             from nehad.runtime.images import write_image
             from nehad.viz.masks import dynamic_fraction, fraction_plot
+            from nehad.runtime.memory import check_plan_memory
             from nehad.viz.trajectories import track_times
 
+            # as `viz trajectories --times`: 10**20 was a traceback of numpy's linspace
+            check_plan_memory(n_times, f"--times {n_times}",
+                              f"the BED weights of every Gaussian at {n_times} times")
             times = track_times(source.time_range, n_times)
             frac = dynamic_fraction(source.model, times, threshold)
             mean_w = dynamic_fraction(source.model, times, threshold, weighted=True)

@@ -1645,3 +1645,22 @@ def test_nehad_threads_beyond_the_bound_is_one_error(model, tmp_path, monkeypatc
     monkeypatch.setenv("NEHAD_THREADS", str(10**20))
     _one_error(_invoke(["video", model[0], "--frames", "2", "--size", "16x16", "--workers", "1",
                         "-o", tmp_path / "v.mp4"]), "NEHAD_THREADS=", "at most 1024")
+
+
+@pytest.mark.parametrize("args,needle", [
+    (["viz", "trajectories", "{m}", "-o", "{o}/t.png", "--size", "32768x32768"],
+     "--size 32768x32768: a 32768x32768 frame"),
+    (["viz", "masks", "{r}", "-o", "{o}/m.png", "--size", "32768x32768"],
+     "--size 32768x32768: a 32768x32768 frame"),
+    (["viz", "masks", "{r}", "--plot", "{o}/p.png", "--times", str(10**20)],
+     f"--times {10**20}: the BED weights"),
+])
+def test_viz_pictures_and_times_are_checked_against_memory(model, tmp_path, cap_16g, args,
+                                                           needle):
+    """viz drew these without the memory bound: --size 32768x32768 was killed by the OOM
+    killer, viz masks --times 10**20 a traceback of numpy's linspace."""
+    out = tmp_path / "out"
+    out.mkdir()
+    argv = [a.format(m=model[0], r=model[2], o=out) for a in args]
+    _one_error(_invoke(argv), needle, "GB of memory")
+    assert _listing(out) == []
