@@ -256,7 +256,9 @@ def prepare_frames(plan: VideoPlan, resume: bool) -> list[int]:
         if mpath.is_file():
             try:
                 old = json.loads(mpath.read_text(encoding="utf-8"))
-            except (OSError, ValueError):
+            except (OSError, ValueError, RecursionError):
+                old = None
+            if not isinstance(old, dict):  # a list, a number: not a manifest either
                 old = None
         if old is None and ours:
             raise VideoError(f"{d}: holds frames but no readable {MANIFEST}; cannot tell what "

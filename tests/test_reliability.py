@@ -1664,3 +1664,15 @@ def test_viz_pictures_and_times_are_checked_against_memory(model, tmp_path, cap_
     argv = [a.format(m=model[0], r=model[2], o=out) for a in args]
     _one_error(_invoke(argv), needle, "GB of memory")
     assert _listing(out) == []
+
+
+@pytest.mark.parametrize("body", ["[]", "[" * 100000 + "]" * 100000])
+def test_video_resume_with_a_frame_manifest_that_is_not_an_object(model, tmp_path, body):
+    """A nehad-frames.json holding a list was an AttributeError ('list' has no 'get'), one
+    nested too deeply a RecursionError."""
+    frames = tmp_path / "frames"
+    argv = ["video", model[0], "--frames", "3", "--size", "16x16", "--workers", "1",
+            "--frames-dir", frames]
+    assert _invoke(argv).exit_code == 0
+    (frames / "nehad-frames.json").write_text(body)
+    _one_error(_invoke(argv + ["--resume"]), str(frames), "no readable nehad-frames.json")
