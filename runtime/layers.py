@@ -141,6 +141,10 @@ def read_manifest(folder) -> dict:
                          f"`nehad export RUN --split-layers {folder}`)") from None
     except (ValueError, UnicodeDecodeError):
         raise LayerError(f"{path}: not valid JSON") from None
+    except RecursionError:
+        raise LayerError(f"{path}: not valid JSON (nested too deeply)") from None
+    except OSError as e:  # a folder named manifest.json, no permission
+        raise LayerError(f"{path}: cannot read ({e.strerror or e})") from None
     if not isinstance(doc, dict) or doc.get("format") != MANIFEST_FORMAT:
         raise LayerError(f"{path}: format is not {MANIFEST_FORMAT!r}")
     layers = doc.get("layers")
@@ -150,11 +154,30 @@ def read_manifest(folder) -> dict:
         if not isinstance(e, dict) or any(key not in e for key in
                                           ("layer", "file", "bytes", "sha256", "gaussians")):
             raise LayerError(f"{path}: layers[{k}] needs layer, file, bytes, sha256, gaussians")
-        if int(e["layer"]) != k:
-            raise LayerError(f"{path}: layers[{k}] is layer {e['layer']}; layers must be in order")
-        if Path(e["file"]).name != e["file"]:
-            raise LayerError(f"{path}: layers[{k}].file {e['file']!r} must be a plain file name")
+        _check_entry(path, k, e)
     return doc
+
+
+def _whole(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _check_entry(path: Path, k: int, e: dict) -> None:
+    """The types of manifest entry `k` (a string layer number, a file name that is a number or
+    '..', were tracebacks of int() and Path() further on)."""
+    if not _whole(e["layer"]) or e["layer"] != k:
+        raise LayerError(f"{path}: layers[{k}].layer is {e['layer']!r}; layers must be 0, 1, ... "
+                         f"in order")
+    f = e["file"]
+    if not isinstance(f, str) or f in ("", ".", "..") or Path(f).name != f:
+        raise LayerError(f"{path}: layers[{k}].file {f!r} must be a plain file name")
+    for key in ("bytes", "gaussians"):
+        if not _whole(e[key]) or e[key] < 0:
+            raise LayerError(f"{path}: layers[{k}].{key}: expected a whole number >= 0, got "
+                             f"{e[key]!r}")
+    if not isinstance(e["sha256"], str):
+        raise LayerError(f"{path}: layers[{k}].sha256: expected a hex digest, got "
+                         f"{e['sha256']!r}")
 
 
 def _check_file(folder: Path, entry: dict) -> bytes:
@@ -225,7 +248,7 @@ class LayeredModel:
                 data = _check_file(self.folder, entry)
                 header, arrays = decode_chunk(data, str(self.folder / entry["file"]))
                 n = int(entry["gaussians"])
-                if int(header.get("layer", -1)) != layer or int(header.get("count", -1)) != n:
+                if header.get("layer", -1) != layer or header.get("count", -1) != n:
                     raise LayerError(f"layer {layer}: chunk header says layer "
                                      f"{header.get('layer')} with {header.get('count')} "
                                      f"Gaussians, the manifest layer {layer} with {n}")

@@ -1676,3 +1676,35 @@ def test_video_resume_with_a_frame_manifest_that_is_not_an_object(model, tmp_pat
     assert _invoke(argv).exit_code == 0
     (frames / "nehad-frames.json").write_text(body)
     _one_error(_invoke(argv + ["--resume"]), str(frames), "no readable nehad-frames.json")
+
+
+def _layer_entry(k, **kw):
+    return {"layer": k, "file": "base.onnx" if k == 0 else f"layer_{k}.bin", "bytes": 10,
+            "sha256": "0" * 64, "gaussians": 5, **kw}
+
+
+@pytest.mark.parametrize("entry,needle", [
+    (_layer_entry(1, layer="abc"), "layers[1].layer is 'abc'"),
+    (_layer_entry(1, layer=None), "layers[1].layer is None"),
+    (_layer_entry(1, file=3), "layers[1].file 3 must be a plain file name"),
+    (_layer_entry(1, file=".."), "layers[1].file '..' must be a plain file name"),
+    (_layer_entry(1, bytes="x"), "layers[1].bytes: expected a whole number >= 0, got 'x'"),
+    (_layer_entry(1, gaussians="x"), "layers[1].gaussians: expected a whole number"),
+    (_layer_entry(1, sha256=3), "layers[1].sha256: expected a hex digest"),
+    ("deep", "nested too deeply"),
+])
+def test_a_layer_manifest_with_fields_of_other_types(tmp_path, entry, needle):
+    """A split-layer folder's manifest.json with a layer number 'abc', a file name 3 or '..'
+    (web: shutil.SameFileError), ... were tracebacks of int() and Path()."""
+    folder = tmp_path / "layers"
+    folder.mkdir()
+    man = folder / "manifest.json"
+    if entry == "deep":
+        man.write_text("[" * 100000 + "]" * 100000)
+    else:
+        man.write_text(json.dumps({"format": "nehad-layers/1", "base": "base.onnx",
+                                   "layers": [_layer_entry(0), entry]}))
+    _one_error(_invoke(["render", folder, "--view", "default", "-o", tmp_path / "x.png"]),
+               str(man), needle)
+    _one_error(_invoke(["web", folder, "-o", tmp_path / "web"]), str(man), needle)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["layers"]
