@@ -1708,3 +1708,24 @@ def test_a_layer_manifest_with_fields_of_other_types(tmp_path, entry, needle):
                str(man), needle)
     _one_error(_invoke(["web", folder, "-o", tmp_path / "web"]), str(man), needle)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["layers"]
+
+
+def test_run_and_dataset_json_nested_too_deeply(model, tmp_path):
+    """A line of metrics.jsonl, an eval_*/metrics.json or a class_mapping.json nested thousands
+    deep was a RecursionError of json in `nehad report` and `nehad eval`."""
+    _, scene, run = model
+    data, copy = tmp_path / "data", tmp_path / "run"
+    shutil.copytree(scene, data)
+    shutil.copytree(run, copy, ignore=shutil.ignore_patterns("eval_*"))
+    deep = "[" * 100000 + "]" * 100000
+    with open(copy / "metrics.jsonl", "a") as f:
+        f.write(deep + "\n")  # a bad line of the log is skipped, as a torn one
+    (copy / "eval_test").mkdir()
+    (copy / "eval_test" / "metrics.json").write_text(deep)
+    _one_error(_invoke(["report", copy, "-o", tmp_path / "r.html", "--frames", "0",
+                        "--no-score"]), "eval_test/metrics.json", "nested too deeply")
+    shutil.rmtree(copy / "eval_test")
+    (data / "class_mapping.json").write_text(deep)
+    _one_error(_invoke(["eval", copy, "--data", data, "--no-lpips", "--quiet"]),
+               "class_mapping.json", "expected a JSON object of id -> name")
+    assert not (tmp_path / "r.html").exists() and not (copy / "eval_test").exists()

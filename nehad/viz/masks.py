@@ -175,7 +175,7 @@ def class_names(data_dir) -> dict[int, str]:
         return {}
     try:
         return {int(k): str(v) for k, v in json.loads(path.read_text()).items()}
-    except (ValueError, AttributeError):
+    except (ValueError, AttributeError, RecursionError):  # RecursionError: nested too deeply
         raise VizError(f"{path}: expected a JSON object of id -> name") from None
 
 
@@ -194,7 +194,7 @@ def moving_object_ids(data_dir, split: str = "train", iou: float = MOVING_IOU) -
     try:
         doc = json.loads(tf.read_text())
         frames = doc["frames"]
-    except (OSError, ValueError, KeyError, TypeError):
+    except (OSError, ValueError, KeyError, TypeError, RecursionError):
         raise VizError(f"{tf}: cannot read the frames of the {split} split") from None
     names = class_names(root)
     groups = defaultdict(list)

@@ -142,7 +142,7 @@ def read_log(run: Path) -> list[dict]:
     for line in text.splitlines():
         try:
             rec = json.loads(line)
-        except ValueError:
+        except (ValueError, RecursionError):  # a torn line; one nested too deeply
             continue
         step = rec.get("step") if isinstance(rec, dict) else None
         if isinstance(step, int) and not isinstance(step, bool):
@@ -185,6 +185,9 @@ def _eval_results(run: Path) -> list[dict]:
             doc = json.loads(text)
         except ValueError as e:
             raise VizError(f"{p}: malformed JSON ({e}); run nehad eval again") from None
+        except RecursionError:
+            raise VizError(f"{p}: malformed JSON (nested too deeply); run nehad eval again") \
+                from None
         if not isinstance(doc, dict) or not _eval_layout(doc):
             raise VizError(f"{p}: not the JSON object nehad eval writes (run nehad eval again)")
         out.append(doc)
