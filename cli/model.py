@@ -109,6 +109,7 @@ def info(model):
         from nehad.runtime.onnx_model import OnnxModel
 
         i = OnnxModel(model, threads=1).info
+        layers, static = i.layer_counts, i.static_gaussians  # the checks `render` makes
     md = i.metadata
     lo, hi = i.time_range
     click.echo(f"{model}: {md['format']}")
@@ -123,9 +124,9 @@ def info(model):
     if "lod_layers" in md:  # docs/design.md section 8 streaming layers (Gaussians per layer)
         split = (" (split: this file holds layer 0; chunks add the rest)"
                  if md.get("lod_split") == "1" else "")
-        click.echo(f"  layers:       {md['lod_layers']}{split}")
+        click.echo(f"  layers:       {layers}{split}")
     if "static_gaussians" in md:  # nehad.export.static_split
-        click.echo(f"  static:       {md['static_gaussians']} of {i.num_gaussians} Gaussians "
+        click.echo(f"  static:       {static} of {i.num_gaussians} Gaussians "
                    f"written pre-deformed (the field runs on the others)")
     if "parts" in md:  # docs/design.md section 7: rows deformed side by side
         bounds = json.loads(md["parts"])

@@ -80,14 +80,38 @@ class ModelInfo:
     @property
     def num_layers(self) -> int:
         """Streaming layers in the file (metadata `lod_layers`; 1 without layers)."""
+        return max(1, len(self.layer_counts))
+
+    @property
+    def layer_counts(self) -> list[int]:
+        """Gaussians of each streaming layer (metadata `lod_layers`; [num_gaussians] without
+        layers): a list of whole numbers >= 0, else OnnxModelError naming the file."""
         text = self.metadata.get("lod_layers")
         if not text:
-            return 1
+            return [int(self.num_gaussians)]
         try:
-            return max(1, len(json.loads(text)))
+            counts = json.loads(text)
         except (ValueError, TypeError, RecursionError):
-            raise OnnxModelError(f"{self.path}: metadata lod_layers is not a JSON list: "
-                                 f"{text!r}") from None
+            counts = None
+        if not isinstance(counts, list) or not counts or not all(
+                isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in counts):
+            raise OnnxModelError(f"{self.path}: metadata lod_layers is not a JSON list of "
+                                 f"Gaussian counts: {text[:200]!r}")
+        return counts
+
+    @property
+    def static_gaussians(self) -> int:
+        """Gaussians written pre-deformed (metadata `static_gaussians`, export/static_split.py;
+        0 without)."""
+        text = self.metadata.get("static_gaussians") or "0"
+        try:
+            n = int(text)
+        except ValueError:
+            n = -1
+        if n < 0:
+            raise OnnxModelError(f"{self.path}: metadata static_gaussians is not a whole number "
+                                 f">= 0: {text[:200]!r}")
+        return n
 
 
 def _json(md: dict, key: str, source: str):

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import hashlib
 import importlib
-import json
 import math
 from pathlib import Path
 
@@ -132,7 +131,7 @@ class OnnxScene(Scene):
         self.default_camera = self.info.default_camera
         self.aabb = self.info.aabb
         self.sh_degree = self.info.sh_degree
-        counts = json.loads(self.info.metadata.get("lod_layers") or f"[{self.info.num_gaussians}]")
+        counts = self.info.layer_counts
         self.num_layers = len(counts)
         self.lod = lod
         if lod is not None and not 0 <= lod < self.num_layers:

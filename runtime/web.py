@@ -138,7 +138,7 @@ def _scene_json(info, model_name: str, manifest, cameras: list) -> dict:
     return {
         "format": "nehad-web/1", "model": model_name, "sh_degree": int(info.sh_degree),
         "num_gaussians": int(info.num_gaussians),
-        "static_gaussians": int(info.metadata.get("static_gaussians", 0) or 0),
+        "static_gaussians": info.static_gaussians,
         "time_range": [float(v) for v in info.time_range],
         "background": [float(v) for v in info.background],
         "cameras": entries, "default_camera": 0,

@@ -1729,3 +1729,31 @@ def test_run_and_dataset_json_nested_too_deeply(model, tmp_path):
     _one_error(_invoke(["eval", copy, "--data", data, "--no-lpips", "--quiet"]),
                "class_mapping.json", "expected a JSON object of id -> name")
     assert not (tmp_path / "r.html").exists() and not (copy / "eval_test").exists()
+
+
+@pytest.mark.parametrize("key,value,commands", [
+    ("lod_layers", "abc", ["render", "info"]),
+    ("lod_layers", '["a"]', ["render", "info"]),
+    ("static_gaussians", "x", ["web", "info"]),
+])
+def test_model_metadata_of_other_types(model, tmp_path, key, value, commands):
+    """An .onnx whose metadata lod_layers is not a list of counts was a JSONDecodeError of
+    `nehad render`; static_gaussians 'x' a ValueError of `nehad web` (the metadata is outside
+    the digest)."""
+    onnx = pytest.importorskip("onnx")
+    m = onnx.load(str(model[0]))
+    props = {p.key: p.value for p in m.metadata_props}
+    props[key] = value
+    del m.metadata_props[:]
+    for k, v in props.items():
+        entry = m.metadata_props.add()
+        entry.key, entry.value = k, v
+    path = tmp_path / "m.onnx"
+    onnx.save(m, str(path))
+    argv = {"render": ["render", path, "--view", "default", "-o", tmp_path / "x.png"],
+            "info": ["info", path], "web": ["web", path, "-o", tmp_path / "web"]}
+    for c in commands:
+        res = _invoke(argv[c])
+        _one_error(res, "m.onnx: metadata", key)
+        assert "Gaussians:" not in res.output  # info prints nothing before the error
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.onnx"]
