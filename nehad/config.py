@@ -18,6 +18,8 @@ from nehad.field.config import FieldConfig
 
 #: Most layers of the trunk (field.depth) or of each HNN net (field.hnn_depth).
 MAX_LAYERS = 64
+#: Most views of one training step (coarse/fine.batch_size).
+MAX_BATCH_SIZE = 1024
 #: Most weights of the deformation network (the hex-plane has its own bound, field/config.py).
 MAX_NETWORK_VALUES = 5 * 10**8
 
@@ -343,8 +345,11 @@ class Config:
             stage = getattr(self, name)
             if stage.iterations < 0:
                 raise ConfigError(f"{name}.iterations: must be >= 0")
-            if stage.batch_size < 1:
-                raise ConfigError(f"{name}.batch_size: must be >= 1")
+            if not 1 <= stage.batch_size <= MAX_BATCH_SIZE:
+                # each view of a step keeps its render graph until the backward pass: 10**9 asked
+                # numpy for 8 GB of view indices and then drew for ever
+                raise ConfigError(f"{name}.batch_size: must be in 1..{MAX_BATCH_SIZE}, got "
+                                  f"{stage.batch_size}")
             for key in ("densify_from", "densify_until", "opacity_reset_every",
                         "prune_large_every", "window_growth"):
                 if not 0.0 <= getattr(stage, key) <= 1.0:

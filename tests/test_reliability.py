@@ -1622,9 +1622,11 @@ def test_view_refuses_a_thread_count_before_serving(model):
     ("field.hnn_hidden=1000000000", "field.hnn_hidden (1000000000)"),
     ("field.depth=1000000", "field.depth: 1000000 layers; at most 64"),
     ("field.hnn_depth=1000000", "field.hnn_depth: 1000000 layers; at most 64"),
+    ("coarse.batch_size=1000000000", "coarse.batch_size: must be in 1..1024"),
 ])
 def test_a_network_too_large_to_build_is_refused_before_it_is(model, tmp_path, option, needle):
-    """width 1e9 was a traceback of torch's allocator; depth 1000000 built layers for minutes."""
+    """width 1e9 was a traceback of torch's allocator; depth 1000000 built layers for minutes;
+    a batch of 10**9 views asked numpy for 8 GB of indices, then drew for ever."""
     _, scene, _ = model
     start = time.perf_counter()
     _one_error(_invoke(["train", scene, "-o", tmp_path / "run", "--preset", "test", "--quiet",
