@@ -93,6 +93,12 @@ class FieldConfig:
     default initialisation). v = grad_h F varies with h only through the curvature of the
     activations; with the default scale their inputs stay in the near-linear range, so v starts
     out almost the same for every Gaussian (docs/training.md)."""
+    hnn_quadratic: bool = False
+    """Add a learned quadratic form to each scalar network, F(h) = net(h) + h^T S h / 2 (S a
+    symmetric W x W matrix, zero at the start), so grad_h F = grad_h net(h) + S h: the kinetic
+    term of a Hamiltonian H = p^T p / 2m + V(q), written for the latent h. Without it v is the
+    gradient of a softplus network alone, bounded by its weights and varying with h only through
+    its gates (docs/design.md section 4.3)."""
     hnn_grad: str = "fused"
     """How grad_h F is computed: "fused" (default since 2026-11-26: the explicit formula of
     docs/design.md section 4.4 and its hand-written backward as one autograd Function whose
@@ -252,7 +258,7 @@ class FieldConfig:
 
     def _validate_switches(self) -> None:
         """The on/off switches are bools."""
-        for name in ("use_hnn", "verlet", "bed_position", "bed_scale", "rigidity",
+        for name in ("use_hnn", "hnn_quadratic", "verlet", "bed_position", "bed_scale", "rigidity",
                      "deform_opacity_sh", "mipmap"):
             if not isinstance(getattr(self, name), bool):
                 self._bad(name, "must be a bool")

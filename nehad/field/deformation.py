@@ -99,7 +99,8 @@ class DeformationField(nn.Module):
         else:
             if cfg.use_hnn:
                 self.field = HamiltonianDecoder(cfg.width, cfg.hnn_hidden, cfg.hnn_depth,
-                                                cfg.activation, cfg.hnn_grad, cfg.hnn_init_gain)
+                                                cfg.activation, cfg.hnn_grad, cfg.hnn_init_gain,
+                                                cfg.hnn_quadratic)
             else:
                 self.field = DirectFieldDecoder(cfg.width, cfg.hnn_hidden, cfg.hnn_depth,
                                                 cfg.activation, cfg.hnn_init_gain)

@@ -149,13 +149,24 @@ class HamiltonianDecoder(nn.Module):
     """
 
     def __init__(self, width: int = 64, hidden: int = 64, depth: int = 2,
-                 activation: str = "tanh", grad_mode: str = "autograd", init_gain: float = 1.0):
+                 activation: str = "tanh", grad_mode: str = "autograd", init_gain: float = 1.0,
+                 quadratic: bool = False):
         super().__init__()
         if width % 2:
             raise ValueError(f"HamiltonianDecoder.width {width}: must be even")
         self.f1 = ScalarNet(width, hidden, depth, activation, init_gain)
         self.f2 = ScalarNet(width, hidden, depth, activation, init_gain)
         self.grad_mode = grad_mode
+        # FieldConfig.hnn_quadratic: F_k(h) += h^T S_k h / 2 with S_k = (A_k + A_k^T) / 2, so
+        # grad_h F_k gains S_k h. Zero at the start: the decoder starts as without it.
+        self.quad1 = nn.Parameter(torch.zeros(width, width)) if quadratic else None
+        self.quad2 = nn.Parameter(torch.zeros(width, width)) if quadratic else None
+
+    def quadratic_gradients(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(S_1 h, S_2 h), the gradients of the quadratic terms h^T S_k h / 2, each (N, W)."""
+        s1 = 0.5 * (self.quad1 + self.quad1.t())
+        s2 = 0.5 * (self.quad2 + self.quad2.t())
+        return h @ s1, h @ s2
 
     def input_gradients(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(grad_h F1, grad_h F2), each (N, W)."""
@@ -185,8 +196,16 @@ class HamiltonianDecoder(nn.Module):
 
     def forward(self, h: torch.Tensor) -> FieldOutput:
         if self._fused(h):
-            return FieldOutput(*fused_field(self.f1, self.f2, h))
+            out = FieldOutput(*fused_field(self.f1, self.f2, h))
+            if self.quad1 is None:
+                return out
+            q1, q2 = self.quadratic_gradients(h)
+            v_c, v_s = out.v_c + q1, out.v_s + symplectic(q2)
+            return FieldOutput(v_c + v_s, v_c, v_s)
         g1, g2 = self.input_gradients(h)
+        if self.quad1 is not None:
+            q1, q2 = self.quadratic_gradients(h)
+            g1, g2 = g1 + q1, g2 + q2
         v_s = symplectic(g2)
         return FieldOutput(g1 + v_s, g1, v_s)
 
