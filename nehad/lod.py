@@ -9,7 +9,7 @@ when lod.levels = L > 1:
   resolution.
 * Layer k >= 1 runs `lod.iterations` fine steps (0: fine.iterations) on images at
   data.downscale * 2^(L-1-k), twice the resolution of layer k-1. It starts by spawning one child
-  per Gaussian of the layers below: position drawn from the parent's Gaussian, half its scale
+  per Gaussian of the layers below that lives at every time (not from carving's chains): position drawn from the parent's Gaussian, half its scale
   (the pixels are half as large), opacity `lod.spawn_opacity`, colour, rotation and BED
   equilibrium (mu_eq, t_eq) inherited, as densified children inherit them. Only the new layer
   trains: the Gaussians of earlier layers get no gradient (zeroed before each Adam step, and
@@ -208,18 +208,23 @@ class LayeredSchedule:
 
     @torch.no_grad()
     def _spawn_layer(self, trainer: Trainer, layer: int) -> None:
-        """Seed layer `layer`: one child per frozen Gaussian (see the module doc)."""
+        """Seed layer `layer`: one child per frozen Gaussian that lives at every time (see the
+        module doc). Carving's chains (a finite life, nehad.carve_pass) have no children here: a
+        child would inherit the life, and the split-layer export carries lives in layer 0 only
+        (docs/design.md section 8.1)."""
         g = trainer.model.gaussians
         f = self.frozen
         gen = torch.Generator().manual_seed(int(self.cfg.train.seed) * 1_000_003 + 7919 * layer)
-        new = spawn_children(g, slice(0, f), 1, gen)
+        parents = torch.zeros(len(g), dtype=torch.bool)
+        parents[:f] = g.life_rate.detach()[:f].reshape(-1) == 0
+        new = spawn_children(g, parents, 1, gen)
         new["log_scales"] = new["log_scales"] - math.log(2.0)
         p = float(self.cfg.lod.spawn_opacity)
         new["opacity_logits"] = torch.full_like(new["opacity_logits"], math.log(p / (1.0 - p)))
         append_gaussians(g, trainer.optimizer, new)
         trainer.densify_state.reset(len(g))
-        trainer.log_event(f"layer {layer}: {f} frozen Gaussians, {f} spawned, images at 1/"
-                          f"{self.downscales[layer]}")
+        trainer.log_event(f"layer {layer}: {f} frozen Gaussians, {len(new['means'])} spawned, "
+                          f"images at 1/{self.downscales[layer]}")
 
     @torch.no_grad()
     def _finish_layer(self, trainer: Trainer, layer: int) -> None:

@@ -555,3 +555,36 @@ def test_video_and_batch_take_every_scene_kind_with_lod(split, trained, tmp_path
                                str(tmp_path / "x.mp4"), "--quiet"])
     assert res.exit_code != 0 and "--lod 3:" in res.output and "has 3 layer(s)" in res.output
     assert not (tmp_path / "x.mp4").exists()
+
+
+def test_enhancement_layers_spawn_no_mortal_children(scene, tmp_path):
+    """A layer's seeds skip carving's chains (a finite life): a child would inherit the life,
+    which the split-layer export carries in layer 0 only ("finite lives in layer 0 only" ended
+    `nehad export --split-layers` of a run trained with tracks and --lod-levels 2)."""
+    from nehad.export.layers import export_split_model
+    from nehad.model import load_run
+    from nehad.trainer import Trainer
+
+    tr = Trainer(_config(["lod.levels=2"]), scene, tmp_path / "run", progress=False)
+    end0 = tr.schedule.layer_end(0)
+    while tr.step < end0 + 1:
+        if tr.step == end0 - 1:
+            with torch.no_grad():
+                tr.model.gaussians.life_rate[::4] = 3.0
+        tr.train_step(tr.step)
+        tr.step += 1
+    g = tr.model.gaussians
+    f = tr.schedule.frozen
+    mortal = int((g.life_rate[:f] != 0).sum())
+    assert 0 < mortal < f
+    assert float(g.life_rate.detach()[f:].abs().max()) == 0.0
+    assert len(g) - f <= f - mortal  # children of the immortal only (the step may prune)
+    while tr.step < tr.total_steps:
+        tr.train_step(tr.step)
+        tr.step += 1
+    from nehad.checkpoint import atomic_torch_save
+
+    atomic_torch_save(tr.model_state(), tmp_path / "run" / "model.pt")
+    model, info = load_run(tmp_path / "run")
+    export_split_model(model, info, tmp_path / "layers", cfg=info.config)
+    assert LayeredModel(tmp_path / "layers").loaded_layers == 2
