@@ -3,6 +3,7 @@ rigidity clamp, switches and the 4DGS baseline decoder."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -232,6 +233,46 @@ def test_closed_form_input_gradient_equals_autograd(activation, depth):
     ga = torch.autograd.grad((auto_c * w).sum(), params)
     gc = torch.autograd.grad((scalar_net_input_grad(net, h) * w).sum(), params)
     assert max((a - c).abs().max().item() for a, c in zip(ga, gc)) < 1e-12
+
+
+@pytest.mark.parametrize("mode", ["fused", "closed_form", "autograd"])
+def test_quadratic_term_is_the_gradient_of_its_scalar(mode):
+    """field.hnn_quadratic: v_c = grad_h (F1 + h^T A1 h / 2), v_s = grad_h (F2 + h^T A2 h / 2) M^T
+    against autograd of the whole scalars; still curl-free / divergence-free; the parameter
+    gradients equal between the three ways of computing it."""
+    torch.manual_seed(5)
+    dec = HamiltonianDecoder(8, 16, 2, "softplus", mode, 3.0, quadratic=True).double()
+    with torch.no_grad():
+        dec.quad1.normal_()
+        dec.quad2.normal_()
+    h = torch.randn(6, 8, dtype=torch.float64)
+    hh = h.clone().requires_grad_(True)
+    f1 = dec.f1(hh) + 0.5 * ((hh @ dec.quad1) * hh).sum(-1)
+    f2 = dec.f2(hh) + 0.5 * ((hh @ dec.quad2) * hh).sum(-1)
+    g1, = torch.autograd.grad(f1.sum(), hh, retain_graph=True)
+    g2, = torch.autograd.grad(f2.sum(), hh)
+    out = dec(h)
+    assert (out.v_c - g1).abs().max().item() < 1e-12
+    assert (out.v_s - symplectic(g2)).abs().max().item() < 1e-12
+    assert (dec.quadratic_gradients(h)[0]).abs().max().item() > 0.1  # the term is not idle
+    jc = torch.autograd.functional.jacobian(lambda x: dec(x).v_c, h[:1]).reshape(8, 8)
+    js = torch.autograd.functional.jacobian(lambda x: dec(x).v_s, h[:1]).reshape(8, 8)
+    assert (jc - jc.T).abs().max() < 1e-12 and abs(torch.trace(js).item()) < 1e-12
+    w = torch.randn(6, 8, dtype=torch.float64)
+    grads = torch.autograd.grad((dec(h).v * w).sum(), [dec.quad1, dec.quad2])
+    dec.grad_mode = "autograd"
+    ref = torch.autograd.grad((dec(h.clone().requires_grad_(True)).v * w).sum(),
+                              [dec.quad1, dec.quad2])
+    assert max((a - b).abs().max().item() for a, b in zip(grads, ref)) < 1e-12
+    assert min(a.abs().max().item() for a in grads) > 0
+
+
+def test_quadratic_term_starts_at_zero_and_is_off_by_default():
+    cfg = FieldConfig()
+    assert cfg.hnn_quadratic is False
+    f = DeformationField(dataclasses.replace(cfg, hnn_quadratic=True), [[-1] * 3, [1] * 3])
+    assert f.field.quad1.abs().max() == 0 and f.field.quad2.abs().max() == 0
+    assert DeformationField(cfg, [[-1] * 3, [1] * 3]).field.quad1 is None
 
 
 def test_decoder_modes_agree_and_work_without_grad():
