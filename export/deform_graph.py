@@ -250,6 +250,18 @@ def adapter_maps(field, k_sh: int) -> tuple[torch.Tensor, torch.Tensor, torch.Te
     return q_c, q_s, torch.cat([b["mu"] * cfg.dt] + rest_b)
 
 
+def quadratic_map(decoder, trunk_last: nn.Linear, q_c: torch.Tensor,
+                  q_s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The quadratic terms' share of the adapter outputs (FieldConfig.hnn_quadratic) as one
+    Linear of the trunk's input x, (weight, bias) in float64: (S1 h) Q_c + (S2 h) J Q_s = h K with
+    h = Wt x + bt, so x (Wt^T K) + bt K."""
+    s1 = decoder.quad1.detach().double()
+    s2 = decoder.quad2.detach().double()
+    k = 0.5 * (s1 + s1.t()) @ q_c + 0.5 * (s2 + s2.t()) @ symplectic_rows(q_s)
+    wt, bt = trunk_last.weight.detach().double(), trunk_last.bias.detach().double()
+    return (wt.t() @ k).t(), bt @ k
+
+
 def symplectic_rows(q: torch.Tensor) -> torch.Tensor:
     """J Q for v_s = g M^T = g J (`symplectic`): v_s Q = g (J Q), J Q = (-Q[d:], Q[:d])."""
     d = q.shape[0] // 2
@@ -371,6 +383,8 @@ class FastDeform(nn.Module):
             del self.mip_spatial
             self.register_buffer("mip_spatial", spatial)
         self.mlp = self.hnn = None
+        self.register_buffer("quad_w", None)
+        self.register_buffer("quad_b", None)
         trunk = list(field.trunk)
         if cfg.decoder == "mlp":
             self.trunk = field.trunk
@@ -382,6 +396,10 @@ class FastDeform(nn.Module):
             self.hnn = nn.ModuleList([ClosedFormNet(field.field.f1, trunk[-1], q_c, bias),
                                       ClosedFormNet(field.field.f2, trunk[-1],
                                                     symplectic_rows(q_s), None)])
+            if field.field.quad1 is not None:  # FieldConfig.hnn_quadratic: S1 h Q_c + S2 h J Q_s
+                w, b = quadratic_map(field.field, trunk[-1], q_c, q_s)
+                self.register_buffer("quad_w", _f32(w))
+                self.register_buffer("quad_b", _f32(b))
         else:  # use_hnn=False ablation: v_c, v_s are direct MLP outputs, adapters precomposed
             self.trunk = field.trunk
             self.direct = field.field
@@ -418,6 +436,8 @@ class FastDeform(nn.Module):
             cols = self.mlp(x)
         elif self.hnn is not None:
             cols = self.hnn[0](x) + self.hnn[1](x)
+            if self.quad_w is not None:
+                cols = cols + F.linear(x, self.quad_w, self.quad_b)
         else:
             out = self.direct(x)
             cols = F.linear(out.v_c, self.q_c, self.q_bias) + F.linear(out.v_s, self.q_s)

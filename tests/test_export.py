@@ -188,6 +188,33 @@ def test_bed_deformed_reading_exports_with_parity(tmp_path):
     assert np.abs(got_means_at(sess, 0.13) - other).max() > 1e-3
 
 
+def test_quadratic_hamiltonian_exports_with_parity(tmp_path):
+    """field.hnn_quadratic (docs/design.md section 4.3): the exported graph adds the quadratic
+    terms' gradients, and they matter (zeroing them moves the Gaussians)."""
+    from nehad.checkpoint import atomic_torch_save, load_state
+
+    run, _ = make_run(tmp_path, "hnn", extra=("field.hnn_quadratic=true",))
+    state = load_state(run / "model.pt")
+    g = torch.Generator().manual_seed(11)
+    for name in ("field.quad1", "field.quad2"):
+        state["field"][name] = torch.randn(state["field"][name].shape, generator=g) * 0.05
+    atomic_torch_save(state, run / "model.pt")
+    path = tmp_path / "model.onnx"
+    res = CliRunner().invoke(main, ["export", str(run), "-o", str(path)])
+    assert res.exit_code == 0, res.output
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    worst = 0.0
+    for t in TIMES:
+        got = sess.run(None, {"time": np.array([t], np.float32)})
+        for a, b in zip(got, torch_reference(run, t)):
+            worst = max(worst, parity_error(a, b))
+    assert worst <= 1e-5
+    for name in ("field.quad1", "field.quad2"):
+        state["field"][name] = torch.zeros_like(state["field"][name])
+    atomic_torch_save(state, run / "model.pt")
+    assert np.abs(got_means_at(sess, 0.13) - torch_reference(run, 0.13)[0]).max() > 1e-3
+
+
 def got_means_at(sess, t):
     return sess.run(["means"], {"time": np.array([t], np.float32)})[0]
 
