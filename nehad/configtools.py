@@ -14,6 +14,8 @@ from typing import Any
 
 import yaml
 
+from nehad.runtime.yamlfile import load_yaml_text
+
 
 class ConfigError(ValueError):
     """A config file or override names an unknown key or holds a value of the wrong type."""
@@ -177,7 +179,7 @@ def parse_override(text: str) -> dict:
     if not key:
         raise ConfigError(f"override {text!r}: empty key")
     try:
-        value = yaml.safe_load(raw) if raw.strip() else ""
+        value = load_yaml_text(raw) if raw.strip() else ""
     except (yaml.YAMLError, ValueError, RecursionError):  # kept as text: the type check names it
         value = raw
     out: dict = {}
@@ -238,7 +240,7 @@ def load_yaml(path) -> dict:
     path = Path(path)
     text = read_text(path)
     try:
-        data = yaml.safe_load(text)
+        data = load_yaml_text(text)
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""

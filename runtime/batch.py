@@ -49,6 +49,7 @@ from pathlib import Path
 from .errors import InputProblem
 from .mp4 import MAX_FPS, MIN_FPS
 from .suffixes import IMAGE_SUFFIXES
+from .yamlfile import load_yaml_text
 from .values import MAX_THREADS, MAX_WORKERS, parse_background, parse_size
 
 __all__ = ["BatchError", "BatchSpec", "BatchJob", "JobResult", "load_batch", "run_batch",
@@ -264,7 +265,7 @@ def load_batch(path, check_files: bool = False) -> BatchSpec:
     if not path.is_file():
         raise BatchError(f"{source}: no such jobs file")
     try:
-        doc = yaml.safe_load(path.read_text(encoding="utf-8"))
+        doc = load_yaml_text(path.read_text(encoding="utf-8"))
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""

@@ -1759,3 +1759,23 @@ def test_model_metadata_of_other_types(model, tmp_path, key, value, commands):
         _one_error(res, "m.onnx: metadata", key)
         assert "Gaussians:" not in res.output  # info prints nothing before the error
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.onnx"]
+
+
+def test_a_key_written_twice_is_refused(tmp_path, model):
+    """A config or jobs file with one key twice in a mapping (PyYAML keeps the last and ran
+    with the first unseen) is one error naming the key and its line; merge keys may still be
+    overridden, as YAML means them (nehad.runtime.yamlfile)."""
+    from nehad.runtime.yamlfile import load_yaml_text
+
+    _, scene, _ = model
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("fine:\n  iterations: 5\n  densify_until: 3\n  iterations: 6\n")
+    res = _invoke(["train", scene, "-o", tmp_path / "run", "--config", cfg, "--preset", "test"])
+    _one_error(res, "c.yaml", "line 4", "'iterations' is written twice")
+    assert not (tmp_path / "run").exists()
+    jobs = tmp_path / "jobs.yaml"
+    jobs.write_text("jobs:\n  - model: m.onnx\n    output: a.mp4\n    output: b.mp4\n")
+    _one_error(_invoke(["batch", jobs]), "jobs.yaml", "line 4", "'output' is written twice")
+    doc = load_yaml_text("base: &b {x: 1, y: 2}\nuse:\n  <<: *b\n  x: 3\n")
+    assert doc["use"] == {"x": 3, "y": 2}
+    assert load_yaml_text("a: {b: 1}\nc: {b: 2}\n") == {"a": {"b": 1}, "c": {"b": 2}}
