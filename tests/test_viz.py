@@ -389,6 +389,8 @@ def test_cli_masks_render_plot_score(tiny_run, tiny_onnx, tmp_path):
     _fails(runner.invoke(main, ["viz", "masks", str(run)]), "nothing to do")
     _fails(runner.invoke(main, ["viz", "masks", str(run), "--score", "--moving-ids", "0"]),
            "--moving-ids")
+    _fails(runner.invoke(main, ["viz", "masks", str(run), "--score", "--moving-ids", "1,99"]),
+           "--moving-ids", "no object 99", "its objects: 1")  # (it scored 99 as never seen)
     _fails(runner.invoke(main, ["viz", "masks", str(run), "--score", "--data",
                                 str(tmp_path / "gone")]), "gone")
     _fails(runner.invoke(main, ["viz", "masks", str(run), "-o", str(tmp_path / "m.gif")]),

@@ -441,6 +441,12 @@ def _label_truth(data: Path, moving_ids):
     """`_ground_truth` from the dataset's label masks (`moving_ids`, or the detected ones)."""
     found = moving_object_ids(data)
     ids = sorted(int(i) for i in moving_ids) if moving_ids else found["moving"]
+    known = set(found["moving"]) | set(found["static"])
+    unknown = [i for i in ids if known and i not in known]
+    if unknown:
+        listed = ", ".join(f"{i} {found['names'].get(i, '')}".strip() for i in sorted(known))
+        raise VizError(f"--moving-ids: no object {unknown[0]} in the label masks of {data} "
+                       f"(its objects: {listed})")
     if not ids:
         raise VizError(f"{data}: no moving object found in the label masks "
                        f"({found['method']}); name them with --moving-ids")
