@@ -287,8 +287,10 @@ def test_missing_image(scene_copy):
 
 def test_unreadable_image(scene_copy):
     (scene_copy / "val" / "r_001.png").write_bytes(b"not a png")
-    with pytest.raises(DatasetError, match=r"r_001\.png"):
+    with pytest.raises(DatasetError, match=r"r_001\.png") as e:
         load_dnerf(scene_copy, splits=("val",))
+    assert str(e.value).count("cannot read image") == 1, str(e.value)  # it was said twice
+    assert "frames[1].file_path" in str(e.value)
 
 
 def test_bad_ply(scene_copy):

@@ -334,14 +334,26 @@ def check_rotation(r: np.ndarray, path, field: str) -> None:
                            f"det = {det:.6g})")
 
 
+def unreadable_image(path: Path, exc: Exception, named_by: str = "") -> DatasetError:
+    """The DatasetError for an image that would not load: `path: cannot read image (named_by):
+    why`, the reader's own "path: cannot read image" taken off `why` (it was said twice)."""
+    why = str(exc)
+    for head in (f"{path}: ", "cannot read image"):
+        if why.startswith(head):
+            why = why[len(head):].strip()
+    if why.startswith("(") and why.endswith(")") and why.count("(") == 1:
+        why = why[1:-1]
+    by = f" ({named_by})" if named_by else ""
+    return DatasetError(f"{path}: cannot read image{by}: {why or type(exc).__name__}")
+
+
 def read_rgb(path: Path, background: np.ndarray, named_by: str = ""):
     """(rgb (H, W, 3) float32, alpha (H, W) or None) of an image file; RGBA is composited over
     `background` as the D-NeRF reader does (read_image hands colour over premultiplied)."""
     try:
         pixels = read_image(path)
     except Exception as exc:  # ImageError and OpenImageIO failures
-        by = f" ({named_by})" if named_by else ""
-        raise DatasetError(f"{path}: cannot read image{by}: {exc}") from None
+        raise unreadable_image(path, exc, named_by) from None
     c = pixels.shape[2]
     if c in (1, 2):
         rgb, alpha = np.repeat(pixels[:, :, :1], 3, axis=2), (pixels[:, :, 1] if c == 2 else None)

@@ -34,7 +34,8 @@ import numpy as np
 
 from nehad.data.common import (DNERF_INIT_BOUND, DatasetError, DNeRFScene, Frame,  # noqa: F401
                                area_downscale, check_background, check_scene_args,
-                               downscale_camera, number, read_json, read_ply_points)
+                               downscale_camera, number, read_json, read_ply_points,
+                               unreadable_image)
 from nehad.runtime.cameras import Camera, CameraError, check_rotation
 from nehad.runtime.images import DNERF_IMAGE_SUFFIXES, STILL_SUFFIXES, read_image
 
@@ -155,8 +156,8 @@ def _load_image(img_path: Path, background: np.ndarray, downscale: int, json_pat
     try:
         pixels = read_image(img_path)
     except Exception as exc:  # ImageError and OpenImageIO failures
-        raise DatasetError(f"{img_path}: cannot read image (named by {json_path} "
-                           f"frames[{k}].file_path): {exc}") from None
+        raise unreadable_image(img_path, exc, f"named by {json_path} frames[{k}].file_path"
+                               ) from None
     if not np.isfinite(pixels).all():  # a float EXR/TIFF can hold them; training would die
         raise DatasetError(f"{img_path}: holds NaN or infinite pixel values (named by "
                            f"{json_path} frames[{k}].file_path)")
