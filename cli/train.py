@@ -46,6 +46,9 @@ def train(data, run, preset, config_file, overrides, resume, lod_levels, quiet):
         with user_errors(), _removed_if_unstarted(run, fresh):
             if not data.is_dir():
                 raise InputError(f"{data}: no such dataset folder")
+            if run.resolve() == data.resolve():
+                raise InputError(f"-o {run}: that is the dataset folder; the run's files would "
+                                 f"be mixed into it; name another folder")
             from nehad.config import build_config
 
             if lod_levels is not None:

@@ -318,6 +318,17 @@ def test_resume_of_a_missing_run_is_an_error(model, tmp_path):
     assert _listing(tmp_path) == []
 
 
+def test_a_run_is_not_written_into_its_dataset(model, tmp_path):
+    """`train DATA -o DATA` mixed model.pt, checkpoints/ and config.yaml into the dataset."""
+    _, scene, _ = model
+    data = tmp_path / "data"
+    shutil.copytree(scene, data)
+    before = _listing(data)
+    _one_error(_invoke(["train", data, "-o", data / ".", "--preset", "test"]),
+               "that is the dataset folder")
+    assert _listing(data) == before
+
+
 def test_demo_checks_its_settings_before_writing(tmp_path):
     _one_error(_invoke(["demo", "-o", tmp_path / "demo", "--set", "bogus.key=1"]), "bogus")
     _one_error(_invoke(["demo", "-o", tmp_path / "demo", "--set", "fine.iterations=abc"]),
