@@ -164,9 +164,10 @@ class HamiltonianDecoder(nn.Module):
 
     def quadratic_gradients(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(S_1 h, S_2 h), the gradients of the quadratic terms h^T S_k h / 2, each (N, W)."""
-        s1 = 0.5 * (self.quad1 + self.quad1.t())
-        s2 = 0.5 * (self.quad2 + self.quad2.t())
-        return h @ s1, h @ s2
+        s = 0.5 * torch.cat([self.quad1 + self.quad1.t(), self.quad2 + self.quad2.t()], 1)
+        both = h @ s  # one product for the two terms, (N, 2W)
+        w = h.shape[-1]
+        return both[:, :w], both[:, w:]
 
     def input_gradients(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(grad_h F1, grad_h F2), each (N, W)."""
