@@ -164,13 +164,9 @@ def test_render_from_onnx_matches_run_render(runs, tmp_path, decoder):
         assert 0.02 < float(np.mean(np.abs(x - 1.0))) or x.std() > 0.01  # something is drawn
 
 
-def test_bed_deformed_reading_exports_with_parity(tmp_path):
-    """field.bed_distance=deformed (M_pos from the integrated position, docs/design.md section
-    4.7): the exported graph computes the same Gaussians as torch, and the reading changes them."""
-    from nehad.checkpoint import atomic_torch_save, load_state
-
-    run, _ = make_run(tmp_path, "hnn", extra=("field.bed_distance=deformed",))
-    path = tmp_path / "model.onnx"
+def exported_with_parity(run, path):
+    """`nehad export RUN -o PATH`, its session, after every output at every test time is held
+    to torch's gaussians_at within 1e-5."""
     res = CliRunner().invoke(main, ["export", str(run), "-o", str(path)])
     assert res.exit_code == 0, res.output
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
@@ -180,6 +176,16 @@ def test_bed_deformed_reading_exports_with_parity(tmp_path):
         for a, b in zip(got, torch_reference(run, t)):
             worst = max(worst, parity_error(a, b))
     assert worst <= 1e-5
+    return sess
+
+
+def test_bed_deformed_reading_exports_with_parity(tmp_path):
+    """field.bed_distance=deformed (M_pos from the integrated position, docs/design.md section
+    4.7): the exported graph computes the same Gaussians as torch, and the reading changes them."""
+    from nehad.checkpoint import atomic_torch_save, load_state
+
+    run, _ = make_run(tmp_path, "hnn", extra=("field.bed_distance=deformed",))
+    sess = exported_with_parity(run, tmp_path / "model.onnx")
     # the same weights read the other way place the Gaussians elsewhere
     state = load_state(run / "model.pt")
     state["config"]["field"]["bed_distance"] = "canonical"
@@ -199,16 +205,7 @@ def test_quadratic_hamiltonian_exports_with_parity(tmp_path):
     for name in ("field.quad1", "field.quad2"):
         state["field"][name] = torch.randn(state["field"][name].shape, generator=g) * 0.05
     atomic_torch_save(state, run / "model.pt")
-    path = tmp_path / "model.onnx"
-    res = CliRunner().invoke(main, ["export", str(run), "-o", str(path)])
-    assert res.exit_code == 0, res.output
-    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    worst = 0.0
-    for t in TIMES:
-        got = sess.run(None, {"time": np.array([t], np.float32)})
-        for a, b in zip(got, torch_reference(run, t)):
-            worst = max(worst, parity_error(a, b))
-    assert worst <= 1e-5
+    sess = exported_with_parity(run, tmp_path / "model.onnx")
     for name in ("field.quad1", "field.quad2"):
         state["field"][name] = torch.zeros_like(state["field"][name])
     atomic_torch_save(state, run / "model.pt")
