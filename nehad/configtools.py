@@ -14,7 +14,7 @@ from typing import Any
 
 import yaml
 
-from nehad.runtime.yamlfile import load_yaml_text
+from nehad.runtime.yamlfile import MalformedYAML, load_yaml_text
 
 
 class ConfigError(ValueError):
@@ -180,7 +180,7 @@ def parse_override(text: str) -> dict:
         raise ConfigError(f"override {text!r}: empty key")
     try:
         value = load_yaml_text(raw) if raw.strip() else ""
-    except (yaml.YAMLError, ValueError, RecursionError):  # kept as text: the type check names it
+    except MalformedYAML:  # kept as text: the type check names it
         value = raw
     out: dict = {}
     node = out
@@ -241,15 +241,8 @@ def load_yaml(path) -> dict:
     text = read_text(path)
     try:
         data = load_yaml_text(text)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
-        problem = getattr(e, "problem", None) or str(e)
-        raise ConfigError(f"{path}: malformed YAML{where}: {problem}") from None
-    except ValueError as e:  # an integer of thousands of digits
-        raise ConfigError(f"{path}: malformed YAML: {str(e)[:200]}") from None
-    except RecursionError:
-        raise ConfigError(f"{path}: malformed YAML: nested too deeply") from None
+    except MalformedYAML as e:
+        raise ConfigError(f"{path}: {e}") from None
     if data is None:
         return {}
     if not isinstance(data, dict):

@@ -9,9 +9,10 @@ when lod.levels = L > 1:
   resolution.
 * Layer k >= 1 runs `lod.iterations` fine steps (0: fine.iterations) on images at
   data.downscale * 2^(L-1-k), twice the resolution of layer k-1. It starts by spawning one child
-  per Gaussian of the layers below that lives at every time (not from carving's chains): position drawn from the parent's Gaussian, half its scale
-  (the pixels are half as large), opacity `lod.spawn_opacity`, colour, rotation and BED
-  equilibrium (mu_eq, t_eq) inherited, as densified children inherit them. Only the new layer
+  per Gaussian of the layers below that lives at every time (not from carving's chains):
+  position drawn from the parent's Gaussian, half its scale (the pixels are half as large),
+  opacity `lod.spawn_opacity`, colour, rotation and BED equilibrium (mu_eq, t_eq) inherited,
+  as densified children inherit them. Only the new layer
   trains: the Gaussians of earlier layers get no gradient (zeroed before each Adam step, and
   restored bit-exactly after it), are never densified, pruned or opacity-reset
   (`LayeredSchedule.densify_limits`). The deformation field is shared by all layers; it trains in layer

@@ -49,7 +49,6 @@ from pathlib import Path
 from .errors import InputProblem
 from .mp4 import MAX_FPS, MIN_FPS
 from .suffixes import IMAGE_SUFFIXES
-from .yamlfile import load_yaml_text
 from .values import MAX_THREADS, MAX_WORKERS, parse_background, parse_size
 
 __all__ = ["BatchError", "BatchSpec", "BatchJob", "JobResult", "load_batch", "run_batch",
@@ -256,9 +255,8 @@ def load_batch(path, check_files: bool = False) -> BatchSpec:
     its model missing here, ...); a run reports those per job and goes on with the others (a
     model may be where the workers run, not here). A sweep of times for an image job is a
     mistake in the file, refused either way."""
-    import yaml
-
     from .paths import parse_time_spec
+    from .yamlfile import MalformedYAML, load_yaml_text
 
     path = Path(path)
     source = str(path)
@@ -266,18 +264,11 @@ def load_batch(path, check_files: bool = False) -> BatchSpec:
         raise BatchError(f"{source}: no such jobs file")
     try:
         doc = load_yaml_text(path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
-        problem = getattr(e, "problem", None) or str(e)
-        raise BatchError(f"{source}: malformed YAML{where}: {problem}") from None
+    except MalformedYAML as e:
+        raise BatchError(f"{source}: {e}") from None
     except UnicodeDecodeError as e:
         raise BatchError(f"{source}: not a UTF-8 text file (byte {e.start}: "
                          f"{e.object[e.start]:#04x}); expected a YAML jobs file") from None
-    except ValueError as e:  # an integer of thousands of digits
-        raise BatchError(f"{source}: malformed YAML: {str(e)[:200]}") from None
-    except RecursionError:
-        raise BatchError(f"{source}: malformed YAML: nested too deeply") from None
     except OSError as e:
         raise BatchError(f"{source}: cannot read ({e.strerror or e})") from None
     if not isinstance(doc, dict):

@@ -36,10 +36,26 @@ _UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG,
                                  _mapping_without_repeats)
 
 
+class MalformedYAML(ValueError):
+    """Text that is not a YAML document this project reads; the message says where and why
+    ("malformed YAML (line 3, column 5): ..."), for the caller to put after the file's name."""
+
+
 def load_yaml_text(text: str):
-    """The document in `text`, as `yaml.safe_load` reads it, but a key repeated in one mapping
-    raises `yaml.YAMLError` (a ConstructorError whose `problem_mark` is the second key)."""
-    return yaml.load(text, Loader=_UniqueKeyLoader)
+    """The document in `text`, as `yaml.safe_load` reads it, except that a key repeated in one
+    mapping is refused. Anything the parser cannot hold (a syntax error, a repeated key, an
+    integer of thousands of digits, nesting thousands deep) raises MalformedYAML."""
+    try:
+        return yaml.load(text, Loader=_UniqueKeyLoader)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" (line {mark.line + 1}, column {mark.column + 1})" if mark else ""
+        problem = getattr(e, "problem", None) or str(e)
+        raise MalformedYAML(f"malformed YAML{where}: {problem}") from None
+    except ValueError as e:  # an integer of thousands of digits
+        raise MalformedYAML(f"malformed YAML: {str(e)[:200]}") from None
+    except RecursionError:
+        raise MalformedYAML("malformed YAML: nested too deeply") from None
 
 
-__all__ = ["load_yaml_text"]
+__all__ = ["MalformedYAML", "load_yaml_text"]
