@@ -49,7 +49,7 @@ from pathlib import Path
 from .errors import InputProblem
 from .mp4 import MAX_FPS, MIN_FPS
 from .suffixes import IMAGE_SUFFIXES
-from .values import MAX_THREADS, MAX_WORKERS, parse_background, parse_size
+from .values import MAX_THREADS, MAX_WORKERS, count_problem, parse_background, parse_size
 
 __all__ = ["BatchError", "BatchSpec", "BatchJob", "JobResult", "load_batch", "run_batch",
            "format_summary", "VIDEO_KEYS", "IMAGE_KEYS", "TOP_KEYS"]
@@ -277,14 +277,11 @@ def load_batch(path, check_files: bool = False) -> BatchSpec:
         if key not in TOP_KEYS:
             raise BatchError(f"{source}: unknown top-level key {key!r}" + _suggest(str(key), TOP_KEYS))
     base = path.parent.absolute()
-    workers = doc.get("workers")
-    if workers is not None and (not _is_int(workers) or not 1 <= workers <= MAX_WORKERS):
-        raise BatchError(f"{source}: workers: expected a whole number in 1..{MAX_WORKERS}, got "
-                         f"{workers!r}")
-    threads = doc.get("threads")
-    if threads is not None and (not _is_int(threads) or not 1 <= threads <= MAX_THREADS):
-        raise BatchError(f"{source}: threads: expected a whole number in 1..{MAX_THREADS}, got "
-                         f"{threads!r}")
+    workers, threads = doc.get("workers"), doc.get("threads")
+    for key, value, most in (("workers", workers, MAX_WORKERS), ("threads", threads, MAX_THREADS)):
+        why = None if value is None else count_problem(value, 1, most)
+        if why:
+            raise BatchError(f"{source}: {key}: {why}, got {value!r}")
     scheduler = doc.get("scheduler")
     if scheduler is not None and (not isinstance(scheduler, str) or "://" not in scheduler):
         raise BatchError(f"{source}: scheduler: expected an address like tcp://HOST:8786, got "

@@ -518,11 +518,12 @@ def _host_and_cores() -> tuple[str, int]:
 def make_backend(workers: int | None = 1, scheduler: str | None = None,
                  threads: int | None = None):
     """The backend for ``--workers N`` / ``--scheduler ADDRESS`` (see the module doc)."""
-    from .values import MAX_THREADS, MAX_WORKERS
+    from .values import MAX_THREADS, MAX_WORKERS, count_problem
 
     for key, value, most in (("workers", workers, MAX_WORKERS), ("threads", threads, MAX_THREADS)):
-        if value is not None and not 1 <= int(value) <= most:
-            raise InputProblem(f"{{{key}}} {value}: must be in 1..{most}", input=key)
+        why = None if value is None else count_problem(value, 1, most)
+        if why:
+            raise InputProblem(f"{{{key}}} {value}: {why}", input=key)
     if scheduler:
         return DaskBackend(scheduler, threads=threads)
     workers = 1 if workers is None else int(workers)

@@ -38,7 +38,7 @@ from .onnx_proto import (ModelSummary, ProtoError, graph_for_outputs, graph_sha2
                          inputs_read, summarize)
 from .errors import InputProblem
 from .threads import usable_cores
-from .values import MAX_THREADS
+from .values import MAX_THREADS, count_problem
 
 FORMAT = "nehad-onnx/1"
 OUTPUTS = ("means", "scales", "quats", "opacities", "sh")
@@ -227,9 +227,10 @@ class OnnxModel:
         self._lock = threading.Lock()
         self._extra_feeds: dict = {}  # optional inputs (streaming layers, runtime/layers.py)
         self.runs = 0  # session runs so far (the cache saves the others)
-        if threads is not None and not 0 <= int(threads) <= MAX_THREADS:
-            raise OnnxModelError(f"{{threads}} {threads}: must be in 0..{MAX_THREADS} (0: as many "
-                                 f"as there are cores)", input="threads")
+        why = None if threads is None else count_problem(threads, 0, MAX_THREADS)
+        if why:
+            raise OnnxModelError(f"{{threads}} {threads}: {why} (0: as many as there are cores)",
+                                 input="threads")
         self.part_bounds = self._read_part_bounds()
         parts = len(self.part_bounds) - 1
         total = int(threads or 0) or usable_cores()

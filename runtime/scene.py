@@ -212,11 +212,11 @@ def open_scene(path, lod: int | None = None, threads: int | None = None,
     p = Path(path)
     if lod is not None and lod < 0:
         raise SceneError(f"{{lod}} {lod}: must be >= 0", "lod")
-    from .values import MAX_THREADS
+    from .values import MAX_THREADS, count_problem
 
-    if threads is not None and not 0 <= int(threads) <= MAX_THREADS:
-        # checked here, not at the model's first draw (`nehad view` opens it on a request)
-        raise SceneError(f"{{threads}} {threads}: must be in 0..{MAX_THREADS}", "threads")
+    why = None if threads is None else count_problem(threads, 0, MAX_THREADS)
+    if why:  # checked here, not at the model's first draw (`nehad view` opens it on a request)
+        raise SceneError(f"{{threads}} {threads}: {why}", "threads")
     if p.is_dir():
         if (p / "manifest.json").is_file():
             return LayeredScene(p, lod=lod, threads=threads)

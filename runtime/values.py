@@ -15,6 +15,16 @@ MAX_WORKERS = 1024
 MAX_THREADS = 1024
 
 
+def count_problem(value, lowest: int, most: int) -> str | None:
+    """Why `value` is not a usable worker or thread count, or None when it is a whole number in
+    lowest..most (threads may be 0, "as many as there are cores", where the caller allows it).
+    Every front end words its own error around this text, naming the input it came from."""
+    number = getattr(value, "__index__", None)
+    if isinstance(value, bool) or number is None or not lowest <= number() <= most:
+        return f"must be a whole number in {lowest}..{most}"
+    return None
+
+
 def parse_background(text: str) -> tuple[float, float, float]:
     """``"R,G,B"`` with each value in [0, 1] (e.g. ``1,1,1`` for white)."""
     parts = [p.strip() for p in str(text).split(",")]
