@@ -481,10 +481,10 @@ class FastDeform(nn.Module):
             disp = disp * (1.0 - position_mask(
                 at, mu_eq.t(), t, t_eq, sigma_s=cfg.sigma_s_fraction * self.extent.to(means.dtype),
                 sigma_t=cfg.sigma_t, beta=cfg.beta, gamma=cfg.gamma, lam=cfg.lam,
-                eps=cfg.norm_eps, dim=0))
+                eps=cfg.norm_eps, dim=0, floor=cfg.bed_floor))
         if cfg.bed_scale:
             ds = ds * (1.0 - scale_mask(t, t_eq, sigma_t=cfg.sigma_t, beta=cfg.beta,
-                                        gamma=cfg.gamma))
+                                        gamma=cfg.gamma, floor=cfg.bed_floor))
         dr = clamp_rotation_delta(q, cfg.phi_max, cfg.norm_eps, dim=0).dr if cfg.rigidity else q
         new_quats = safe_normalize(quat_multiply(quat, dr, dim=0), cfg.norm_eps, dim=0)
         moved = mu + disp

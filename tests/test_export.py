@@ -194,6 +194,19 @@ def test_bed_deformed_reading_exports_with_parity(tmp_path):
     assert np.abs(got_means_at(sess, 0.13) - other).max() > 1e-3
 
 
+def test_bed_floor_on_the_deformation_exports_with_parity(tmp_path):
+    """field.bed_floor=deformation (docs/design.md section 4.7): the exported graph floors the
+    blend weight as torch does, and the reading changes the Gaussians."""
+    from nehad.checkpoint import atomic_torch_save, load_state
+
+    run, _ = make_run(tmp_path, "hnn", extra=("field.bed_floor=deformation",))
+    sess = exported_with_parity(run, tmp_path / "model.onnx")
+    state = load_state(run / "model.pt")
+    state["config"]["field"]["bed_floor"] = "mask"
+    atomic_torch_save(state, run / "model.pt")
+    assert np.abs(got_means_at(sess, 0.13) - torch_reference(run, 0.13)[0]).max() > 1e-4
+
+
 def test_quadratic_hamiltonian_exports_with_parity(tmp_path):
     """field.hnn_quadratic (docs/design.md section 4.3): the exported graph adds the quadratic
     terms' gradients, and they matter (zeroing them moves the Gaussians)."""

@@ -416,6 +416,26 @@ def test_bed_masks_range_equilibrium_and_value():
     assert gmu.abs().max() == 0 and geq.abs().max() == 0  # equilibrium is a maximum
 
 
+def test_bed_floor_on_the_deformation_keeps_every_gaussian_responsive():
+    """field.bed_floor=deformation (docs/design.md section 4.7): the blend weight 1 - M lies in
+    [gamma, 1]: gamma at equilibrium, not 0, and the masks are the paper's minus gamma."""
+    cfg = FieldConfig(bed_floor="deformation")
+    a = torch.tensor([[0.03, 0.04, 0.0], [0.0, 0.0, 0.0]], dtype=torch.float64)
+    t = torch.tensor([[0.75], [0.5]], dtype=torch.float64)
+    t_eq = torch.full((2, 1), 0.5, dtype=torch.float64)
+    mp, ms = bed_masks(a, torch.zeros_like(a), t, t_eq, cfg, extent=1.0)
+    e_st = 0.5 * (0.25 + 1.0) + 0.5 * 0.5 * 1.0  # the hand case of the test above
+    assert mp[0].item() == pytest.approx(0.95 * math.exp(-e_st), rel=1e-9)
+    assert ms[0].item() == pytest.approx(0.95 * math.exp(-0.5), rel=1e-12)
+    assert 1.0 - mp[1].item() == pytest.approx(0.05, abs=1e-9)  # at equilibrium: gamma moves
+    assert 1.0 - ms[1].item() == pytest.approx(0.05, abs=1e-12)
+    paper = bed_masks(a, torch.zeros_like(a), t, t_eq, FieldConfig(), extent=1.0)
+    assert torch.allclose(paper[0] - mp, torch.full_like(mp, 0.05), atol=1e-12, rtol=0)
+    assert torch.allclose(paper[1] - ms, torch.full_like(ms, 0.05), atol=1e-12, rtol=0)
+    with pytest.raises(ValueError, match="bed_floor"):
+        FieldConfig(bed_floor="nowhere").validate()
+
+
 # ----------------------------------------------------------------------------- rigidity
 def test_quaternion_product_and_onnx_safe_atan2():
     g = torch.Generator().manual_seed(0)

@@ -149,7 +149,14 @@ class FieldConfig:
     beta: float = 1.0
     """Inverse temperature of the Boltzmann factor."""
     gamma: float = 0.05
-    """Mask floor: masks lie in [gamma, 1]; gamma keeps every Gaussian minimally responsive."""
+    """The floor of the masks ("mask") or of the deformation they let through ("deformation"),
+    as `bed_floor` says."""
+    bed_floor: str = "mask"
+    """What gamma floors (docs/design.md section 4.7). "mask": the paper's formula as written,
+    M = (1 - gamma) exp(-beta E) + gamma in [gamma, 1], so a Gaussian at equilibrium (at t = t_eq
+    while mu_eq = mu) is wholly held, 1 - M = 0; "deformation": the paper's stated purpose of
+    gamma ("minimum dynamic responsiveness to prevent complete deactivation"), the blend weight
+    1 - M in [gamma, 1], M = (1 - gamma) exp(-beta E)."""
     lam: float = 0.5
     """Space-time coupling lambda of E_st; |lam| < 1 keeps E_st >= 0 so masks stay <= 1."""
     norm_eps: float = 1e-12
@@ -271,6 +278,8 @@ class FieldConfig:
             self._bad("dt", "must be > 0")
         if self.bed_distance not in ("canonical", "deformed"):
             self._bad("bed_distance", "must be 'canonical' or 'deformed'")
+        if self.bed_floor not in ("mask", "deformation"):
+            self._bad("bed_floor", "must be 'mask' or 'deformation'")
         for name in ("sigma_s_fraction", "sigma_t", "beta"):
             if self._finite(name) <= 0:
                 self._bad(name, "must be > 0")

@@ -232,13 +232,14 @@ class DeformationField(nn.Module):
             m_pos = position_mask(at, mu_eq, t_col, t_eq,
                                   sigma_s=cfg.sigma_s_fraction * self.extent.to(means.dtype),
                                   sigma_t=cfg.sigma_t, beta=cfg.beta, gamma=cfg.gamma,
-                                  lam=cfg.lam, eps=cfg.norm_eps)
+                                  lam=cfg.lam, eps=cfg.norm_eps, floor=cfg.bed_floor)
             aux["m_pos"] = m_pos
             disp = disp * (1.0 - m_pos)
         new_means = means + disp
         ds = ad.ds
         if cfg.bed_scale:
-            m_scale = scale_mask(t_col, t_eq, sigma_t=cfg.sigma_t, beta=cfg.beta, gamma=cfg.gamma)
+            m_scale = scale_mask(t_col, t_eq, sigma_t=cfg.sigma_t, beta=cfg.beta, gamma=cfg.gamma,
+                                 floor=cfg.bed_floor)
             aux["m_scale"] = m_scale
             ds = ds * (1.0 - m_scale)
         new_log_scales = log_scales + ds
