@@ -221,8 +221,8 @@ def masks(run, view, time_, output, plot, n_times, threshold, score, split, data
           moving_ids, synth_scene, max_frames, json_out, size):
     """Show and score the Boltzmann equilibrium (BED) split of a training RUN.
 
-    -o renders the Gaussians coloured by their BED weight 1 - M_pos at --time (0: held at
-    equilibrium, static; up to 1 - gamma: deformed); --plot draws the fraction of dynamic
+    -o renders the Gaussians coloured by their BED weight 1 - M_pos at --time (low: held at
+    equilibrium, static; high: deformed; field.bed_floor says which end gamma bounds); --plot draws the fraction of dynamic
     Gaussians over time; --score compares the split with the moving objects' masks (MuJoCo label
     masks, or the scene description of a `nehad synth` dataset). Needs the training run: an
     exported .onnx model has no mask output.
