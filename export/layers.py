@@ -98,13 +98,17 @@ class SplitReport:
 
 
 def _empty_initializers(proto, shapes: dict) -> None:
-    """Give each extra_* input an empty default of its own name (an overridable initializer)."""
-    from onnx import numpy_helper
+    """Give each extra_* input an empty default of its own name (an overridable initializer).
+    An input the field does not read (mu_eq and t_eq without BED or carving) was dropped by the
+    exporter; it is declared again, unused, so every base graph takes the same chunk feeds
+    (runtime/layers.py)."""
+    from onnx import helper, numpy_helper
 
     inputs = {x.name for x in proto.graph.input}
     for name, (tail, dtype) in shapes.items():
         if name not in inputs:
-            raise ExportError(f"base graph: the exporter dropped input {name} (unused?)")
+            proto.graph.input.append(helper.make_tensor_value_info(
+                name, helper.np_dtype_to_tensor_dtype(np.dtype(dtype)), ["extra_rows", *tail]))
         proto.graph.initializer.append(numpy_helper.from_array(np.zeros((0, *tail), dtype), name))
 
 

@@ -156,8 +156,9 @@ class CarveConfig:
     # opaque: the few views that see each are far apart, and a faint start faded; the vote
     # and rays measurements of 2026-11-25 used 0.3)
     max_new: int = 1500  # Gaussians added per pass at most
-    hold: bool = True  # a carved Gaussian's BED equilibrium is where it was seen (the position
-    # mask holds it still around the pass's time); false: its equilibrium is put out of reach
+    hold: bool = True  # a carved Gaussian's BED equilibrium is where it was seen (with
+    # field.bed_position on, off in the recipe, the position mask holds it still around the
+    # pass's time); false: its equilibrium is put out of reach
     # (M_pos = gamma), so the deformation field moves it from the start, as it moves anything
     # that is out of equilibrium
     track_width: float = 0.8  # "tracks": a seeded Gaussian's scale, in object radii

@@ -1,6 +1,7 @@
 """Fixtures shared by the test modules (pytest finds them here).
 
-- `tiny_run`: a tiny trained run (`nehad synth` at 32 px with 8 frames, `test` preset, seconds),
+- `tiny_run`: a tiny trained run (`nehad synth` at 32 px with 8 frames, `test` preset with the
+  paper's BED masks on, seconds),
   session-scoped, so it is trained once per pytest run; `tiny_run_model` its loaded (model, meta);
   `tiny_onnx` its export.
 
@@ -24,7 +25,9 @@ def tiny_run(tmp_path_factory):
     root = tmp_path_factory.mktemp("viz")
     data = synthesize_scene(root / "data", resolution=32, frames=8, seed=0)
     run = root / "run"
-    Trainer(build_config("test"), data, run, progress=False).train()
+    # the paper's BED masks on (off in the recipe): `viz masks` and its tests read them
+    cfg = build_config("test", overrides=["field.bed_position=true", "field.bed_scale=true"])
+    Trainer(cfg, data, run, progress=False).train()
     return data, run
 
 

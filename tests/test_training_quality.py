@@ -9,7 +9,7 @@ in under a minute, then:
 - at early and late times, inside the sphere's true silhouette (ray cast from the generator's
   scene description, not a training image), the render must beat a blank image by a margin;
 - the field must move the sphere's Gaussians by at least half the sphere's motion, along it, and
-  hold the still sphere's Gaussians in place: one shared displacement cannot do both.
+  the still sphere's by under a fifth of it: one shared displacement cannot do both.
 """
 
 from __future__ import annotations
@@ -111,8 +111,10 @@ def test_the_field_moves_the_mover_and_holds_the_still_sphere(trained):
     print(f"  mover's displacement along its true motion: {along:.2f} of "
           f"{np.linalg.norm(true_motion):.2f} m")
     assert along > 0.5 * np.linalg.norm(true_motion)
-    # a shared displacement would move the still sphere as far as the mover (1.69 m); float32
-    # rounding alone moves this figure between runs of one recipe (2026-11-26: under 0.1 m with
-    # the closed-form decoder on 2 threads, 0.103 on 1 thread, 0.109 with the fused decoder),
-    # so the bound is a tenth of the mover's motion, not a hair above one run
-    assert still_motion < 0.1 * np.linalg.norm(true_motion)
+    # a shared displacement would move the still sphere as far as the mover (1.69 m). With the
+    # paper's BED masks holding it the figure was 0.09-0.11 m (2026-11-26, float32 rounding moves
+    # it between runs); the recipe without them (2026-11-27, docs/design.md section 4.7) moves it
+    # 0.17 m, 0.4 of its radius, while it still scores +13 to +29 dB over blank on its pixels at
+    # t = 0, 0.5 and 1 from three unseen cameras (0.09 m and +9 to +26 dB with BED). The bound is
+    # a fifth of the mover's motion: far from a collapse, not a hair above one run
+    assert still_motion < 0.2 * np.linalg.norm(true_motion)

@@ -93,12 +93,13 @@ class FieldConfig:
     default initialisation). v = grad_h F varies with h only through the curvature of the
     activations; with the default scale their inputs stay in the near-linear range, so v starts
     out almost the same for every Gaussian (docs/training.md)."""
-    hnn_quadratic: bool = False
+    hnn_quadratic: bool = True
     """Add a learned quadratic form to each scalar network, F(h) = net(h) + h^T S h / 2 (S a
     symmetric W x W matrix, zero at the start), so grad_h F = grad_h net(h) + S h: the kinetic
     term of a Hamiltonian H = p^T p / 2m + V(q), written for the latent h. Without it v is the
     gradient of a softplus network alone, bounded by its weights and varying with h only through
-    its gates (docs/design.md section 4.3)."""
+    its gates (docs/design.md section 4.3). On since 2026-11-27 (docs/results.md); false is the
+    paper's decoder as written."""
     hnn_grad: str = "fused"
     """How grad_h F is computed: "fused" (default since 2026-11-26: the explicit formula of
     docs/design.md section 4.4 and its hand-written backward as one autograd Function whose
@@ -130,10 +131,13 @@ class FieldConfig:
     count and learn T times slower (docs/design.md section 4.6)."""
 
     # ---------------- Boltzmann equilibrium decomposition (docs/design.md section 4.7) ----------------
-    bed_position: bool = True
-    """Blend positions with M_pos; off: mu' = mu~ (equivalent to M_pos = 0)."""
-    bed_scale: bool = True
-    """Blend log-scale offsets with M_scale; off: s' = s + ds (equivalent to M_scale = 0)."""
+    bed_position: bool = False
+    """Blend positions with M_pos; off: mu' = mu~ (equivalent to M_pos = 0). Off since
+    2026-11-27: every reading of the mask measured cost 1.7-2.5 dB (docs/design.md section 4.7);
+    true is the paper's BED."""
+    bed_scale: bool = False
+    """Blend log-scale offsets with M_scale; off: s' = s + ds (equivalent to M_scale = 0). Off
+    with bed_position (docs/design.md section 4.7)."""
     bed_distance: str = "canonical"
     """What the spatial deviation dd = |x - mu_eq| / sigma_s of M_pos measures (the paper's
     mu_i is ambiguous, docs/design.md section 4.7): "canonical": x = the canonical mean mu (the
