@@ -124,9 +124,11 @@ def test_a_real_model_matches_its_own_deformed_means():
     cfg = FieldConfig(resolution=(8, 8, 8, 4), out_dim=8, multires=(1,), width=16,
                       hnn_hidden=16)
     model = NeHaDModel(g, DeformationField(cfg, torch.tensor([[-1.0] * 3, [1.0] * 3])))
-    with torch.no_grad():  # move the field off the identity
-        for p in model.field.adapters.parameters():
+    with torch.no_grad():  # move the field off the identity, and make it depend on t (the
+        for p in model.field.adapters.parameters():  # time planes start at 1)
             p.normal_(0, 0.3)
+        for p in model.field.hexplane.parameters():
+            p.add_(torch.randn(p.shape) * 0.3)
     rows = torch.tensor([3, 17, 40])
     full = model.gaussians_at(0.37)[0]
     assert torch.allclose(model.means_at(0.37, rows), full[rows], atol=1e-6)

@@ -1668,13 +1668,14 @@ def test_nehad_threads_beyond_the_bound_is_one_error(model, tmp_path, monkeypatc
     (["viz", "masks", "{r}", "--plot", "{o}/p.png", "--times", str(10**20)],
      f"--times {10**20}: the BED weights"),
 ])
-def test_viz_pictures_and_times_are_checked_against_memory(model, tmp_path, cap_16g, args,
-                                                           needle):
+def test_viz_pictures_and_times_are_checked_against_memory(model, tiny_run, tmp_path, cap_16g,
+                                                           args, needle):
     """viz drew these without the memory bound: --size 32768x32768 was killed by the OOM
-    killer, viz masks --times 10**20 a traceback of numpy's linspace."""
+    killer, viz masks --times 10**20 a traceback of numpy's linspace. (`viz masks` reads a run
+    trained with the BED masks: tests/conftest.py's tiny_run.)"""
     out = tmp_path / "out"
     out.mkdir()
-    argv = [a.format(m=model[0], r=model[2], o=out) for a in args]
+    argv = [a.format(m=model[0], r=tiny_run[1], o=out) for a in args]
     _one_error(_invoke(argv), needle, "GB of memory")
     assert _listing(out) == []
 
