@@ -222,10 +222,11 @@ def masks(run, view, time_, output, plot, n_times, threshold, score, split, data
     """Show and score the Boltzmann equilibrium (BED) split of a training RUN.
 
     -o renders the Gaussians coloured by their BED weight 1 - M_pos at --time (low: held at
-    equilibrium, static; high: deformed; field.bed_floor says which end gamma bounds); --plot draws the fraction of dynamic
-    Gaussians over time; --score compares the split with the moving objects' masks (MuJoCo label
-    masks, or the scene description of a `nehad synth` dataset). Needs the training run: an
-    exported .onnx model has no mask output.
+    equilibrium, static; high: deformed); --plot draws the fraction of dynamic Gaussians over
+    time; --score compares the split with the moving objects' masks (MuJoCo label
+    masks, or the scene description of a `nehad synth` dataset). Needs a training run with the
+    masks on (`--set field.bed_position=true`; off in the recipe since 2026-11-27): an exported
+    .onnx model has no mask output.
     """
     if output is None and plot is None and not score:
         raise click.UsageError("nothing to do: give -o IMAGE, --plot PLOT and/or --score")
