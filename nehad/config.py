@@ -594,6 +594,17 @@ def build_config(preset: str | None = "cpu", config_file=None, overrides=()) -> 
     return cfg
 
 
+#: Keys whose default changed after runs had been saved without them: a saved config that lacks
+#: one was trained with the value here (the default of its day), not today's default.
+FORMER_DEFAULTS = {"field": {"hnn_quadratic": False}}  # the key came in 3230e51, on in 823ff3e
+
+
 def config_from_dict(data: dict) -> Config:
-    """Rebuild a resolved config (as saved in a run directory)."""
+    """Rebuild a resolved config (as saved in a run directory); a key it lacks takes the value
+    the run trained with (FORMER_DEFAULTS, else today's default)."""
+    if isinstance(data, dict):
+        data = dict(data)
+        for part, former in FORMER_DEFAULTS.items():
+            if isinstance(data.get(part), dict):
+                data[part] = {**former, **data[part]}
     return from_dict(Config, data).validate()

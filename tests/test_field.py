@@ -276,6 +276,21 @@ def test_quadratic_term_starts_at_zero_and_switches_off():
     assert DeformationField(off, [[-1] * 3, [1] * 3]).field.quad1 is None
 
 
+def test_a_run_saved_before_the_kinetic_term_loads_without_it():
+    """A run's config saved before `hnn_quadratic` existed (3230e51) trained without it: it must
+    load so (its field has no quad tensors), though the default is now on (823ff3e)."""
+    from nehad.config import build_config, config_from_dict
+    from nehad.configtools import to_dict
+
+    saved = to_dict(build_config("test"))
+    assert config_from_dict(saved).field.hnn_quadratic is True  # saved with the key: as saved
+    del saved["field"]["hnn_quadratic"]
+    old = config_from_dict(saved).field
+    assert old.hnn_quadratic is False
+    keys = set(DeformationField(old, [[-1] * 3, [1] * 3]).state_dict())
+    assert not any("quad" in k for k in keys)
+
+
 def test_decoder_modes_agree_and_work_without_grad():
     torch.manual_seed(0)
     dec = HamiltonianDecoder(width=16, hidden=16)
