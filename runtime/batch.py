@@ -279,7 +279,7 @@ def load_batch(path, check_files: bool = False) -> BatchSpec:
     base = path.parent.absolute()
     workers, threads = doc.get("workers"), doc.get("threads")
     for key, value, most in (("workers", workers, MAX_WORKERS), ("threads", threads, MAX_THREADS)):
-        why = None if value is None else count_problem(value, 1, most)
+        why = count_problem(value, 1, most)
         if why:
             raise BatchError(f"{source}: {key}: {why}, got {value!r}")
     scheduler = doc.get("scheduler")

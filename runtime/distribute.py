@@ -521,7 +521,7 @@ def make_backend(workers: int | None = 1, scheduler: str | None = None,
     from .values import MAX_THREADS, MAX_WORKERS, count_problem
 
     for key, value, most in (("workers", workers, MAX_WORKERS), ("threads", threads, MAX_THREADS)):
-        why = None if value is None else count_problem(value, 1, most)
+        why = count_problem(value, 1, most)
         if why:
             raise InputProblem(f"{{{key}}} {value}: {why}", input=key)
     if scheduler:

@@ -227,7 +227,7 @@ class OnnxModel:
         self._lock = threading.Lock()
         self._extra_feeds: dict = {}  # optional inputs (streaming layers, runtime/layers.py)
         self.runs = 0  # session runs so far (the cache saves the others)
-        why = None if threads is None else count_problem(threads, 0, MAX_THREADS)
+        why = count_problem(threads, 0, MAX_THREADS)
         if why:
             raise OnnxModelError(f"{{threads}} {threads}: {why} (0: as many as there are cores)",
                                  input="threads")

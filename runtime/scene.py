@@ -214,7 +214,7 @@ def open_scene(path, lod: int | None = None, threads: int | None = None,
         raise SceneError(f"{{lod}} {lod}: must be >= 0", "lod")
     from .values import MAX_THREADS, count_problem
 
-    why = None if threads is None else count_problem(threads, 0, MAX_THREADS)
+    why = count_problem(threads, 0, MAX_THREADS)
     if why:  # checked here, not at the model's first draw (`nehad view` opens it on a request)
         raise SceneError(f"{{threads}} {threads}: {why}", "threads")
     if p.is_dir():

@@ -17,8 +17,11 @@ MAX_THREADS = 1024
 
 def count_problem(value, lowest: int, most: int) -> str | None:
     """Why `value` is not a usable worker or thread count, or None when it is a whole number in
-    lowest..most (threads may be 0, "as many as there are cores", where the caller allows it).
-    Every front end words its own error around this text, naming the input it came from."""
+    lowest..most (threads may be 0, "as many as there are cores", where the caller allows it) or
+    None (not given). Every front end words its own error around this text, naming the input it
+    came from."""
+    if value is None:
+        return None
     number = getattr(value, "__index__", None)
     if isinstance(value, bool) or number is None or not lowest <= number() <= most:
         return f"must be a whole number in {lowest}..{most}"

@@ -55,7 +55,8 @@ def write(tmp_path, text: str):
     ("job:\n  - {model: m.onnx, output: a.mp4}\n",
      "jobs.yaml: unknown top-level key 'job'; did you mean 'jobs'?"),
     ("jobs: []\n", "jobs.yaml: jobs: expected a non-empty list"),
-    ("workers: 0\njobs:\n  - {model: m.onnx, output: a.mp4}\n", "jobs.yaml: workers: must be a whole number"),
+    ("workers: 0\njobs:\n  - {model: m.onnx, output: a.mp4}\n",
+     "jobs.yaml: workers: must be a whole number"),
     ("jobs:\n  - {model: m.onnx, output: a.mp4\n", "jobs.yaml: malformed YAML (line"),
 ])
 def test_schema_errors_name_the_job_and_the_key(tmp_path, body, message):

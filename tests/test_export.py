@@ -184,7 +184,8 @@ def test_bed_deformed_reading_exports_with_parity(tmp_path):
     4.7): the exported graph computes the same Gaussians as torch, and the reading changes them."""
     from nehad.checkpoint import atomic_torch_save, load_state
 
-    run, _ = make_run(tmp_path, "hnn", extra=("field.bed_position=true", "field.bed_distance=deformed"))
+    run, _ = make_run(tmp_path, "hnn",
+                      extra=("field.bed_position=true", "field.bed_distance=deformed"))
     sess = exported_with_parity(run, tmp_path / "model.onnx")
     # the same weights read the other way place the Gaussians elsewhere
     state = load_state(run / "model.pt")
