@@ -103,3 +103,6 @@ def test_demo_runs_the_whole_pipeline(tmp_path):
     assert truth.shape == strip.shape
     assert truth[..., :3].min() < 0.5  # objects drawn over the white background
     assert "PSNR" in res.output and "blank" in res.output and "strip_truth.png" in res.output
+    from nehad.demo import DEMO_TEST_FRAMES
+
+    assert f"test: {DEMO_TEST_FRAMES} frames at 40x40" in res.output  # each quarter ~10 views

@@ -76,6 +76,24 @@ def test_fixed_time_is_static(tmp_path):
     assert not (root / "points3d.ply").exists()
 
 
+def test_test_frames_sets_the_test_split_alone(tmp_path):
+    """`test_frames` writes that many test views and leaves the other splits as they were."""
+    plain = synthesize_scene(tmp_path / "a", resolution=16, frames=10, seed=3, points=0)
+    more = synthesize_scene(tmp_path / "b", resolution=16, frames=10, seed=3, points=0,
+                            test_frames=7)
+    counts = {}
+    for root in (plain, more):
+        counts[root.name] = {s: len(json.loads((root / f"transforms_{s}.json").read_text())["frames"])
+                             for s in ("train", "val", "test")}
+    assert counts["a"] == {"train": 10, "val": 1, "test": 1}
+    assert counts["b"] == {"train": 10, "val": 1, "test": 7}
+    assert len(list((more / "test").glob("r_*.png"))) == 7
+    for name in ("transforms_train.json", "transforms_val.json"):
+        assert (plain / name).read_bytes() == (more / name).read_bytes()
+    with pytest.raises(ValueError, match="test_frames"):
+        synthesize_scene(tmp_path / "c", resolution=16, frames=10, points=0, test_frames=0)
+
+
 def test_bad_arguments(tmp_path):
     with pytest.raises(ValueError, match="teapot"):
         synthesize_scene(tmp_path / "x", scene="teapot")

@@ -549,12 +549,14 @@ def _write_split(job: _Shoot, split: str, rng: np.random.Generator, times, n: in
 
 def synthesize_scene(out_dir, scene: str = "spheres", resolution: int = 64, frames: int = 50,
                      seed: int = 0, fixed_time: float | None = None, fov_deg: float = 45.0,
-                     supersample: int = 3, points: int = 2000, progress=None) -> Path:
+                     supersample: int = 3, points: int = 2000, progress=None,
+                     test_frames: int | None = None) -> Path:
     """Write a synthetic dynamic scene in the D-NeRF layout to `out_dir` and return its path.
     `progress`, if given, is called once per image written.
 
     `resolution` is the square image size, `frames` the number of train frames (val and test get
-    ``max(1, round(0.1 * frames))`` each). Train frame k has time ``k / (frames - 1)``; val and test
+    ``max(1, round(0.1 * frames))`` each; `test_frames`, if given, sets the test split's count
+    alone). Train frame k has time ``k / (frames - 1)``; val and test
     times are drawn uniformly in [0, 1]. With `fixed_time` every frame of every split has that time
     (a static scene). Cameras: radius 4 around the origin, random azimuth, elevation 10-60 degrees,
     horizontal field of view `fov_deg`. `points` > 0 also writes ``points3d.ply`` with that many
@@ -569,6 +571,9 @@ def synthesize_scene(out_dir, scene: str = "spheres", resolution: int = 64, fram
     rng_train, rng_val, rng_test, rng_pts = (
         np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(4))
     n_held = max(1, int(round(0.1 * frames)))
+    if test_frames is not None and (isinstance(test_frames, bool) or int(test_frames) < 1):
+        raise ValueError(f"test_frames: expected an integer >= 1, got {test_frames}")
+    n_test = n_held if test_frames is None else int(test_frames)
     plan = {
         "train": (rng_train, [k / (frames - 1) if frames > 1 else 0.0 for k in range(frames)]),
         "val": (rng_val, None),
@@ -576,8 +581,9 @@ def synthesize_scene(out_dir, scene: str = "spheres", resolution: int = 64, fram
     }
     job = _Shoot(out, scene, resolution, focal, angle_x, max(3, len(str(frames - 1))),
                  supersample, fixed_time, progress)
+    counts = {"train": frames, "val": n_held, "test": n_test}
     for split, (rng, times) in plan.items():
-        _write_split(job, split, rng, times, len(times) if times is not None else n_held)
+        _write_split(job, split, rng, times, counts[split])
     atomic_write_bytes(out / "class_mapping.json", (json.dumps(
         class_mapping(scene_objects(scene, 0.0)), indent=2) + "\n").encode("utf-8"))
     if points > 0:
