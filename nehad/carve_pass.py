@@ -135,7 +135,7 @@ class ResidualCarving:
         time; the tracks of its unexplained blobs become chains of Gaussians, one every frame
         spacing along each track, living around their own time and moving with the track,
         except where the model already draws the object (`nehad.tracks.drawn_already`)."""
-        from nehad.tracks import find_blobs, fit_tracks, seeds_along
+        from nehad.tracks import cluster_seeds, find_blobs, fit_tracks, seeds_along
 
         c = self.cfg
         pool = eligible_frames(views.times, window)
@@ -154,9 +154,9 @@ class ResidualCarving:
         pts, vel, t_eq, cols, widths, shapes = (np.concatenate(x) for x in zip(*seeds))
         have = self._drawn_already(pts, vel, t_eq, cols, widths, times[pool], clouds)
         out["carve_drawn"] = int(have.sum())
-        most = self._most_new()
-        pts, vel, t_eq, cols, widths, shapes = (x[~have][:most] for x in
-                                                (pts, vel, t_eq, cols, widths, shapes))
+        most = self._most_new() // c.track_members  # whole seeds
+        pts, vel, t_eq, cols, widths, shapes = cluster_seeds(
+            *(x[~have][:most] for x in (pts, vel, t_eq, cols, widths, shapes)), c.track_members)
         out["carved"] = len(pts)
         if len(pts):
             out.update(self._add(model.gaussians, optimizer, state, pts, cols, widths, t_eq,

@@ -162,6 +162,8 @@ class CarveConfig:
     # (M_pos = gamma), so the deformation field moves it from the start, as it moves anything
     # that is out of equilibrium
     track_width: float = 0.8  # "tracks": a seeded Gaussian's scale, in object radii
+    track_members: int = 1  # "tracks": Gaussians per seed, 1 or 7 (the seed's centre and six
+    # points along its axes, each half its size: nehad.tracks.cluster_seeds)
     pin: bool = True  # Gaussians with a finite life keep the place, motion, time and life they
     # were given (nehad.carve_pass.pin_mortal: a view or two see each, which cannot place it
     # in depth); colour, opacity and shape are still learnt
@@ -420,6 +422,8 @@ class Config:
         if not (0.0 < c.residual < 1.0 and 0.0 < c.agree <= 1.0 and 0.0 < c.colour_tol <= 1.0
                 and 0.0 < c.opacity < 1.0):
             raise ConfigError("carve: residual, opacity in (0, 1); agree, colour_tol in (0, 1]")
+        if c.track_members not in (1, 7) or isinstance(c.track_members, bool):
+            raise ConfigError(f"carve.track_members: must be 1 or 7, got {c.track_members!r}")
         if not all(isinstance(f, (int, float)) and 0.0 < f < 1.0 for f in c.at):
             raise ConfigError(f"carve.at: fractions of a stage in (0, 1), got {list(c.at)}")
         if not c.check_lives or not all(isinstance(f, (int, float)) and f >= 1.0

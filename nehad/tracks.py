@@ -385,6 +385,28 @@ def seeds_along(track: Track, cameras, spacing: float, lo: float, hi: float,
             np.full(n, size), shapes)
 
 
+#: Unit offsets of a seed's members (`cluster_seeds`): the centre and the six axis points.
+_MEMBER_OFFSETS = np.vstack([np.zeros(3), np.eye(3), -np.eye(3)])
+
+
+def cluster_seeds(pts, vel, times, colours, widths, shapes, members: int, spread: float = 0.6):
+    """Each seed of `seeds_along` as `members` Gaussians (1 or 7) that move together: the seed's
+    centre and, with 7, the six points `spread` of its axes away along them, each with the
+    seed's axes halved. One Gaussian per frame spacing draws an object as a round blur as wide
+    as its scale; seven smaller ones fill its extent more evenly. The members keep the seed's
+    velocity, time and colour, so they form one chain with it (`chains_of`)."""
+    if members == 1:
+        return pts, vel, times, colours, widths, shapes
+    if members != len(_MEMBER_OFFSETS):
+        raise ValueError(f"cluster_seeds: members must be 1 or {len(_MEMBER_OFFSETS)}, got "
+                         f"{members}")
+    k = len(_MEMBER_OFFSETS)
+    offsets = spread * np.einsum("nij,kj->nki", shapes, _MEMBER_OFFSETS)  # (n, k, 3)
+    rep = lambda a: np.repeat(a, k, axis=0)  # noqa: E731
+    return ((pts[:, None, :] + offsets).reshape(-1, 3), rep(vel), rep(times), rep(colours),
+            rep(0.5 * widths), rep(0.5 * shapes))
+
+
 def blob_axes(blob: Blob, cam, size: float) -> np.ndarray:
     """(3, 3) a Gaussian's axes (columns, a right-handed frame in world coordinates, each as
     long as its scale) shaped like the blob: its pixels' principal axes taken into the
@@ -463,5 +485,5 @@ def chains_of(means: np.ndarray, velocities: np.ndarray, times: np.ndarray, spac
     return np.unique(roots, return_inverse=True)[1].reshape(-1)
 
 
-__all__ = ["Blob", "Track", "TrackSettings", "blob_axes", "chains_of", "drawn_already",
+__all__ = ["Blob", "Track", "TrackSettings", "blob_axes", "chains_of", "cluster_seeds", "drawn_already",
            "find_blobs", "fit_motion", "fit_tracks", "motion_at", "seeds_along"]

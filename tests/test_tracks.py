@@ -185,6 +185,43 @@ def test_chains_are_found_again_from_their_gaussians():
     assert len(set(chains_of(means[cut], vel[cut], times[cut], s, np.full(8, 0.05)))) == 2
 
 
+def test_a_seed_as_seven_members_keeps_its_place_motion_and_chain():
+    """cluster_seeds: 7 members per seed centred on it (the offsets cancel), each at `spread`
+    of an axis from it, with its velocity, time and colour and half its axes; the members of
+    a chain of seeds are one chain (`chains_of`, reach twice the members' largest scale, as
+    `check_chains` measures it); members=1 changes nothing."""
+    from nehad.tracks import chains_of, cluster_seeds
+
+    rng = np.random.default_rng(3)
+    n, s = 6, 0.01
+    times = np.arange(n) * s
+    vel = np.tile([4.0, 0.0, 1.0], (n, 1))
+    pts = vel * times[:, None] + 0.2
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    shapes = np.stack([q * np.array([0.06, 0.04, 0.02]) for _ in range(n)])  # axes as columns
+    widths = np.full(n, 0.04)
+    cols = rng.uniform(size=(n, 3))
+    same = cluster_seeds(pts, vel, times, cols, widths, shapes, 1)
+    assert all(a is b for a, b in zip(same, (pts, vel, times, cols, widths, shapes)))
+    m_pts, m_vel, m_t, m_cols, m_w, m_shapes = cluster_seeds(pts, vel, times, cols, widths,
+                                                             shapes, 7, spread=0.6)
+    assert m_pts.shape == (7 * n, 3) and m_shapes.shape == (7 * n, 3, 3)
+    np.testing.assert_allclose(m_pts.reshape(n, 7, 3).mean(1), pts, atol=1e-12)
+    off = m_pts.reshape(n, 7, 3) - pts[:, None, :]
+    np.testing.assert_allclose(off[:, 0], 0.0, atol=1e-12)
+    np.testing.assert_allclose(np.sort(np.linalg.norm(off[0, 1:], axis=1)),
+                               np.sort(0.6 * np.repeat([0.06, 0.04, 0.02], 2)), rtol=1e-9)
+    np.testing.assert_array_equal(m_vel, np.repeat(vel, 7, 0))
+    np.testing.assert_array_equal(m_t, np.repeat(times, 7))
+    np.testing.assert_array_equal(m_cols, np.repeat(cols, 7, 0))
+    np.testing.assert_allclose(m_shapes, 0.5 * np.repeat(shapes, 7, 0))
+    np.testing.assert_allclose(m_w, 0.02)
+    reach = 2.0 * np.linalg.norm(m_shapes, axis=1).max(axis=1)
+    assert len(set(chains_of(m_pts, m_vel, m_t, s, reach))) == 1
+    with pytest.raises(ValueError, match="members"):
+        cluster_seeds(pts, vel, times, cols, widths, shapes, 3)
+
+
 def _moments(weight):
     """(angle of the principal axis in degrees mod 180, ratio of the principal stds) of an
     image's weight."""
