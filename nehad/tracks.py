@@ -402,9 +402,9 @@ def cluster_seeds(pts, vel, times, colours, widths, shapes, members: int, spread
                          f"{members}")
     k = len(_MEMBER_OFFSETS)
     offsets = spread * np.einsum("nij,kj->nki", shapes, _MEMBER_OFFSETS)  # (n, k, 3)
-    rep = lambda a: np.repeat(a, k, axis=0)  # noqa: E731
-    return ((pts[:, None, :] + offsets).reshape(-1, 3), rep(vel), rep(times), rep(colours),
-            rep(0.5 * widths), rep(0.5 * shapes))
+    vel, times, colours, widths, shapes = (np.repeat(a, k, axis=0) for a in
+                                           (vel, times, colours, 0.5 * widths, 0.5 * shapes))
+    return (pts[:, None, :] + offsets).reshape(-1, 3), vel, times, colours, widths, shapes
 
 
 def blob_axes(blob: Blob, cam, size: float) -> np.ndarray:
