@@ -27,6 +27,9 @@ import time
 
 import numpy as np
 
+#: Where the spinning sphere's axis passes (scene units; the box is [-1.5, 1.5]^3).
+SPIN_CENTRE = (0.6, -0.4, 0.1)
+
 
 def groups_of(rng):
     """Canonical points (N, 3) float32 and their groups {name: slice}."""
@@ -45,9 +48,6 @@ def groups_of(rng):
         slices[name] = slice(start, start + len(p))
         start += len(p)
     return np.concatenate(list(parts.values())).astype(np.float32), slices
-
-
-SPIN_CENTRE = (0.6, -0.4, 0.1)
 
 
 def displacement(points, groups, t: float) -> np.ndarray:
