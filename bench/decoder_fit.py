@@ -9,7 +9,7 @@ sphere spinning about a vertical axis and a still floor. The preset's deformatio
 (hex-plane, trunk, decoder, Verlet, rigidity clamp; `--set field.*` changes it) is fitted to
 their true displacements by regression: each step one of 21 times, the mean squared
 displacement error of every point plus the field's regularisers, Adam with the preset's
-learning rates for the planes and the decoder, decaying tenfold. As the trainer does at the
+learning rates for the planes and the decoder and their decays (`nehad.optim.exp_lr`). As the trainer does at the
 start of the deforming stage, the trunk is standardised over the points first
 (`DeformationField.standardize_trunk`, `--no-standardize` skips it).
 
@@ -75,6 +75,7 @@ def main() -> None:
 
     from nehad.config import build_config
     from nehad.field.deformation import DeformationField
+    from nehad.optim import exp_lr
 
     torch.set_num_threads(1)
     torch.manual_seed(args.seed)
@@ -91,7 +92,8 @@ def main() -> None:
         with torch.no_grad():
             field.standardize_trunk(means, 0.5)
     opt = cfg.optim
-    lrs = [(opt.grid_lr_init, opt.grid_lr_final), (opt.decoder_lr, opt.decoder_lr / 10)]
+    decoder_final = opt.decoder_lr if opt.decoder_lr_final is None else opt.decoder_lr_final
+    lrs = [(opt.grid_lr_init, opt.grid_lr_final), (opt.decoder_lr, decoder_final)]
     pg = field.param_groups()
     adam = torch.optim.Adam([{"params": pg["grid"]}, {"params": pg["decoder"]}], eps=1e-15)
     times = np.linspace(0.0, 1.0, 21)
@@ -103,7 +105,7 @@ def main() -> None:
     start = time.perf_counter()
     for step in range(args.steps):
         for group, (lo, hi) in zip(adam.param_groups, lrs):
-            group["lr"] = lo * (hi / lo) ** (step / args.steps)
+            group["lr"] = exp_lr(step, args.steps, lo, hi)
         t = float(rng.choice(times))
         moved = field(means, log_scales, quats, t).means - means
         loss = ((moved - targets[t]) ** 2).sum(1).mean() + field.regularization_loss()
