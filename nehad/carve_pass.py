@@ -17,7 +17,12 @@ import torch
 from nehad.chain_check import DROPPED, HALO, chain_lives, trained_rows
 from nehad.config import CarveConfig
 from nehad.curriculum import TimeWindow, eligible_frames
-from nehad.densify import DensifySchedule, DensifyState, append_gaussians, keep_gaussians
+from nehad.densify import (
+    DensifySchedule,
+    DensifyState,
+    append_gaussians,
+    keep_gaussians,
+)
 
 
 def van_der_corput(i: int) -> float:
@@ -135,7 +140,13 @@ class ResidualCarving:
         time; the tracks of its unexplained blobs become chains of Gaussians, one every frame
         spacing along each track, living around their own time and moving with the track,
         except where the model already draws the object (`nehad.tracks.drawn_already`)."""
-        from nehad.tracks import cluster_seeds, find_blobs, fit_tracks, seeds_along
+        from nehad.tracks import (
+            TrackSettings,
+            cluster_seeds,
+            find_blobs,
+            fit_tracks,
+            seeds_along,
+        )
 
         c = self.cfg
         pool = eligible_frames(views.times, window)
@@ -145,7 +156,7 @@ class ResidualCarving:
                                                           clouds)
         blobs = find_blobs(cams, times[pool], targets, alphas, [d.rgb for d in drawn],
                            residual=c.residual)
-        tracks = fit_tracks(cams, blobs)
+        tracks = fit_tracks(cams, blobs, TrackSettings(max_tracks=c.max_tracks))
         spacing = frame_spacing(times) or 1.0
         out = {"carve_blobs": len(blobs), "carve_tracks": len(tracks), "carved": 0}
         seeds = [seeds_along(tr, cams, spacing, 0.0, 1.0, c.track_width) for tr in tracks]

@@ -162,6 +162,8 @@ class CarveConfig:
     # (M_pos = gamma), so the deformation field moves it from the start, as it moves anything
     # that is out of equilibrium
     track_width: float = 0.8  # "tracks": a seeded Gaussian's scale, in object radii
+    max_tracks: int = 8  # "tracks": the most tracks one pass follows (the longest first;
+    # nehad.tracks.TrackSettings.max_tracks)
     track_members: int = 1  # "tracks": Gaussians per seed, 1 or 7 (the seed's centre and six
     # points along its axes, each half its size: nehad.tracks.cluster_seeds)
     pin: bool = True  # Gaussians with a finite life keep the place, motion, time and life they
@@ -422,6 +424,8 @@ class Config:
         if not (0.0 < c.residual < 1.0 and 0.0 < c.agree <= 1.0 and 0.0 < c.colour_tol <= 1.0
                 and 0.0 < c.opacity < 1.0):
             raise ConfigError("carve: residual, opacity in (0, 1); agree, colour_tol in (0, 1]")
+        if isinstance(c.max_tracks, bool) or not isinstance(c.max_tracks, int) or c.max_tracks < 1:
+            raise ConfigError(f"carve.max_tracks: must be an integer >= 1, got {c.max_tracks!r}")
         if c.track_members not in (1, 7) or isinstance(c.track_members, bool):
             raise ConfigError(f"carve.track_members: must be 1 or 7, got {c.track_members!r}")
         if not all(isinstance(f, (int, float)) and 0.0 < f < 1.0 for f in c.at):
