@@ -162,8 +162,10 @@ class CarveConfig:
     # (M_pos = gamma), so the deformation field moves it from the start, as it moves anything
     # that is out of equilibrium
     track_width: float = 0.8  # "tracks": a seeded Gaussian's scale, in object radii
-    max_tracks: int = 8  # "tracks": the most tracks one pass follows (the longest first;
-    # nehad.tracks.TrackSettings.max_tracks)
+    max_tracks: int = 32  # "tracks": the most tracks one pass follows
+    # (nehad.tracks.TrackSettings.max_tracks; 8 until 2026-11-28, a cap most passes reached,
+    # which left the stress occluder's sphere without a chain over its first tenth of time:
+    # docs/training.md, "How many tracks a pass follows")
     track_members: int = 1  # "tracks": Gaussians per seed, 1 or 7 (the seed's centre and six
     # points along its axes, each half its size: nehad.tracks.cluster_seeds)
     pin: bool = True  # Gaussians with a finite life keep the place, motion, time and life they

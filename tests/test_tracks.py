@@ -327,7 +327,7 @@ def test_every_object_gets_a_track_up_to_the_cap_longest_first():
     own length (12 to 30 views): with a cap of 32 each is one track, on its path; with a cap
     of 4, four of them. The recipe's passes followed at most 8 tracks until
     2026-11-28, and 8 was reached in most passes of the stress suite and the shared scenes
-    (docs/results.md): an object past the eighth longest stretch got no chain."""
+    (docs/results.md): an object without one of the 8 places got no chain."""
     import colorsys
     import dataclasses
 
