@@ -17,12 +17,7 @@ import torch
 from nehad.chain_check import DROPPED, HALO, chain_lives, trained_rows
 from nehad.config import CarveConfig
 from nehad.curriculum import TimeWindow, eligible_frames
-from nehad.densify import (
-    DensifySchedule,
-    DensifyState,
-    append_gaussians,
-    keep_gaussians,
-)
+from nehad.densify import DensifySchedule, DensifyState, append_gaussians, keep_gaussians
 
 
 def van_der_corput(i: int) -> float:
@@ -140,13 +135,8 @@ class ResidualCarving:
         time; the tracks of its unexplained blobs become chains of Gaussians, one every frame
         spacing along each track, living around their own time and moving with the track,
         except where the model already draws the object (`nehad.tracks.drawn_already`)."""
-        from nehad.tracks import (
-            TrackSettings,
-            cluster_seeds,
-            find_blobs,
-            fit_tracks,
-            seeds_along,
-        )
+        from nehad.tracks import (TrackSettings, cluster_seeds, find_blobs, fit_tracks,
+                                  seeds_along)
 
         c = self.cfg
         pool = eligible_frames(views.times, window)
