@@ -154,7 +154,7 @@ class TrackSettings:
     max_gap: float = 0.08  # the longest time without a blob (hidden, out of frame) a track
     # is followed through
     fit_blobs: int = 6  # the track's last blobs the prediction of the next view is fitted to
-    max_tracks: int = 8
+    max_tracks: int = 32  # the recipe passes carve.max_tracks (the same default)
     samples: int = 30  # random draws per anchor blob
     join_blobs: int = 5  # blobs from each end two tracks are joined on (`_join`)
     grow_degree: int = 2  # the motion that predicts a track's next blob (`_grow`): 2 a

@@ -322,7 +322,7 @@ def test_a_track_is_followed_round_a_bend_across_held_out_times():
     assert not any(lo <= 0.55 <= hi for lo, hi in covered), covered
 
 
-def test_every_object_gets_a_track_up_to_the_cap_longest_first():
+def test_every_object_gets_a_track_up_to_the_cap():
     """Ten objects of ten colours, each on its own straight path and seen in a stretch of its
     own length (12 to 30 views): with a cap of 32 each is one track, on its path; with a cap
     of 4, four of them. The recipe's passes followed at most 8 tracks until
