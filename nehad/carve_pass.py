@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from nehad.chain_check import DROPPED, HALO, chain_lives, trained_rows
+from nehad.chain_check import DROPPED, HALO, chain_lives, fill_untrained, trained_rows
 from nehad.config import CarveConfig
 from nehad.curriculum import TimeWindow, eligible_frames
 from nehad.densify import DensifySchedule, DensifyState, append_gaussians, keep_gaussians
@@ -222,6 +222,7 @@ class ResidualCarving:
         chains = [mortal[labels == c] for c in range(labels.max() + 1)]
         rates = g.life_rate.detach().reshape(-1).numpy().astype(np.float64)
         t_all = g.t_eq.detach().reshape(-1).numpy()  # every row's, as chain_lives indexes
+        filled = self._fill(g, chains, t_all, rates, train_times) if self.cfg.check_fill else 0
         with torch.no_grad():  # clouds without the life factors; the chains' lives are chosen
             g.life_rate[torch.as_tensor(mortal)] = 1e-20  # still finite: the drift holds
             try:
@@ -240,7 +241,29 @@ class ResidualCarving:
         return {"chains": len(chains), "chains_dropped": len(dropped),
                 "chain_gaussians_dropped": int(sum(len(chains[c]) for c in dropped)),
                 "chain_gaussians_longer": int((choice > 1.0).sum()),
-                "halo_gaussians_shrunk": int(grown.sum())}
+                "halo_gaussians_shrunk": int(grown.sum()), "untrained_filled": filled}
+
+    @staticmethod
+    def _fill(g, chains, t_all, rates, train_times) -> int:
+        """`carve.check_fill`: each chain's untrained members take their trained neighbours'
+        appearance and shape (`nehad.chain_check.fill_untrained`); how many changed."""
+        trained = trained_rows(t_all, rates, train_times)
+        names = ("sh_dc", "sh_rest", "opacity_logits", "log_scales", "quats")
+        count = 0
+        with torch.no_grad():
+            for rows in chains:
+                if trained[rows].all() or not trained[rows].any():
+                    continue
+                for name in names:
+                    p = getattr(g, name)
+                    flat = p.detach()[torch.as_tensor(rows)].reshape(len(rows), -1).numpy()
+                    new = fill_untrained(t_all[rows], trained[rows], flat)
+                    p[torch.as_tensor(rows)] = torch.as_tensor(new, dtype=p.dtype).reshape(
+                        (len(rows),) + tuple(p.shape[1:]))
+                q = g.quats.detach()[torch.as_tensor(rows)]
+                g.quats[torch.as_tensor(rows)] = q / q.norm(dim=1, keepdim=True).clamp_min(1e-12)
+                count += int((~trained[rows]).sum())
+        return count
 
     def _render_views(self, model, deforms: bool, indices, views, degree: int, clouds=None):
         """(cameras, targets, alphas or None, renders) of the views `indices`, each rendered

@@ -120,6 +120,36 @@ def trained_rows(t_eq: np.ndarray, rates: np.ndarray, train_times,
     return _life_window(tt, column(t_eq), column(rates)).sum(axis=1) >= least
 
 
+def fill_untrained(times: np.ndarray, trained: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """`values` (n, d) of one chain's members at `times` (n,), with each untrained member's
+    (`trained` False) replaced by the trained members' at its time: the linear interpolation
+    of the nearest trained member before it and the nearest after it, or the nearer one's
+    where it has one side only. Unchanged when no member is trained.
+
+    Why: a member at a held-out time keeps its seed's colour, opacity and shape (no view
+    trains it), while its place and motion are the track's, as good as its neighbours'; the
+    trained members on either side have learnt what the object looks like there."""
+    times = np.asarray(times, np.float64)
+    out = np.array(values, copy=True)
+    have = np.nonzero(np.asarray(trained, bool))[0]
+    if not len(have) or len(have) == len(times):
+        return out
+    have = have[np.argsort(times[have], kind="stable")]
+    th = times[have]
+    for i in np.nonzero(~np.asarray(trained, bool))[0]:
+        j = int(np.searchsorted(th, times[i]))
+        if j == 0:
+            out[i] = values[have[0]]
+        elif j == len(th):
+            out[i] = values[have[-1]]
+        else:
+            a, b = have[j - 1], have[j]
+            span = th[j] - th[j - 1]
+            w = 0.5 if span <= 0 else (times[i] - th[j - 1]) / span
+            out[i] = (1.0 - w) * values[a] + w * values[b]
+    return out
+
+
 def _opacity(base: np.ndarray, t: float, t_eq: np.ndarray, rate: np.ndarray,
              life: np.ndarray) -> np.ndarray:
     """The opacities at time t of Gaussians of opacity `base` at their own time, with their
@@ -128,4 +158,4 @@ def _opacity(base: np.ndarray, t: float, t_eq: np.ndarray, rate: np.ndarray,
     return (base * np.where(life == DROPPED, 0.0, window)).astype(base.dtype)
 
 
-__all__ = ["DROPPED", "HALO", "chain_lives", "trained_rows"]
+__all__ = ["DROPPED", "HALO", "chain_lives", "fill_untrained", "trained_rows"]

@@ -181,6 +181,9 @@ class CarveConfig:
     # trained members are multiplied by the one of these the split's views prefer
     # (nehad.chain_check.chain_lives): a chain Gaussian is trained by the views around its own
     # time, the held-out times see its neighbours' tails; (1.0,) = only keep or drop
+    check_fill: bool = False  # before the check, each chain member no training view sees (at
+    # a held-out time) takes the colour, opacity and shape of its chain's trained members
+    # around its time (nehad.chain_check.fill_untrained); its place and motion stay the track's
     start: float = 0.0  # with every > 0: no pass before this fraction of a stage's iterations
     # (the model should first draw what it can, or its own errors make blobs)
     life: float = 1.0  # a carved Gaussian lives around its time: its opacity is scaled by

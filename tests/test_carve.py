@@ -418,3 +418,52 @@ def test_trained_rows_are_those_a_training_view_sees_within_a_life_sigma():
     rates = np.array([10.0, 10.0, 10.0, 10.0, 0.0])  # sigma 0.1; the last lives at every time
     np.testing.assert_array_equal(trained_rows(t_eq, rates, train_times),
                                   [True, True, False, True, True])
+
+
+def test_untrained_members_take_their_trained_neighbours_appearance():
+    """fill_untrained against a hand-computed case: a member between two trained ones gets
+    their time-weighted mean, members beyond the last trained one its values, trained members
+    keep theirs; with no trained member nothing changes."""
+    from nehad.chain_check import fill_untrained
+
+    times = np.array([0.0, 0.1, 0.4, 0.2, 0.5, 0.6])
+    trained = np.array([True, False, True, False, False, True])
+    values = np.array([[0.0, 10.0], [9.0, 9.0], [3.0, 4.0], [9.0, 9.0], [9.0, 9.0],
+                       [5.0, 0.0]])
+    out = fill_untrained(times, trained, values)
+    expect = values.copy()
+    expect[1] = 0.75 * values[0] + 0.25 * values[2]  # t 0.1 between 0.0 and 0.4
+    expect[3] = 0.5 * values[0] + 0.5 * values[2]  # t 0.2
+    expect[4] = 0.5 * values[2] + 0.5 * values[5]  # t 0.5 between 0.4 and 0.6
+    np.testing.assert_allclose(out, expect)
+    tail = fill_untrained(np.array([0.0, 0.1, 0.2]), np.array([True, False, False]), values[:3])
+    np.testing.assert_allclose(tail, values[[0, 0, 0]])
+    none = fill_untrained(times, np.zeros(6, bool), values)
+    np.testing.assert_array_equal(none, values)
+
+
+def test_chains_left_out_of_the_cap_take_no_place_from_the_others(tmp_path):
+    """densify.cap_mortal=false: a run's Gaussians that live at every time stay within
+    max_gaussians while its chains come on top; with the default the whole count does."""
+    import json
+
+    from nehad.config import build_config
+    from nehad.data.synth_stress import synthesize_stress_scene
+    from nehad.trainer import Trainer
+
+    data = synthesize_stress_scene(tmp_path / "scene", "occluder", resolution=64, frames=40,
+                                   points=5000)
+    counts = {}
+    for cap_mortal in (False, True):
+        run = tmp_path / f"run_{cap_mortal}"
+        sets = ["coarse.iterations=60", "fine.iterations=300", "densify.max_gaussians=800",
+                "train.init_max_points=700", "train.checkpoint_interval=1000",
+                f"densify.cap_mortal={str(cap_mortal).lower()}"]
+        tr = Trainer(build_config("test", None, sets), data, run, progress=False)
+        tr.train()
+        log = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+        g = tr.model.gaussians
+        counts[cap_mortal] = (len(g), g.mortal_count(), max(r["gaussians"] for r in log))
+    total, mortal, _ = counts[False]
+    assert mortal > 0 and total - mortal <= 800 < total
+    assert counts[True][2] <= 800
