@@ -228,7 +228,8 @@ class ResidualCarving:
             try:
                 choice = chain_lives(chains, t_all, rates, lambda t: cloud_at(model, t, degree),
                                      views, self.background, self.cfg.check_lives,
-                                     trained=trained_rows(t_all, rates, train_times))
+                                     trained=trained_rows(t_all, rates, train_times),
+                                     pieces=self.cfg.check_pieces)
             finally:
                 g.life_rate[torch.as_tensor(mortal), 0] = torch.as_tensor(
                     rates[mortal], dtype=g.life_rate.dtype)
@@ -237,10 +238,12 @@ class ResidualCarving:
             longer = torch.as_tensor(np.nonzero(choice > 1.0)[0])
             g.life_rate[longer] = g.life_rate[longer] / torch.as_tensor(
                 choice[longer.numpy()], dtype=g.life_rate.dtype)[:, None]
-        dropped = [c for c, rows in enumerate(chains) if choice[rows[0]] == DROPPED]
+        dropped = [c for c, rows in enumerate(chains) if (choice[rows] == DROPPED).all()]
         return {"chains": len(chains), "chains_dropped": len(dropped),
                 "chain_gaussians_dropped": int(sum(len(chains[c]) for c in dropped)),
                 "chain_gaussians_longer": int((choice > 1.0).sum()),
+                "chains_cut": sum(1 for rows in chains
+                                  if 0 < (choice[rows] == DROPPED).sum() < len(rows)),
                 "halo_gaussians_shrunk": int(grown.sum()), "untrained_filled": filled}
 
     @staticmethod

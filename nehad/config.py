@@ -181,6 +181,9 @@ class CarveConfig:
     # trained members are multiplied by the one of these the split's views prefer
     # (nehad.chain_check.chain_lives): a chain Gaussian is trained by the views around its own
     # time, the held-out times see its neighbours' tails; (1.0,) = only keep or drop
+    check_pieces: str = "chain"  # "chain": each chain is kept or dropped whole; "core": its
+    # trained core (judged only by the held-out views between its first and last trained
+    # member) and its two extrapolated ends each on its own (nehad.chain_check.core_and_ends)
     check_fill: bool = False  # before the check, each chain member no training view sees (at
     # a held-out time) takes the colour, opacity and shape of its chain's trained members
     # around its time (nehad.chain_check.fill_untrained); its place and motion stay the track's

@@ -467,3 +467,22 @@ def test_chains_left_out_of_the_cap_take_no_place_from_the_others(tmp_path):
     total, mortal, _ = counts[False]
     assert mortal > 0 and total - mortal <= 800 < total
     assert counts[True][2] <= 800
+
+
+def test_a_chain_splits_into_its_trained_core_and_its_two_ends():
+    """core_and_ends against a hand-made chain: the core spans the first to the last trained
+    member (untrained ones between included) and is judged only between their times; the
+    members before and after are the two ends; a chain with no trained member is one piece."""
+    from nehad.chain_check import core_and_ends
+
+    t_eq = np.array([0.50, 0.10, 0.20, 0.30, 0.40, 0.00, 0.90])
+    trained = np.array([False, True, False, True, False, False, True])
+    pieces = core_and_ends(np.array([0, 1, 2, 3, 4, 5]), t_eq, trained)
+    (core, span), (head, head_span), (tail, tail_span) = pieces
+    np.testing.assert_array_equal(core, [1, 2, 3])
+    assert span == (0.10, 0.30) and head_span is None and tail_span is None
+    np.testing.assert_array_equal(head, [5])
+    np.testing.assert_array_equal(tail, [0, 4])
+    alone = core_and_ends(np.array([0, 2, 4]), t_eq, trained)
+    assert len(alone) == 1 and alone[0][1] is None
+    np.testing.assert_array_equal(alone[0][0], [0, 2, 4])
