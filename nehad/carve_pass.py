@@ -45,8 +45,6 @@ class ResidualCarving:
     box: np.ndarray
     background: tuple
     free_offset: float
-    cap_mortal: bool = True  # densify.cap_mortal: false, max_gaussians counts the Gaussians
-    # that live at every time only
 
     def due(self, deforms: bool, layer: int, it: int, timing: DensifySchedule) -> bool:
         """Whether a pass runs after iteration `it` (1-based) of a stage: inside the
@@ -302,19 +300,13 @@ class ResidualCarving:
 
         out = {}
         cap = self.max_gaussians
-        life = self.cfg.life * frame_spacing(views.times) if deforms else 0.0
-        counted = len(g) + len(pts)
-        if not self.cap_mortal:  # the chains, old and new, are not counted
-            counted -= g.mortal_count() + (len(pts) if life > 0 else 0)
-        over = counted - cap if cap > 0 else 0
+        over = len(g) + len(pts) - cap if cap > 0 else 0
         keep = torch.ones(len(g), dtype=torch.bool)
         if over > 0:
-            opacity = g.opacity_logits.detach().reshape(-1).clone()
-            if not self.cap_mortal:  # room is made among the counted ones
-                opacity[g.life_rate.detach().reshape(-1) != 0] = float("inf")
-            keep[torch.argsort(opacity)[:min(over, len(g))]] = False
+            keep[torch.argsort(g.opacity_logits.detach().reshape(-1))[:min(over, len(g))]] = False
             keep_gaussians(g, optimizer, keep)
             out["relocated"] = int((~keep).sum())
+        life = self.cfg.life * frame_spacing(views.times) if deforms else 0.0
         append_gaussians(g, optimizer,
                          new_gaussians(pts, cols, widths, t_c, g, self.cfg.opacity, life,
                                        0.0 if self.cfg.hold else self.free_offset,

@@ -122,9 +122,6 @@ class DensifyConfig:
     max_screen_size: int = 20  # prune Gaussians larger than this (pixels) when pruning large ones
     max_gaussians: int = 0  # 0 = no cap; otherwise densification stops adding past this count
     # (of trainable Gaussians: in a layered run, --lod-levels, it caps each layer on its own)
-    cap_mortal: bool = True  # false: the Gaussians with a finite life (the tracks' chains,
-    # nehad.carve_pass) are not counted against max_gaussians, so the chains take no place
-    # from the Gaussians the field deforms (docs/training.md, "How many tracks a pass follows")
 
 
 @dataclass

@@ -88,10 +88,6 @@ class GaussianParameters(nn.Module):
         """Whether any Gaussian has a finite life (k != 0)."""
         return bool((self.life_rate.detach() != 0).any())
 
-    def mortal_count(self) -> int:
-        """How many Gaussians have a finite life (life rate != 0)."""
-        return int((self.life_rate.detach() != 0).sum())
-
     def reset_equilibrium(self, t_eq: float = 0.5) -> None:
         """docs/design.md section 4.7: mu_eq starts as mu and t_eq at the canonical time (train.canonical_time,
         0.5 by default) when the fine stage begins."""

@@ -95,8 +95,7 @@ class Trainer:
         self.acceleration = AccelerationPrior.of(cfg.loss, cfg.train.seed, self.train_views.times)
         self.carving = ResidualCarving(cfg.carve, cfg.train.seed, cfg.train.canonical_time,
                                        cfg.densify.max_gaussians, self.aabb.copy(), self.background,
-                                       free_offset_of(cfg.field, float(field.extent)),
-                                       cfg.densify.cap_mortal)
+                                       free_offset_of(cfg.field, float(field.extent)))
         if state is not None:
             self.optimizer.load_state_dict(state["optimizer"])
             self.densify_state = DensifyState.from_state_dict(state["strategy"])
@@ -238,8 +237,6 @@ class Trainer:
                  for res, cam in renders]
         gen = torch.Generator().manual_seed(int(self.cfg.train.seed) * 1_000_003 + step)
         frozen, cap = self.schedule.densify_limits(phase)
-        if cap > 0 and not self.cfg.densify.cap_mortal:
-            cap += self.model.gaussians.mortal_count()
         did = self.strategy.step_post_backward(
             self.model.gaussians, self.optimizer, self.densify_state, phase.it + 1,
             self.densify_timing, stats, frozen=frozen, max_gaussians=cap, generator=gen)

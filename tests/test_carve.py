@@ -442,33 +442,6 @@ def test_untrained_members_take_their_trained_neighbours_appearance():
     np.testing.assert_array_equal(none, values)
 
 
-def test_chains_left_out_of_the_cap_take_no_place_from_the_others(tmp_path):
-    """densify.cap_mortal=false: a run's Gaussians that live at every time stay within
-    max_gaussians while its chains come on top; with the default the whole count does."""
-    import json
-
-    from nehad.config import build_config
-    from nehad.data.synth_stress import synthesize_stress_scene
-    from nehad.trainer import Trainer
-
-    data = synthesize_stress_scene(tmp_path / "scene", "occluder", resolution=64, frames=40,
-                                   points=5000)
-    counts = {}
-    for cap_mortal in (False, True):
-        run = tmp_path / f"run_{cap_mortal}"
-        sets = ["coarse.iterations=60", "fine.iterations=300", "densify.max_gaussians=800",
-                "train.init_max_points=700", "train.checkpoint_interval=1000",
-                f"densify.cap_mortal={str(cap_mortal).lower()}"]
-        tr = Trainer(build_config("test", None, sets), data, run, progress=False)
-        tr.train()
-        log = [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
-        g = tr.model.gaussians
-        counts[cap_mortal] = (len(g), g.mortal_count(), max(r["gaussians"] for r in log))
-    total, mortal, _ = counts[False]
-    assert mortal > 0 and total - mortal <= 800 < total
-    assert counts[True][2] <= 800
-
-
 def test_a_chain_splits_into_its_trained_core_and_its_two_ends():
     """core_and_ends against a hand-made chain: the core spans the first to the last trained
     member (untrained ones between included) and is judged only between their times; the
