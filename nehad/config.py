@@ -393,6 +393,9 @@ class Config:
         if self.carve.mode not in ("vote", "rays", "tracks"):
             raise ConfigError(f"carve.mode: must be 'vote', 'rays' or 'tracks', got "
                               f"{self.carve.mode!r}")
+        if self.carve.check_pieces not in ("chain", "core"):
+            raise ConfigError(f"carve.check_pieces: must be 'chain' or 'core', got "
+                              f"{self.carve.check_pieces!r}")
 
     def _validate_resolution_schedule(self) -> None:
         """Increasing fractions in [0, 1), factors >= 1."""

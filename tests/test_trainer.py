@@ -41,7 +41,8 @@ def test_presets_yaml_and_overrides(tmp_path):
                       ("field.lam=1.5", "lam"), ("fine", "KEY=VALUE"),
                       ("carve.mode=ray", "carve.mode"), ("carve.seed_views=0", "seed_views"),
                       ("carve.track_members=3", "track_members"),
-                      ("carve.max_tracks=0", "max_tracks")]:
+                      ("carve.max_tracks=0", "max_tracks"),
+                      ("carve.check_pieces=member", "check_pieces")]:
         with pytest.raises(ConfigError, match=word):
             build_config("test", None, [bad])
     with pytest.raises(ConfigError, match="preset"):
