@@ -220,14 +220,14 @@ class ResidualCarving:
         chains = [mortal[labels == c] for c in range(labels.max() + 1)]
         rates = g.life_rate.detach().reshape(-1).numpy().astype(np.float64)
         t_all = g.t_eq.detach().reshape(-1).numpy()  # every row's, as chain_lives indexes
-        filled = self._fill(g, chains, t_all, rates, train_times) if self.cfg.check_fill else 0
+        trained = trained_rows(t_all, rates, train_times)
+        filled = self._fill(g, chains, t_all, trained) if self.cfg.check_fill else 0
         with torch.no_grad():  # clouds without the life factors; the chains' lives are chosen
             g.life_rate[torch.as_tensor(mortal)] = 1e-20  # still finite: the drift holds
             try:
                 choice = chain_lives(chains, t_all, rates, lambda t: cloud_at(model, t, degree),
                                      views, self.background, self.cfg.check_lives,
-                                     trained=trained_rows(t_all, rates, train_times),
-                                     pieces=self.cfg.check_pieces)
+                                     trained=trained, pieces=self.cfg.check_pieces)
             finally:
                 g.life_rate[torch.as_tensor(mortal), 0] = torch.as_tensor(
                     rates[mortal], dtype=g.life_rate.dtype)
@@ -245,24 +245,24 @@ class ResidualCarving:
                 "halo_gaussians_shrunk": int(grown.sum()), "untrained_filled": filled}
 
     @staticmethod
-    def _fill(g, chains, t_all, rates, train_times) -> int:
-        """`carve.check_fill`: each chain's untrained members take their trained neighbours'
-        appearance and shape (`nehad.chain_check.fill_untrained`); how many changed."""
-        trained = trained_rows(t_all, rates, train_times)
+    def _fill(g, chains, t_all, trained) -> int:
+        """`carve.check_fill`: each chain's untrained members (`trained` False, one flag per
+        row) take their trained neighbours' appearance and shape
+        (`nehad.chain_check.fill_untrained`); how many changed."""
         names = ("sh_dc", "sh_rest", "opacity_logits", "log_scales", "quats")
         count = 0
         with torch.no_grad():
             for rows in chains:
                 if trained[rows].all() or not trained[rows].any():
                     continue
+                index = torch.as_tensor(rows)
                 for name in names:
                     p = getattr(g, name)
-                    flat = p.detach()[torch.as_tensor(rows)].reshape(len(rows), -1).numpy()
+                    flat = p.detach()[index].reshape(len(rows), -1).numpy()
                     new = fill_untrained(t_all[rows], trained[rows], flat)
-                    p[torch.as_tensor(rows)] = torch.as_tensor(new, dtype=p.dtype).reshape(
-                        (len(rows),) + tuple(p.shape[1:]))
-                q = g.quats.detach()[torch.as_tensor(rows)]
-                g.quats[torch.as_tensor(rows)] = q / q.norm(dim=1, keepdim=True).clamp_min(1e-12)
+                    p[index] = torch.as_tensor(new, dtype=p.dtype).reshape(p[index].shape)
+                q = g.quats.detach()[index]  # interpolated quaternions, made unit again
+                g.quats[index] = q / q.norm(dim=1, keepdim=True).clamp_min(1e-12)
                 count += int((~trained[rows]).sum())
         return count
 
