@@ -151,3 +151,20 @@ def test_planes_are_stored_channel_last():
     for p, q in zip(other.parameters(), hp.parameters()):
         assert torch.equal(p, q) and p.is_contiguous(memory_format=torch.channels_last)
     assert all(p.is_contiguous(memory_format=torch.channels_last) for p in hp.double().parameters())
+
+
+def test_spatial_order_is_the_stable_sort_of_the_cell_keys():
+    """The counting sort against numpy's stable argsort of the same keys (x-major cells of
+    2 / 32 over [-1, 1]^3, clamped; NaN and -inf in the first cell, +inf in the last)."""
+    import numpy as np
+
+    from nehad.field.hexplane_kernel import _spatial_order
+
+    rng = np.random.default_rng(3)
+    u = rng.normal(0.0, 0.8, (5000, 4)).astype(np.float32)
+    u[:40, :3] = np.round(u[:40, :3] * 16) / 16  # on cell borders
+    u[40, 0], u[41, 1], u[42, 2] = np.nan, np.inf, -np.inf
+    q = np.nan_to_num((u[:, :3] + 1.0) * 16.0, nan=0.0, posinf=32.0, neginf=0.0)
+    q = np.clip(q, 0, 31).astype(np.int64)
+    keys = (q[:, 0] * 32 + q[:, 1]) * 32 + q[:, 2]
+    assert np.array_equal(_spatial_order(u), np.argsort(keys, kind="stable"))

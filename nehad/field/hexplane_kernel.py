@@ -103,8 +103,10 @@ def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_sc
                        grad_out, grad_samples, grad_u, order, start, stop):
     """dL/ds_k (into `grad_samples`) and dL/du of points order[start:stop]. The product over
     the other five planes is a prefix times a suffix product (three passes over the six
-    samples, not thirty products); the scratch rows are flat (plane k at k * channels), so
-    every loop over the channels is one contiguous, vectorisable pass."""
+    samples, not thirty products); the scratch rows are flat (plane k at k * channels), and
+    every loop over the channels runs over slices (views of one row), which LLVM vectorises:
+    indexed through the whole arrays the same loops took twice as long (10k points, 2
+    threads: 4.9 -> 2.3 ms)."""
     samples = np.empty(6 * channels, np.float32)
     sx = np.empty(6 * channels, np.float32)  # d sample / d pixel x
     sy = np.empty(6 * channels, np.float32)
@@ -120,41 +122,51 @@ def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_sc
                 slopes[k, 0] = slope_x
                 slopes[k, 1] = slope_y
                 o = k * channels
+                t00 = tables[base:base + channels]
+                t01 = tables[base + dx:base + dx + channels]
+                t10 = tables[base + dy:base + dy + channels]
+                t11 = tables[base + dy + dx:base + dy + dx + channels]
+                sample = samples[o:o + channels]
+                slope_a = sx[o:o + channels]
+                slope_b = sy[o:o + channels]
+                gy = _ONE - fy
                 for c in range(channels):
-                    a = tables[base + c]
-                    b = tables[base + dx + c]
-                    d = tables[base + dy + c]
-                    e = tables[base + dy + dx + c]
+                    a, b, d, e = t00[c], t01[c], t10[c], t11[c]
                     top = a + fx * (b - a)
                     bottom = d + fx * (e - d)
-                    samples[o + c] = top + fy * (bottom - top)
-                    sx[o + c] = (_ONE - fy) * (b - a) + fy * (e - d)
-                    sy[o + c] = bottom - top
+                    sample[c] = top + fy * (bottom - top)
+                    slope_a[c] = gy * (b - a) + fy * (e - d)
+                    slope_b[c] = bottom - top
             g = grad_out[n, s * channels:(s + 1) * channels]
             for c in range(channels):
                 running[c] = g[c]
             for k in range(6):  # others = g * prefix product
-                o = k * channels
+                other = others[k * channels:(k + 1) * channels]
+                sample = samples[k * channels:(k + 1) * channels]
                 for c in range(channels):
-                    others[o + c] = running[c]
-                    running[c] *= samples[o + c]
+                    other[c] = running[c]
+                    running[c] *= sample[c]
             for c in range(channels):
                 running[c] = _ONE
             for k in range(5, -1, -1):  # ... times the suffix product
-                o = k * channels
+                other = others[k * channels:(k + 1) * channels]
+                sample = samples[k * channels:(k + 1) * channels]
                 for c in range(channels):
-                    others[o + c] *= running[c]
-                    running[c] *= samples[o + c]
+                    other[c] *= running[c]
+                    running[c] *= sample[c]
             for k in range(6):
                 o = k * channels
                 gk = grad_samples[s * 6 + k, i]
+                other = others[o:o + channels]
+                slope_a = sx[o:o + channels]
+                slope_b = sy[o:o + channels]
                 ax = _ZERO
                 ay = _ZERO
                 for c in range(channels):
-                    v = others[o + c]
+                    v = other[c]
                     gk[c] = v
-                    ax += v * sx[o + c]
-                    ay += v * sy[o + c]
+                    ax += v * slope_a[c]
+                    ay += v * slope_b[c]
                 grad_u[n, axis_a[k]] += ax * slopes[k, 0]
                 grad_u[n, axis_b[k]] += ay * slopes[k, 1]
 
@@ -395,15 +407,39 @@ def time_regularisers(plane: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     return TimeRegularisers.apply(plane)
 
 
+@numba.njit(cache=True)
+def _cell_sort(u, cells):
+    """The stable counting sort of `_spatial_order`: point indices by their cell's key."""
+    n = u.shape[0]
+    keys = np.empty(n, np.int64)
+    counts = np.zeros(cells * cells * cells + 1, np.int64)
+    top = np.float32(cells - 1)
+    for i in range(n):
+        key = 0
+        for a in range(3):
+            q = (u[i, a] + _ONE) * np.float32(0.5 * cells)
+            if not q >= _ZERO:  # below the box, or NaN (a diverged step: the trainer stops on
+                q = _ZERO       # the NaN loss after it) sorts anywhere
+            elif q > top:
+                q = top
+            key = key * cells + int(q)
+        keys[i] = key
+        counts[key + 1] += 1
+    for k in range(cells * cells * cells):
+        counts[k + 1] += counts[k]
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        order[counts[keys[i]]] = i
+        counts[keys[i]] += 1
+    return order
+
+
 def _spatial_order(u: np.ndarray, cells: int = 32) -> np.ndarray:
-    """The points in the order of a coarse grid over [-1, 1]^3 (x-major cells of 2 / `cells`):
-    neighbouring points read neighbouring texels, so the table reads hit the cache (in the
-    Gaussians' own order every tap was a cache miss)."""
-    # a NaN coordinate (a diverged step: the trainer stops on the NaN loss after it) sorts
-    # anywhere, without numpy's cast warning
-    q = np.nan_to_num((u[:, :3] + 1.0) * (0.5 * cells), nan=0.0, posinf=cells, neginf=0.0)
-    q = np.clip(q, 0, cells - 1).astype(np.int64)
-    return np.argsort((q[:, 0] * cells + q[:, 1]) * cells + q[:, 2], kind="stable")
+    """The points in the order of a coarse grid over [-1, 1]^3 (x-major cells of 2 / `cells`,
+    in each cell the points' own order): neighbouring points read neighbouring texels, so the
+    table reads hit the cache (in the Gaussians' own order every tap was a cache miss). A
+    counting sort (0.05 ms for 10k points, where numpy's argsort of the keys took 0.5)."""
+    return _cell_sort(u, cells)
 
 
 def _chunks(n: int) -> int:
