@@ -221,12 +221,8 @@ def _np(t: torch.Tensor) -> np.ndarray:
 
 
 def _per_net(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """(2, ., .) = x[i] @ y[i] for both nets, one torch.mm each (torch.bmm was slower than two
-    torch.mm here, with transposed operands especially)."""
-    out = torch.empty((2, x.shape[1], y.shape[2]), dtype=x.dtype)
-    for i in range(2):
-        torch.mm(x[i], y[i], out=out[i])
-    return out
+    """(2, ., .) = x[i] @ y[i] for both nets, one batched product."""
+    return torch.bmm(x, y)
 
 
 class _Nets(NamedTuple):
@@ -271,9 +267,8 @@ def _forward_block(nets: _Nets, h: torch.Tensor, g: torch.Tensor) -> _Saved:
     acts, derivs, curvs = [h], [], []
     delta_last = None
     for k in range(nets.depth):
-        z = torch.empty((2, b, hidden), dtype=h.dtype)
-        for i in range(2):
-            torch.mm(h if k == 0 else acts[k][i], nets.weights[k][i].T, out=z[i])
+        x = h.expand(2, b, h.shape[1]) if k == 0 else acts[k]
+        z = torch.bmm(x, nets.weights[k].transpose(1, 2))
         d, e = torch.empty_like(z), torch.empty_like(z)
         if k < nets.depth - 1:
             a = torch.empty_like(z)
@@ -293,8 +288,7 @@ def _forward_block(nets: _Nets, h: torch.Tensor, g: torch.Tensor) -> _Saved:
         us[k] = _per_net(deltas[k + 1], nets.weights[k + 1])
         deltas[k] = torch.empty_like(us[k])
         _product(_np(derivs[k]), _np(us[k]), _np(deltas[k]), chunks)
-    for i in range(2):
-        torch.mm(deltas[0][i], nets.weights[0][i], out=g[i])
+    torch.bmm(deltas[0], nets.weights[0], out=g)
     return _Saved(acts, derivs, curvs, us, deltas)
 
 
@@ -308,18 +302,15 @@ def _backward_block(nets: _Nets, saved: _Saved, grads, grad_h: torch.Tensor, d_w
     b, hidden = h.shape[0], nets.weights[0].shape[1]
     chunks = _chunks(b)
     parts = np.empty((chunks, 2, hidden), dtype=nets.w_out.dtype)
-    d_delta = torch.empty((2, b, hidden), dtype=h.dtype)
-    for i in range(2):
-        torch.mm(grads[i], nets.weights[0][i].T, out=d_delta[i])
-        d_weights[0][i].addmm_(deltas[0][i].T, grads[i])
+    d_delta = torch.bmm(grads, nets.weights[0].transpose(1, 2))
+    d_weights[0].baddbmm_(deltas[0].transpose(1, 2), grads)
     partial = [None] * depth  # P_k
     for k in range(depth - 1):
         du, p = torch.empty_like(d_delta), torch.empty_like(d_delta)
         _delta_backward(_np(d_delta), _np(derivs[k]), _np(us[k]), _np(curvs[k]), _np(du), _np(p),
                         chunks)
         partial[k] = p
-        for i in range(2):
-            d_weights[k + 1][i].addmm_(deltas[k + 1][i].T, du[i])
+        d_weights[k + 1].baddbmm_(deltas[k + 1].transpose(1, 2), du)
         d_delta = _per_net(du, nets.weights[k + 1].transpose(1, 2))
     dz = torch.empty_like(d_delta)
     dw_parts = np.empty_like(parts)
@@ -328,8 +319,8 @@ def _backward_block(nets: _Nets, saved: _Saved, grads, grad_h: torch.Tensor, d_w
     d_w_out += dw_parts.sum(axis=0)
     for k in range(depth - 1, -1, -1):
         d_biases[k] += parts.sum(axis=0)
-        for i in range(2):
-            d_weights[k][i].addmm_(dz[i].T, acts[k] if k == 0 else acts[k][i])
+        below = h.expand(2, b, h.shape[1]) if k == 0 else acts[k]
+        d_weights[k].baddbmm_(dz.transpose(1, 2), below)
         if k == 0:
             break
         da = _per_net(dz, nets.weights[k])
@@ -390,7 +381,7 @@ class FusedInputGradients(torch.autograd.Function):
                 grads = torch.empty((2, hi - lo, width), dtype=grad_h.dtype)
                 _field_grads(*[_np(u[lo:hi]) for u in upstream], _np(grads), _chunks(hi - lo))
             else:
-                grads = [u[lo:hi] for u in upstream]
+                grads = torch.stack([u[lo:hi] for u in upstream])
             _backward_block(nets, block, grads, grad_h[lo:hi], d_weights, d_biases, d_w_out)
         net_grads = []
         for i in range(2):
