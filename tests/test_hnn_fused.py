@@ -79,6 +79,39 @@ def test_fused_field_outputs_equal_the_decoders_in_float64(activation, depth):
         assert r.abs().max() > 0 and _rel(f, r) < 1e-12
 
 
+@pytest.mark.parametrize("activation", ACTIVATIONS)
+def test_kinetic_term_in_the_fused_field_in_float64(activation, monkeypatch):
+    """With the kinetic terms' A_1, A_2 (non-symmetric, so the symmetrisation is exercised):
+    (v, v_c, v_s) against g_k + S_k h written with torch ops, and the gradients of a loss on all
+    three w.r.t. h, both nets and A_1, A_2 against autograd through that; in blocks of 7 rows
+    over 30 too."""
+    nets = _nets(activation, 2, seed=16)
+    h = _inputs(n=30, seed=17)
+    gen = torch.Generator().manual_seed(18)
+    quads = [torch.randn(10, 10, generator=gen, dtype=torch.float64).requires_grad_(True)
+             for _ in range(2)]
+    g1, g2 = (scalar_net_input_grad(net, h) for net in nets)
+    s1, s2 = (0.5 * (a + a.T) for a in quads)
+    v_c, v_s = g1 + h @ s1, symplectic(g2 + h @ s2)
+    ref = (v_c + v_s, v_c, v_s)
+
+    def grads(outputs):
+        gen = torch.Generator().manual_seed(19)
+        loss = sum((o * torch.randn(o.shape, generator=gen, dtype=o.dtype)).sum()
+                   for o in outputs)
+        return torch.autograd.grad(loss, [h] + net_parameters(nets[0])
+                                   + net_parameters(nets[1]) + quads)
+
+    ref_grads = grads(ref)
+    for rows in (4096, 7):
+        monkeypatch.setattr(hnn_fused, "BLOCK_ROWS", rows)
+        fused = fused_field(*nets, h, quads)
+        for r, f in zip(ref, fused):
+            assert _rel(f, r) < 1e-12
+        for r, f in zip(ref_grads, grads(fused)):
+            assert r.abs().max() > 0 and _rel(f, r) < 1e-12
+
+
 def test_rows_in_several_blocks(monkeypatch):
     """Blocks of 7 rows over 30 (the last one short): the same values and gradients."""
     nets = _nets("silu", 2, seed=10)
@@ -123,12 +156,15 @@ def test_gradcheck_on_a_tiny_case(activation):
     params = [p.detach().clone().requires_grad_(True)
               for net in nets for p in net_parameters(net)]
 
-    for field in (False, True):
+    quads = [torch.randn(4, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(k))
+             .requires_grad_(True) for k in (5, 6)]
+    for field, quadratic in ((False, False), (True, False), (True, True)):
         def fn(h, *params):
             return FusedInputGradients.apply(h, {"tanh": 0, "softplus": 1, "silu": 2}[activation],
-                                             True, field, *params)
+                                             True, field, quadratic, *params)
 
-        assert torch.autograd.gradcheck(fn, (h, *params), eps=1e-6, atol=1e-7, rtol=1e-5)
+        inputs = (h, *params, *quads) if quadratic else (h, *params)
+        assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-7, rtol=1e-5)
 
 
 def test_one_output_unused_and_depth_one_single_row():
@@ -191,16 +227,22 @@ def test_vectorised_exp_and_log1p():
     assert np.all(e >= np.finfo(np.float32).tiny) and np.all(e < 1.2e-38)
 
 
-def _decoders(activation="softplus"):
+def _decoders(activation="softplus", quadratic=False):
     torch.manual_seed(9)
-    fused = HamiltonianDecoder(12, 8, 2, activation, "fused", init_gain=3.0)
-    closed = HamiltonianDecoder(12, 8, 2, activation, "closed_form", init_gain=3.0)
+    fused = HamiltonianDecoder(12, 8, 2, activation, "fused", init_gain=3.0, quadratic=quadratic)
+    closed = HamiltonianDecoder(12, 8, 2, activation, "closed_form", init_gain=3.0,
+                                quadratic=quadratic)
+    if quadratic:  # non-zero (and non-symmetric) kinetic terms
+        with torch.no_grad():
+            fused.quad1.copy_(torch.randn(12, 12))
+            fused.quad2.copy_(torch.randn(12, 12))
     closed.load_state_dict(fused.state_dict())
     return fused, closed
 
 
-def test_decoder_fused_mode_in_training_no_grad_and_inference():
-    fused, closed = _decoders()
+@pytest.mark.parametrize("quadratic", [False, True])
+def test_decoder_fused_mode_in_training_no_grad_and_inference(quadratic):
+    fused, closed = _decoders(quadratic=quadratic)
     h = torch.randn(40, 12)
     ref = closed(h)
     out = fused(h)

@@ -197,12 +197,8 @@ class HamiltonianDecoder(nn.Module):
 
     def forward(self, h: torch.Tensor) -> FieldOutput:
         if self._fused(h):
-            out = FieldOutput(*fused_field(self.f1, self.f2, h))
-            if self.quad1 is None:
-                return out
-            q1, q2 = self.quadratic_gradients(h)
-            v_c, v_s = out.v_c + q1, out.v_s + symplectic(q2)
-            return FieldOutput(v_c + v_s, v_c, v_s)
+            quads = None if self.quad1 is None else (self.quad1, self.quad2)
+            return FieldOutput(*fused_field(self.f1, self.f2, h, quads))
         g1, g2 = self.input_gradients(h)
         if self.quad1 is not None:
             q1, q2 = self.quadratic_gradients(h)

@@ -342,14 +342,18 @@ class FusedInputGradients(torch.autograd.Function):
     (module docstring); with `field` the decoder's outputs (v, v_c, v_s) instead (v_c = g1,
     v_s = g2 M^T, v = v_c + v_s; paper Eq. (field)), so that no torch op (and no autograd node)
     follows. Inputs: h (N, W), the activation code, whether to keep what the backward needs,
-    `field`, then each net's W_1, b_1, ..., W_L, b_L, w_out (F1's, then F2's).
+    `field`, `quadratic`, then each net's W_1, b_1, ..., W_L, b_L, w_out (F1's, then F2's),
+    then with `quadratic` the kinetic terms' A_1, A_2 (W, W): each g_k then gains S_k h,
+    S_k = (A_k + A_k^T) / 2 (`fused_field`), in the same blocks, so that the kinetic term adds
+    no autograd node either.
 
     Forward and backward run block by block (`BLOCK_ROWS` rows), so that the temporaries of a
     block stay in the cache between the products and the element-wise passes."""
 
     @staticmethod
-    def forward(ctx, h, kind, keep, field, *params):
-        nets = _Nets.stack(params, kind)
+    def forward(ctx, h, kind, keep, field, quadratic, *params):
+        quads = _kinetic(params[-2:]) if quadratic else None
+        nets = _Nets.stack(params[:-2] if quadratic else params, kind)
         hd = h.detach().contiguous()
         n, width = hd.shape
         g = torch.empty((2, n, width), dtype=hd.dtype)
@@ -358,21 +362,24 @@ class FusedInputGradients(torch.autograd.Function):
         saved = []
         for lo, hi in _blocks(n):
             saved.append(_forward_block(nets, hd[lo:hi], g[:, lo:hi]))
+            if quads is not None:  # g_k += S_k h (S_k symmetric: h S_k, row by row)
+                g[:, lo:hi].baddbmm_(hd[lo:hi].expand(2, hi - lo, width), quads)
             if field:
                 _field_rows(_np(g[:, lo:hi]), _np(v[lo:hi]), _np(v_s[lo:hi]), _chunks(hi - lo))
         if keep:
             ctx.save_for_backward(h, *params)
-            ctx.kept = (nets, saved, field)
+            ctx.kept = (nets, saved, field, quads)
         return (v, g[0], v_s) if field else (g[0], g[1])
 
     @staticmethod
     @once_differentiable
     def backward(ctx, *upstream):
         ctx.saved_tensors  # raises if h or a parameter was modified in place since the forward
-        nets, saved, field = ctx.kept
+        nets, saved, field, quads = ctx.kept
         upstream = [u.contiguous() for u in upstream]
         n, width = upstream[0].shape
         grad_h = torch.empty((n, width), dtype=upstream[0].dtype)
+        d_quads = None if quads is None else torch.zeros_like(quads)
         d_weights = [torch.zeros_like(w) for w in nets.weights]
         d_biases = np.zeros((nets.depth, *nets.w_out.shape), dtype=nets.w_out.dtype)
         d_w_out = np.zeros_like(nets.w_out)
@@ -383,12 +390,19 @@ class FusedInputGradients(torch.autograd.Function):
             else:
                 grads = torch.stack([u[lo:hi] for u in upstream])
             _backward_block(nets, block, grads, grad_h[lo:hi], d_weights, d_biases, d_w_out)
+            if quads is not None:  # through g_k += S_k h: dh += G_k S_k, dS_k += h^T G_k
+                hb = block.acts[0]
+                for i in range(2):
+                    grad_h[lo:hi].addmm_(grads[i], quads[i])
+                d_quads.baddbmm_(hb.T.expand(2, width, hi - lo), grads)
         net_grads = []
         for i in range(2):
             for k in range(nets.depth):
                 net_grads += [d_weights[k][i], torch.from_numpy(d_biases[k, i].copy())]
             net_grads.append(torch.from_numpy(d_w_out[i].copy()).reshape(1, -1))
-        return (grad_h, None, None, None, *net_grads)
+        if quads is not None:  # S = (A + A^T) / 2: dL/dA = (dS + dS^T) / 2
+            net_grads += list(0.5 * (d_quads + d_quads.transpose(1, 2)))
+        return (grad_h, None, None, None, None, *net_grads)
 
 
 # ----------------------------------------------------------------------------- entry points
@@ -410,10 +424,17 @@ def fused_supported(f1, f2, h: torch.Tensor) -> bool:
             and all(p.dtype == h.dtype and p.device.type == "cpu" for p in params))
 
 
-def _apply(f1, f2, h: torch.Tensor, field: bool):
-    params = net_parameters(f1) + net_parameters(f2)
+def _kinetic(quads) -> torch.Tensor:
+    """(2, W, W) the symmetric S_k = (A_k + A_k^T) / 2 of the kinetic terms' A_1, A_2."""
+    a = torch.stack([q.detach() for q in quads])
+    return 0.5 * (a + a.transpose(1, 2))
+
+
+def _apply(f1, f2, h: torch.Tensor, field: bool, quads=None):
+    params = net_parameters(f1) + net_parameters(f2) + list(quads or ())
     keep = torch.is_grad_enabled() and (h.requires_grad or any(p.requires_grad for p in params))
-    return FusedInputGradients.apply(h, ACTIVATION_CODES[f1.activation], keep, field, *params)
+    return FusedInputGradients.apply(h, ACTIVATION_CODES[f1.activation], keep, field,
+                                     quads is not None, *params)
 
 
 def fused_input_gradients(f1, f2, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -422,10 +443,13 @@ def fused_input_gradients(f1, f2, h: torch.Tensor) -> tuple[torch.Tensor, torch.
     return _apply(f1, f2, h, field=False)
 
 
-def fused_field(f1, f2, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def fused_field(f1, f2, h: torch.Tensor,
+                quads=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(v, v_c, v_s) of the Hamiltonian decoder with scalar nets f1, f2 (paper Eq. (field)) by
-    `FusedInputGradients`; differentiable once. Check `fused_supported` first."""
-    return _apply(f1, f2, h, field=True)
+    `FusedInputGradients`; differentiable once. `quads` = (A_1, A_2), the kinetic terms'
+    matrices (FieldConfig.hnn_quadratic: F_k += h^T S_k h / 2, S_k = (A_k + A_k^T) / 2, so
+    grad_h F_k gains S_k h), or None. Check `fused_supported` first."""
+    return _apply(f1, f2, h, field=True, quads=quads)
 
 
 __all__ = ["ACTIVATION_CODES", "BLOCK_ROWS", "FusedInputGradients", "fused_field",
