@@ -563,6 +563,32 @@ def test_each_switch_gives_its_simpler_formula():
     assert torch.allclose(o.means, out.means)
 
 
+@pytest.mark.parametrize("appearance", [False, True])
+def test_adapters_are_each_their_own_linear_map(appearance):
+    """The adapters run as one product with their stacked weights; each output is still its
+    own Linear of v (random weights, so a swapped split would show)."""
+    from nehad.field.adapters import Adapters
+
+    torch.manual_seed(21)
+    ad = Adapters(8, appearance, 4).double()
+    with torch.no_grad():
+        for p in ad.parameters():
+            p.normal_()
+    v = torch.randn(5, 8, dtype=torch.float64)
+    out = ad(v)
+    assert torch.allclose(out.dmu, v @ ad.mu.weight.T + ad.mu.bias, atol=1e-12)
+    assert torch.allclose(out.ds, v @ ad.scale.weight.T + ad.scale.bias, atol=1e-12)
+    identity = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)
+    assert torch.allclose(out.q, v @ ad.rot.weight.T + ad.rot.bias + identity, atol=1e-12)
+    if appearance:
+        assert torch.allclose(out.d_opacity, v @ ad.opacity.weight.T + ad.opacity.bias,
+                              atol=1e-12)
+        sh = (v @ ad.sh.weight.T + ad.sh.bias).reshape(5, 4, 3)
+        assert torch.allclose(out.d_sh, sh, atol=1e-12)
+    else:
+        assert out.d_opacity is None and out.d_sh is None
+
+
 def test_hnn_off_and_mlp_baseline():
     f, out, (mu, s, q, mu_eq, t_eq) = _switch_outputs(use_hnn=False)
     assert isinstance(f.field, DirectFieldDecoder)

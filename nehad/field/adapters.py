@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import NamedTuple, Optional
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 
@@ -45,12 +46,21 @@ class Adapters(nn.Module):
                              persistent=False)
 
     def forward(self, v: torch.Tensor) -> AdapterOutput:
-        q = self.rot(v) + self.identity_quat.to(v.dtype)
+        # the adapters as one product of v with their stacked weights, then split: one matrix
+        # product (and one for each gradient) instead of one per adapter (10k Gaussians: 1.5
+        # -> 1.0 ms forward and backward with the force, docs/performance.md)
+        layers = [self.mu, self.scale, self.rot]
+        if self.opacity is not None:
+            layers += [self.opacity, self.sh]
+        out = F.linear(v, torch.cat([lin.weight for lin in layers]),
+                       torch.cat([lin.bias for lin in layers]))
+        parts = out.split([lin.out_features for lin in layers], dim=1)
+        q = parts[2] + self.identity_quat.to(v.dtype)
         d_o = d_sh = None
         if self.opacity is not None:
-            d_o = self.opacity(v)
-            d_sh = self.sh(v).reshape(v.shape[0], self.sh_coeffs, 3)
-        return AdapterOutput(self.mu(v), self.scale(v), q, d_o, d_sh)
+            d_o = parts[3]
+            d_sh = parts[4].reshape(v.shape[0], self.sh_coeffs, 3)
+        return AdapterOutput(parts[0], parts[1], q, d_o, d_sh)
 
     def force(self, v_c: torch.Tensor) -> torch.Tensor:
         """F = A_mu' v_c: A_mu's weight without its bias (docs/design.md section 4.5), (N, 3)."""
