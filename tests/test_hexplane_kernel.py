@@ -168,3 +168,35 @@ def test_spatial_order_is_the_stable_sort_of_the_cell_keys():
     q = np.clip(q, 0, 31).astype(np.int64)
     keys = (q[:, 0] * 32 + q[:, 1]) * 32 + q[:, 2]
     assert np.array_equal(_spatial_order(u), np.argsort(keys, kind="stable"))
+
+
+def test_points_without_gradient_are_left_out_of_the_backward():
+    """A third of the points with a zero upstream gradient (Gaussians no pixel sees), and then
+    all of them: the gradients equal grid_sample's (float64 reference), the points' own zero."""
+    hp = _planes(seed=4)
+    x = _points(seed=5)
+    tt = torch.tensor([[0.2]], dtype=torch.float64)
+    planes = [p for scale in hp.planes for p in scale]
+    for zero_rows in (slice(None, None, 3), slice(None)):
+        x_ref = x.clone().requires_grad_(True)
+        ref = hp(x_ref, tt)
+        weight = torch.randn(ref.shape, generator=torch.Generator().manual_seed(6),
+                             dtype=torch.float64)
+        weight[zero_rows] = 0.0
+        for p in planes:
+            p.grad = None
+        (ref * weight).sum().backward()
+        planes32 = [p.detach().float().contiguous(memory_format=torch.channels_last)
+                    .requires_grad_(True) for p in planes]
+        x32 = x.float().requires_grad_(True)
+        out = hexplane_lookup(torch.cat([x32, tt.float().expand(len(x), 1)], 1), planes32,
+                              PLANE_AXES)
+        (out * weight.float()).sum().backward()
+        assert x32.grad[zero_rows].abs().max() == 0
+        for mine, p in zip(planes32, planes):
+            scale = max(p.grad.abs().max().item(), 1e-30)
+            assert (mine.grad.double() - p.grad).abs().max() <= 1e-5 * scale
+        if zero_rows == slice(None):
+            assert all(mine.grad.abs().max() == 0 for mine in planes32)
+        else:
+            assert (x32.grad.double() - x_ref.grad).abs().max() <= 1e-5 * x_ref.grad.abs().max()

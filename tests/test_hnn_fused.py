@@ -112,6 +112,41 @@ def test_kinetic_term_in_the_fused_field_in_float64(activation, monkeypatch):
             assert r.abs().max() > 0 and _rel(f, r) < 1e-12
 
 
+@pytest.mark.parametrize("block_rows", [4096, 7])
+def test_rows_without_upstream_gradient_are_skipped_exactly(block_rows, monkeypatch):
+    """Rows whose upstream gradient is zero (Gaussians no pixel sees) are left out of the
+    backward: the gradients equal the full backward's (float64), whole blocks of such rows
+    included (rows 0-9 with blocks of 7)."""
+    nets = _nets("softplus", 2, seed=20)
+    h = _inputs(n=30, seed=21)
+    gen = torch.Generator().manual_seed(22)
+    quads = [torch.randn(10, 10, generator=gen, dtype=torch.float64).requires_grad_(True)
+             for _ in range(2)]
+    weights = [torch.randn(30, 10, generator=gen, dtype=torch.float64) for _ in range(3)]
+    for w in weights:
+        w[:10] = 0.0
+        w[20:26] = 0.0
+
+    def grads():
+        out = fused_field(*nets, h, quads)
+        loss = sum((o * w).sum() for o, w in zip(out, weights))
+        return torch.autograd.grad(loss, [h] + net_parameters(nets[0])
+                                   + net_parameters(nets[1]) + quads)
+
+    monkeypatch.setattr(hnn_fused, "BLOCK_ROWS", block_rows)
+    monkeypatch.setattr(hnn_fused, "COMPACT_BELOW", 0.0)  # every row through the backward
+    full = grads()
+    monkeypatch.setattr(hnn_fused, "COMPACT_BELOW", 0.85)
+    calls = []
+    compact = hnn_fused._compact
+    monkeypatch.setattr(hnn_fused, "_compact", lambda *a: calls.append(1) or compact(*a))
+    skipped = grads()
+    assert calls  # the rows were gathered
+    for r, f in zip(full, skipped):
+        assert r.abs().max() > 0 and _rel(f, r) < 1e-12
+    assert skipped[0][:10].abs().max() == 0 and skipped[0][20:26].abs().max() == 0
+
+
 def test_rows_in_several_blocks(monkeypatch):
     """Blocks of 7 rows over 30 (the last one short): the same values and gradients."""
     nets = _nets("silu", 2, seed=10)

@@ -174,7 +174,7 @@ def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_sc
 @numba.njit(parallel=True, cache=True)
 def _point_grads(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
                  grad_out, grad_samples, grad_u, order, chunks):
-    n = u.shape[0]
+    n = order.shape[0]
     for j in numba.prange(chunks):
         _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales,
                            channels, grad_out, grad_samples, grad_u, order, j * n // chunks,
@@ -184,7 +184,7 @@ def _point_grads(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, 
 @numba.njit(fastmath=True, cache=True)
 def _scatter_plane(u, p, k, offsets, heights, widths, axis_a, axis_b, channels, grad_samples,
                    grad_tables, order):
-    for i in range(u.shape[0]):
+    for i in range(order.shape[0]):
         n = order[i]
         base, dx, dy, fx, fy, _, _ = _corners(u, n, p, k, offsets, heights, widths, axis_a,
                                               axis_b, channels)
@@ -483,11 +483,16 @@ class HexPlaneLookup(torch.autograd.Function):
          shapes, order, channel_last) = ctx.saved
         g = np.ascontiguousarray(grad_out.detach().numpy(), np.float32)
         n = un.shape[0]
+        # the points with a gradient only (a point no pixel of the view sees has none, and would
+        # add zeros everywhere: about half of a MuJoCo scene's, docs/performance.md)
+        active = np.any(g != 0, axis=1)
+        if not active.all():
+            order = order[active[order]]
         # plane-major, in the points' `order`: each plane's scatter then reads it front to back
-        grad_samples = np.empty((n_scales * 6, n, channels), np.float32)
+        grad_samples = np.empty((n_scales * 6, len(order), channels), np.float32)
         grad_u = np.zeros((n, 4), np.float32)
         _point_grads(un, flat, offsets, heights, widths, axis_a, axis_b, n_scales, channels, g,
-                     grad_samples, grad_u, order, _chunks(n))
+                     grad_samples, grad_u, order, _chunks(len(order)))
         grad_tables = np.zeros_like(flat)
         _plane_grads(un, offsets, heights, widths, axis_a, axis_b, channels, grad_samples,
                      grad_tables, order)

@@ -332,6 +332,31 @@ def _backward_block(nets: _Nets, saved: _Saved, grads, grad_h: torch.Tensor, d_w
     grad_h.addmm_(dz[1], nets.weights[0][1])
 
 
+#: The backward runs on the rows whose upstream gradient is not zero when they are fewer than
+#: this share of a block (a Gaussian that no pixel of the view sees gets none: about half of a
+#: MuJoCo scene's in a view, docs/performance.md); their saved values are gathered first.
+COMPACT_BELOW = 0.85
+
+
+def _rows_with_gradient(grads: torch.Tensor):
+    """The rows (indices) of a block's (2, b, W) upstream gradients with a non-zero entry, or
+    None when they are too many to be worth gathering (`COMPACT_BELOW`)."""
+    active = grads.ne(0).any(dim=2).any(dim=0)
+    count = int(active.sum())
+    if count >= COMPACT_BELOW * grads.shape[1]:
+        return None
+    return active.nonzero().reshape(-1)
+
+
+def _compact(saved: _Saved, rows: torch.Tensor) -> _Saved:
+    """A block's saved values at `rows` only (row axis 0 of h, 1 of the per-net arrays)."""
+    def pick(arrays, axis):
+        return [None if a is None else a.index_select(axis, rows) for a in arrays]
+
+    return _Saved(pick(saved.acts[:1], 0) + pick(saved.acts[1:], 1), pick(saved.derivs, 1),
+                  pick(saved.curvs, 1), pick(saved.us, 1), pick(saved.deltas, 1))
+
+
 def _blocks(n: int):
     """The row blocks (lo, hi) of `BLOCK_ROWS` rows."""
     return [(lo, min(n, lo + BLOCK_ROWS)) for lo in range(0, n, BLOCK_ROWS)]
@@ -389,12 +414,22 @@ class FusedInputGradients(torch.autograd.Function):
                 _field_grads(*[_np(u[lo:hi]) for u in upstream], _np(grads), _chunks(hi - lo))
             else:
                 grads = torch.stack([u[lo:hi] for u in upstream])
-            _backward_block(nets, block, grads, grad_h[lo:hi], d_weights, d_biases, d_w_out)
+            rows = _rows_with_gradient(grads)
+            if rows is not None:  # only those rows: the others add exactly zero everywhere
+                grad_h[lo:hi] = 0.0
+                if len(rows) == 0:
+                    continue
+                block, grads = _compact(block, rows), grads.index_select(1, rows)
+            out = grad_h[lo:hi] if rows is None else torch.empty((len(rows), width),
+                                                                 dtype=grad_h.dtype)
+            _backward_block(nets, block, grads, out, d_weights, d_biases, d_w_out)
             if quads is not None:  # through g_k += S_k h: dh += G_k S_k, dS_k += h^T G_k
                 hb = block.acts[0]
                 for i in range(2):
-                    grad_h[lo:hi].addmm_(grads[i], quads[i])
-                d_quads.baddbmm_(hb.T.expand(2, width, hi - lo), grads)
+                    out.addmm_(grads[i], quads[i])
+                d_quads.baddbmm_(hb.T.expand(2, width, hb.shape[0]), grads)
+            if rows is not None:
+                grad_h[lo:hi].index_copy_(0, rows, out)
         net_grads = []
         for i in range(2):
             for k in range(nets.depth):
