@@ -68,7 +68,7 @@ def _in_place_products() -> dict:
     """FlopCounterMode formulas for the in-place products addmm_ and baddbmm_ (the fused
     decoder accumulates its weight gradients with them), which torch's counter leaves out: 2 m k
     n flops each, as for addmm and baddbmm. Before 2026-11-28 the field's floor missed them
-    (1.069 G multiply-adds for 10k Gaussians where 1.38 G are done)."""
+    (1.069 G multiply-adds for 10k Gaussians where 1.438 G are done)."""
     import torch
 
     aten = torch.ops.aten

@@ -200,3 +200,20 @@ def test_points_without_gradient_are_left_out_of_the_backward():
             assert all(mine.grad.abs().max() == 0 for mine in planes32)
         else:
             assert (x32.grad.double() - x_ref.grad).abs().max() <= 1e-5 * x_ref.grad.abs().max()
+
+
+def test_a_non_finite_coordinate_reads_inside_the_planes():
+    """A diverged step's NaN / inf coordinates are read as 0 / +-1 (the kernels index the
+    tables with them); the other points are untouched."""
+    hp = _planes(seed=7)
+    planes = [p.detach().float().requires_grad_(True) for scale in hp.planes for p in scale]
+    u = torch.cat([_points(n=20, seed=8).float(), torch.full((20, 1), 0.3)], 1)
+    ref = hexplane_lookup(u, planes, PLANE_AXES).detach()
+    bad = u.clone()
+    bad[3, 0], bad[5, 1], bad[7, 3] = float("nan"), float("inf"), float("-inf")
+    out = hexplane_lookup(bad, planes, PLANE_AXES)
+    fixed = bad.clone()
+    fixed[3, 0], fixed[5, 1], fixed[7, 3] = 0.0, 1.0, -1.0
+    assert torch.equal(out.detach(), hexplane_lookup(fixed, planes, PLANE_AXES).detach())
+    keep = [i for i in range(20) if i not in (3, 5, 7)]
+    assert torch.equal(out.detach()[keep], ref[keep])

@@ -193,7 +193,7 @@ class HamiltonianDecoder(nn.Module):
         """Whether the fused Function computes this call (`grad_mode` "fused", not capturing a
         graph, CPU float32/float64)."""
         return (self.grad_mode == "fused" and not is_capturing()
-                and fused_supported(self.f1, self.f2, h))
+                and fused_supported(self.f1, self.f2, h, (self.quad1, self.quad2)))
 
     def forward(self, h: torch.Tensor) -> FieldOutput:
         if self._fused(h):

@@ -29,6 +29,17 @@ passes and as many autograd nodes. exp and log1p are `nehad.field.vecmath`'s, wh
 vectorises. The kernels are dtype-generic: float32 in training, float64 in the tests (where
 they agree with autograd to rounding, tests/test_hnn_fused.py).
 
+With the kinetic term (`FieldConfig.hnn_quadratic`: F_k += h^T S_k h / 2, S_k = (A_k + A_k^T) / 2)
+each g_k gains S_k h in the same blocks; its backward adds G_k S_k to dh and h^T G_k to dS_k,
+dL/dA_k = (dS_k + dS_k^T) / 2.
+
+The backward leaves out the rows whose upstream gradient is zero (a Gaussian that no pixel of the
+view sees): every term above is linear in G, so such a row adds zeros to every gradient. The
+sums over the remaining rows regroup, so the parameters' gradients may differ from the full
+backward's in their last bits; and a row with a non-finite saved value but no gradient no longer
+turns the parameters' gradients into NaN (0 x inf), which the kernels' fast-math flags did not
+promise either.
+
 The backward is not itself differentiable (no double backward through it): nothing in training
 needs one; `hnn_grad="closed_form"` is the differentiable-twice reference.
 """
@@ -296,7 +307,7 @@ def _backward_block(nets: _Nets, saved: _Saved, grads, grad_h: torch.Tensor, d_w
                     d_biases: np.ndarray, d_w_out: np.ndarray) -> None:
     """For one block of rows: grad_h (b, W) = dL/dh of the block, and the block's share of the
     parameters' gradients added to d_weights (W_k's, (2, H, in)), d_biases (L, 2, H) and
-    d_w_out (2, H); grads = (dL/dg1, dL/dg2) of the block."""
+    d_w_out (2, H); grads (2, b, W) = (dL/dg1, dL/dg2) of the block."""
     acts, derivs, curvs, us, deltas = saved
     h, depth = acts[0], nets.depth
     b, hidden = h.shape[0], nets.weights[0].shape[1]
@@ -415,7 +426,7 @@ class FusedInputGradients(torch.autograd.Function):
             else:
                 grads = torch.stack([u[lo:hi] for u in upstream])
             rows = _rows_with_gradient(grads)
-            if rows is not None:  # only those rows: the others add exactly zero everywhere
+            if rows is not None:  # only those rows: the others add zeros everywhere
                 grad_h[lo:hi] = 0.0
                 if len(rows) == 0:
                     continue
@@ -449,14 +460,16 @@ def net_parameters(net) -> list[torch.Tensor]:
     return params + [net.out.weight]
 
 
-def fused_supported(f1, f2, h: torch.Tensor) -> bool:
+def fused_supported(f1, f2, h: torch.Tensor, quads=None) -> bool:
     """Whether `fused_input_gradients` can run: CPU float32 or float64 input, the same dtype
-    for every parameter, the same depth and activation in both nets."""
+    for every parameter (the kinetic terms' `quads` too), the same depth and activation in both
+    nets."""
     params = net_parameters(f1) + net_parameters(f2)
     return (h.device.type == "cpu" and h.dtype in (torch.float32, torch.float64)
             and f1.activation == f2.activation and f1.activation in ACTIVATION_CODES
             and len(f1.hidden_layers) == len(f2.hidden_layers)
-            and all(p.dtype == h.dtype and p.device.type == "cpu" for p in params))
+            and all(p.dtype == h.dtype and p.device.type == "cpu"
+                    for p in params + [q for q in quads or () if q is not None]))
 
 
 def _kinetic(quads) -> torch.Tensor:
