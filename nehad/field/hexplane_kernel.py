@@ -101,15 +101,63 @@ def _forward(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, chan
                         out, order, j * n // chunks, (j + 1) * n // chunks)
 
 
+@numba.njit(inline="always")
+def _taps_with_slopes(u, n, s, tables, offsets, heights, widths, axis_a, axis_b, channels,
+                      samples, sx, sy, slopes):
+    """Point n's six samples of scale s (plane k at k * channels of `samples`), their slopes
+    along the planes' two axes (`sx`, `sy`) and d pixel / d coord (`slopes`)."""
+    for k in range(6):
+        base, dx, dy, fx, fy, slope_x, slope_y = _corners(
+            u, n, s * 6 + k, k, offsets, heights, widths, axis_a, axis_b, channels)
+        slopes[k, 0] = slope_x
+        slopes[k, 1] = slope_y
+        o = k * channels
+        t00 = tables[base:base + channels]
+        t01 = tables[base + dx:base + dx + channels]
+        t10 = tables[base + dy:base + dy + channels]
+        t11 = tables[base + dy + dx:base + dy + dx + channels]
+        sample = samples[o:o + channels]
+        slope_a = sx[o:o + channels]
+        slope_b = sy[o:o + channels]
+        gy = _ONE - fy
+        for c in range(channels):
+            a, b, d, e = t00[c], t01[c], t10[c], t11[c]
+            top = a + fx * (b - a)
+            bottom = d + fx * (e - d)
+            sample[c] = top + fy * (bottom - top)
+            slope_a[c] = gy * (b - a) + fy * (e - d)
+            slope_b[c] = bottom - top
+
+
+@numba.njit(inline="always")
+def _products_of_the_others(g, samples, others, running, channels):
+    """others[k] = g * prod_{j != k} samples[j] (plane k at k * channels): a prefix times a
+    suffix product, three passes over the six samples, not thirty products."""
+    for c in range(channels):
+        running[c] = g[c]
+    for k in range(6):  # others = g * prefix product
+        other = others[k * channels:(k + 1) * channels]
+        sample = samples[k * channels:(k + 1) * channels]
+        for c in range(channels):
+            other[c] = running[c]
+            running[c] *= sample[c]
+    for c in range(channels):
+        running[c] = _ONE
+    for k in range(5, -1, -1):  # ... times the suffix product
+        other = others[k * channels:(k + 1) * channels]
+        sample = samples[k * channels:(k + 1) * channels]
+        for c in range(channels):
+            other[c] *= running[c]
+            running[c] *= sample[c]
+
+
 @numba.njit(fastmath=True, cache=True)
 def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
                        grad_out, grad_samples, grad_u, order, start, stop):
-    """dL/ds_k (into `grad_samples`) and dL/du of points order[start:stop]. The product over
-    the other five planes is a prefix times a suffix product (three passes over the six
-    samples, not thirty products); the scratch rows are flat (plane k at k * channels), and
-    every loop over the channels runs over slices (views of one row), which LLVM vectorises:
-    indexed through the whole arrays the same loops took twice as long (10k points, 2
-    threads: 4.9 -> 2.1-2.3 ms)."""
+    """dL/ds_k (into `grad_samples`) and dL/du of points order[start:stop]. The scratch rows
+    are flat (plane k at k * channels), and every loop over the channels runs over slices
+    (views of one row), which LLVM vectorises: indexed through the whole arrays the same loops
+    took twice as long (10k points, 2 threads: 4.9 -> 2.1-2.3 ms)."""
     samples = np.empty(6 * channels, np.float32)
     sx = np.empty(6 * channels, np.float32)  # d sample / d pixel x
     sy = np.empty(6 * channels, np.float32)
@@ -119,44 +167,10 @@ def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_sc
     for i in range(start, stop):
         n = order[i]
         for s in range(n_scales):
-            for k in range(6):
-                base, dx, dy, fx, fy, slope_x, slope_y = _corners(
-                    u, n, s * 6 + k, k, offsets, heights, widths, axis_a, axis_b, channels)
-                slopes[k, 0] = slope_x
-                slopes[k, 1] = slope_y
-                o = k * channels
-                t00 = tables[base:base + channels]
-                t01 = tables[base + dx:base + dx + channels]
-                t10 = tables[base + dy:base + dy + channels]
-                t11 = tables[base + dy + dx:base + dy + dx + channels]
-                sample = samples[o:o + channels]
-                slope_a = sx[o:o + channels]
-                slope_b = sy[o:o + channels]
-                gy = _ONE - fy
-                for c in range(channels):
-                    a, b, d, e = t00[c], t01[c], t10[c], t11[c]
-                    top = a + fx * (b - a)
-                    bottom = d + fx * (e - d)
-                    sample[c] = top + fy * (bottom - top)
-                    slope_a[c] = gy * (b - a) + fy * (e - d)
-                    slope_b[c] = bottom - top
-            g = grad_out[n, s * channels:(s + 1) * channels]
-            for c in range(channels):
-                running[c] = g[c]
-            for k in range(6):  # others = g * prefix product
-                other = others[k * channels:(k + 1) * channels]
-                sample = samples[k * channels:(k + 1) * channels]
-                for c in range(channels):
-                    other[c] = running[c]
-                    running[c] *= sample[c]
-            for c in range(channels):
-                running[c] = _ONE
-            for k in range(5, -1, -1):  # ... times the suffix product
-                other = others[k * channels:(k + 1) * channels]
-                sample = samples[k * channels:(k + 1) * channels]
-                for c in range(channels):
-                    other[c] *= running[c]
-                    running[c] *= sample[c]
+            _taps_with_slopes(u, n, s, tables, offsets, heights, widths, axis_a, axis_b,
+                              channels, samples, sx, sy, slopes)
+            _products_of_the_others(grad_out[n, s * channels:(s + 1) * channels], samples,
+                                    others, running, channels)
             for k in range(6):
                 o = k * channels
                 gk = grad_samples[s * 6 + k, i]

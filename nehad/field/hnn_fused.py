@@ -273,7 +273,7 @@ class _Saved(NamedTuple):
 
 def _forward_block(nets: _Nets, h: torch.Tensor, g: torch.Tensor) -> _Saved:
     """g[i] = grad_h F_i(h) for a block of rows h (b, W), g (2, b, W) views of the output."""
-    b, hidden = h.shape[0], nets.weights[0].shape[1]
+    b = h.shape[0]
     chunks = _chunks(b)
     acts, derivs, curvs = [h], [], []
     delta_last = None
@@ -368,6 +368,28 @@ def _compact(saved: _Saved, rows: torch.Tensor) -> _Saved:
                   pick(saved.curvs, 1), pick(saved.us, 1), pick(saved.deltas, 1))
 
 
+def _backward_rows(nets: _Nets, block: _Saved, grads: torch.Tensor, quads, grad_h: torch.Tensor,
+                   d_weights: list, d_biases: np.ndarray, d_w_out: np.ndarray, d_quads) -> None:
+    """`_backward_block` of one block on its rows with a gradient only (`_rows_with_gradient`;
+    grad_h of the others 0), plus the kinetic term's share: dh += G_k S_k, dS_k += h^T G_k."""
+    rows = _rows_with_gradient(grads)
+    if rows is not None:  # only those rows: the others add zeros everywhere
+        grad_h[:] = 0.0
+        if len(rows) == 0:
+            return
+        block, grads = _compact(block, rows), grads.index_select(1, rows)
+    out = grad_h if rows is None else torch.empty((len(rows), grad_h.shape[1]),
+                                                  dtype=grad_h.dtype)
+    _backward_block(nets, block, grads, out, d_weights, d_biases, d_w_out)
+    if quads is not None:
+        hb = block.acts[0]
+        for i in range(2):
+            out.addmm_(grads[i], quads[i])
+        d_quads.baddbmm_(hb.T.expand(2, hb.shape[1], hb.shape[0]), grads)
+    if rows is not None:
+        grad_h.index_copy_(0, rows, out)
+
+
 def _blocks(n: int):
     """The row blocks (lo, hi) of `BLOCK_ROWS` rows."""
     return [(lo, min(n, lo + BLOCK_ROWS)) for lo in range(0, n, BLOCK_ROWS)]
@@ -425,22 +447,8 @@ class FusedInputGradients(torch.autograd.Function):
                 _field_grads(*[_np(u[lo:hi]) for u in upstream], _np(grads), _chunks(hi - lo))
             else:
                 grads = torch.stack([u[lo:hi] for u in upstream])
-            rows = _rows_with_gradient(grads)
-            if rows is not None:  # only those rows: the others add zeros everywhere
-                grad_h[lo:hi] = 0.0
-                if len(rows) == 0:
-                    continue
-                block, grads = _compact(block, rows), grads.index_select(1, rows)
-            out = grad_h[lo:hi] if rows is None else torch.empty((len(rows), width),
-                                                                 dtype=grad_h.dtype)
-            _backward_block(nets, block, grads, out, d_weights, d_biases, d_w_out)
-            if quads is not None:  # through g_k += S_k h: dh += G_k S_k, dS_k += h^T G_k
-                hb = block.acts[0]
-                for i in range(2):
-                    out.addmm_(grads[i], quads[i])
-                d_quads.baddbmm_(hb.T.expand(2, width, hb.shape[0]), grads)
-            if rows is not None:
-                grad_h[lo:hi].index_copy_(0, rows, out)
+            _backward_rows(nets, block, grads, quads, grad_h[lo:hi], d_weights, d_biases,
+                           d_w_out, d_quads)
         net_grads = []
         for i in range(2):
             for k in range(nets.depth):
