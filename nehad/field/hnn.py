@@ -193,12 +193,15 @@ class HamiltonianDecoder(nn.Module):
         """Whether the fused Function computes this call (`grad_mode` "fused", not capturing a
         graph, CPU float32/float64)."""
         return (self.grad_mode == "fused" and not is_capturing()
-                and fused_supported(self.f1, self.f2, h, (self.quad1, self.quad2)))
+                and fused_supported(self.f1, self.f2, h, self._kinetic_terms()))
+
+    def _kinetic_terms(self):
+        """(A_1, A_2) of the kinetic terms (`quadratic`), or None without them."""
+        return None if self.quad1 is None else (self.quad1, self.quad2)
 
     def forward(self, h: torch.Tensor) -> FieldOutput:
         if self._fused(h):
-            quads = None if self.quad1 is None else (self.quad1, self.quad2)
-            return FieldOutput(*fused_field(self.f1, self.f2, h, quads))
+            return FieldOutput(*fused_field(self.f1, self.f2, h, self._kinetic_terms()))
         g1, g2 = self.input_gradients(h)
         if self.quad1 is not None:
             q1, q2 = self.quadratic_gradients(h)

@@ -477,7 +477,7 @@ def fused_supported(f1, f2, h: torch.Tensor, quads=None) -> bool:
             and f1.activation == f2.activation and f1.activation in ACTIVATION_CODES
             and len(f1.hidden_layers) == len(f2.hidden_layers)
             and all(p.dtype == h.dtype and p.device.type == "cpu"
-                    for p in params + [q for q in quads or () if q is not None]))
+                    for p in params + list(quads or ())))
 
 
 def _kinetic(quads) -> torch.Tensor:
