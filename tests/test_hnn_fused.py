@@ -316,3 +316,18 @@ def test_config_accepts_fused():
     assert FieldConfig(hnn_grad="fused").validate().hnn_grad == "fused"
     with pytest.raises(ValueError, match="hnn_grad"):
         FieldConfig(hnn_grad="fast").validate()
+
+
+def test_rows_with_gradient_are_the_rows_with_a_nonzero_entry(monkeypatch):
+    """`_rows_with_gradient` against a hand-made block: a row counts when either net's
+    gradient has an entry that is not zero (a NaN counts, -0.0 does not); with too many such
+    rows (COMPACT_BELOW) it gives None (the full backward)."""
+    grads = torch.zeros((2, 9, 4), dtype=torch.float32)
+    grads[0, 1, 3] = 2.0
+    grads[1, 4, 0] = -1e-30
+    grads[0, 6, 2] = float("nan")
+    grads[1, 7, 1] = -0.0
+    rows = hnn_fused._rows_with_gradient(grads)
+    assert rows.dtype == np.int64 and rows.tolist() == [1, 4, 6]
+    monkeypatch.setattr(hnn_fused, "COMPACT_BELOW", 3 / 9)  # 3 rows of 9 are not fewer
+    assert hnn_fused._rows_with_gradient(grads) is None

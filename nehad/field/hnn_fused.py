@@ -194,6 +194,22 @@ def _hidden_backward(p, da, d, dz, db_parts, chunks):
                     sb[j] += zr[j]
 
 
+@numba.njit(parallel=True, cache=True)
+def _live_rows(grads, live, chunks):
+    """live[r] = whether row r of a block's (2, b, W) upstream gradients has an entry that is
+    not zero (a NaN counts as one)."""
+    n = grads.shape[1]
+    for c in numba.prange(chunks):
+        for r in range(c * n // chunks, (c + 1) * n // chunks):
+            found = False
+            for i in range(grads.shape[0]):
+                row = grads[i, r]
+                for j in range(row.shape[0]):
+                    if row[j] != 0:
+                        found = True
+            live[r] = found
+
+
 @numba.njit(parallel=True, fastmath=KERNEL_FASTMATH, cache=True)
 def _field_rows(g, v, v_s, chunks):
     """v_s = g2 M^T = (g2_p, -g2_q) and v = g1 + v_s (paper Eq. (field)), g = (g1, g2) of a
@@ -318,15 +334,15 @@ def _backward_block(nets: _Nets, saved: _Saved, grads, grad_h: torch.Tensor, d_w
     partial = [None] * depth  # P_k
     for k in range(depth - 1):
         du, p = torch.empty_like(d_delta), torch.empty_like(d_delta)
-        _delta_backward(_np(d_delta), _np(derivs[k]), _np(us[k]), _np(curvs[k]), _np(du), _np(p),
-                        chunks)
+        _delta_backward(_np(d_delta), _np(derivs[k]), _np(us[k]), _np(curvs[k]), _np(du),
+                        _np(p), chunks)
         partial[k] = p
         d_weights[k + 1].baddbmm_(deltas[k + 1].transpose(1, 2), du)
         d_delta = _per_net(du, nets.weights[k + 1].transpose(1, 2))
     dz = torch.empty_like(d_delta)
     dw_parts = np.empty_like(parts)
-    _last_backward(_np(d_delta), _np(derivs[-1]), _np(curvs[-1]), nets.w_out, _np(dz), dw_parts,
-                   parts, chunks)
+    _last_backward(_np(d_delta), _np(derivs[-1]), _np(curvs[-1]), nets.w_out, _np(dz),
+                   dw_parts, parts, chunks)
     d_w_out += dw_parts.sum(axis=0)
     for k in range(depth - 1, -1, -1):
         d_biases[k] += parts.sum(axis=0)
@@ -336,8 +352,8 @@ def _backward_block(nets: _Nets, saved: _Saved, grads, grad_h: torch.Tensor, d_w
             break
         da = _per_net(dz, nets.weights[k])
         dz_below = torch.empty_like(dz)
-        _hidden_backward(_np(partial[k - 1]), _np(da), _np(derivs[k - 1]), _np(dz_below), parts,
-                         chunks)
+        _hidden_backward(_np(partial[k - 1]), _np(da), _np(derivs[k - 1]), _np(dz_below),
+                         parts, chunks)
         dz = dz_below
     torch.mm(dz[0], nets.weights[0][0], out=grad_h)
     grad_h.addmm_(dz[1], nets.weights[0][1])
@@ -350,19 +366,23 @@ COMPACT_BELOW = 0.85
 
 
 def _rows_with_gradient(grads: torch.Tensor):
-    """The rows (indices) of a block's (2, b, W) upstream gradients with a non-zero entry, or
-    None when they are too many to be worth gathering (`COMPACT_BELOW`)."""
-    active = grads.ne(0).any(dim=2).any(dim=0)
-    count = int(active.sum())
-    if count >= COMPACT_BELOW * grads.shape[1]:
+    """The rows (int64 indices) of a block's (2, b, W) upstream gradients with a non-zero
+    entry, or None when they are too many to be worth gathering (`COMPACT_BELOW`)."""
+    live = np.empty(grads.shape[1], dtype=np.bool_)
+    _live_rows(_np(grads), live, _chunks(grads.shape[1]))
+    if np.count_nonzero(live) >= COMPACT_BELOW * grads.shape[1]:
         return None
-    return active.nonzero().reshape(-1)
+    return np.flatnonzero(live)
 
 
-def _compact(saved: _Saved, rows: torch.Tensor) -> _Saved:
-    """A block's saved values at `rows` only (row axis 0 of h, 1 of the per-net arrays)."""
+def _compact(saved: _Saved, rows: np.ndarray) -> _Saved:
+    """A block's saved values at `rows` only (row axis 0 of h, 1 of the per-net arrays). The
+    element-wise passes reading the full arrays through `rows` instead measured slower than
+    these copies (docs/performance.md)."""
+    index = torch.from_numpy(rows)
+
     def pick(arrays, axis):
-        return [None if a is None else a.index_select(axis, rows) for a in arrays]
+        return [None if a is None else a.index_select(axis, index) for a in arrays]
 
     return _Saved(pick(saved.acts[:1], 0) + pick(saved.acts[1:], 1), pick(saved.derivs, 1),
                   pick(saved.curvs, 1), pick(saved.us, 1), pick(saved.deltas, 1))
@@ -377,7 +397,7 @@ def _backward_rows(nets: _Nets, block: _Saved, grads: torch.Tensor, quads, grad_
         grad_h[:] = 0.0
         if len(rows) == 0:
             return
-        block, grads = _compact(block, rows), grads.index_select(1, rows)
+        block, grads = _compact(block, rows), grads.index_select(1, torch.from_numpy(rows))
     out = grad_h if rows is None else torch.empty((len(rows), grad_h.shape[1]),
                                                   dtype=grad_h.dtype)
     _backward_block(nets, block, grads, out, d_weights, d_biases, d_w_out)
@@ -387,7 +407,7 @@ def _backward_rows(nets: _Nets, block: _Saved, grads: torch.Tensor, quads, grad_
             out.addmm_(grads[i], quads[i])
         d_quads.baddbmm_(hb.T.expand(2, hb.shape[1], hb.shape[0]), grads)
     if rows is not None:
-        grad_h.index_copy_(0, rows, out)
+        grad_h.index_copy_(0, torch.from_numpy(rows), out)
 
 
 def _blocks(n: int):
