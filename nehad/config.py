@@ -212,6 +212,10 @@ class LossConfig:
     acceleration_samples: int = 1024  # Gaussians drawn each step for it
     acceleration_times: str = "view"  # where its paths are centred: the step's view's time
     # ("view") or a time drawn uniformly between the first and last training view ("uniform")
+    scale_rate_weight: float = 0.0  # > 0: each Gaussian's size changes little from one
+    # training frame step to the next, in the deforming stage (nehad.scale_rate,
+    # docs/training.md "Gaussians that blink")
+    scale_rate_samples: int = 1024  # Gaussians drawn each step for it
 
 
 @dataclass
@@ -473,7 +477,8 @@ class Config:
         ("densify.max_gaussians", 0, None), ("loss.ssim_weight", 0.0, 1.0),
         ("loss.isometry_weight", 0.0, None), ("loss.isometry_neighbours", 1, None),
         ("loss.isometry_refresh", 1, None), ("loss.acceleration_weight", 0.0, None),
-        ("loss.acceleration_samples", 1, None),
+        ("loss.acceleration_samples", 1, None), ("loss.scale_rate_weight", 0.0, None),
+        ("loss.scale_rate_samples", 1, None),
         ("train.sh_degree_interval", 0, None), ("train.init_random_points", 1, None),
         ("train.init_max_points", 0, None), ("train.fit_box_padding", 0.0, None),
         ("train.checkpoint_interval", 1, None), ("train.log_interval", 1, None),

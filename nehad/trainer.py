@@ -34,6 +34,7 @@ from nehad.runtime.interrupts import check as interrupt_point
 from nehad.initial import initial_gaussians, scene_bounds
 from nehad.acceleration import AccelerationPrior
 from nehad.isometry import IsometryPrior
+from nehad.scale_rate import ScaleRatePrior
 from nehad.schedule import Phase, Schedule
 from nehad.splat.rasterize import render_torch
 from nehad.views import Views, downscale_views, recomposite, resolve_background, views_of
@@ -93,6 +94,7 @@ class Trainer:
         self.densify_state = DensifyState.zeros(0)
         self.isometry = IsometryPrior.of(cfg.loss)
         self.acceleration = AccelerationPrior.of(cfg.loss, cfg.train.seed, self.train_views.times)
+        self.scale_rate = ScaleRatePrior.of(cfg.loss, cfg.train.seed, self.train_views.times)
         self.carving = ResidualCarving(cfg.carve, cfg.train.seed, cfg.train.canonical_time,
                                        cfg.densify.max_gaussians, self.aabb.copy(), self.background,
                                        free_offset_of(cfg.field, float(field.extent)))
@@ -215,8 +217,9 @@ class Trainer:
                               if alpha is not None and background != self.background
                               else target))
             renders.append((res, cam))
-        if phase.deforms:
-            total = total + self.model.field.regularization_loss()
+        if phase.deforms:  # the field's regularisers and the slow-size prior (nehad.scale_rate)
+            total = (total + self.model.field.regularization_loss()
+                     + self.scale_rate.loss(self.model, step))
         if not torch.isfinite(total):
             raise RunError(f"step {step + 1}: the loss became {float(total.detach())}; training "
                            f"stopped (the last checkpoint in {self.run} is intact)")

@@ -1,0 +1,128 @@
+"""The slow-size prior (nehad.scale_rate): its value against hand-computed sizes, a steady growth
+against a blink, the same draw for the same step, and its gradient reaching the field."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from nehad.scale_rate import ScaleRatePrior  # noqa: E402
+
+
+class _Sizes:
+    """A stand-in model: Gaussian i has log-scales a_i + b_i t at time t (or what `law` says);
+    its field is called with per-row times, as the prior calls it."""
+
+    def __init__(self, n: int = 40, seed: int = 0, law=None):
+        rng = np.random.default_rng(seed)
+        self.a, self.b = (torch.tensor(rng.normal(size=(n, 3))) for _ in range(2))
+        self.law = law or (lambda rows, t: self.a[rows] + self.b[rows] * t)
+        z = torch.zeros((n, 3), dtype=torch.float64)
+        self.gaussians = SimpleNamespace(means=torch.arange(n, dtype=torch.float64)[:, None] + z,
+                                         log_scales=z, quats=torch.zeros((n, 4)),
+                                         mu_eq=z, t_eq=torch.zeros((n, 1)))
+        self.calls = []
+
+    def field(self, means, log_scales, quats, t, mu_eq, t_eq):
+        rows = means[:, 0].long()  # the stand-in's means carry each row's index
+        self.calls.append(t.reshape(-1).clone())
+        return SimpleNamespace(log_scales=self.law(rows, t.reshape(-1, 1)))
+
+
+def _prior(weight=0.5, samples=16, times=np.linspace(0.0, 1.0, 11)):
+    prior = ScaleRatePrior(weight, samples, seed=5)
+    prior.set_times(times)
+    return prior
+
+
+def test_value_is_the_mean_squared_change_over_one_step():
+    """log s(c + h) - log s(c) = b h for a steady change: the loss is w mean |b_i|^2 h^2 over
+    the drawn rows, h the views' step (0.1 here), c in [t_min, t_max - h]."""
+    model, prior = _Sizes(), _prior()
+    assert prior.step_h == pytest.approx(0.1)
+    loss = prior.loss(model, step=9)
+    rows, c = prior.draw(40, 9)
+    want = 0.5 * float((model.b[rows] ** 2).sum(dim=1).mean()) * 0.1 ** 2
+    assert float(loss) == pytest.approx(want, rel=1e-9)
+    times = model.calls[0]
+    assert 0.0 <= c <= 0.9 and times.shape == (32,)
+    assert torch.allclose(times[:16], torch.tensor(c, dtype=times.dtype))
+    assert torch.allclose(times[16:], torch.tensor(c + 0.1, dtype=times.dtype))
+
+
+def test_a_blink_costs_far_more_than_a_steady_growth():
+    """A Gaussian that grows 4x over the whole time pays (ln 4 h)^2 per axis; one that shrinks
+    10x between two frames (and grows back) pays (ln 10)^2 where the step meets the blink. With
+    the MuJoCo scenes' step (1/120) that is 10^4 times the growth's cost."""
+    h = 1.0 / 120
+    steady = _Sizes(n=1, law=lambda rows, t: np.log(4.0) * t.expand(-1, 3))
+    blink = _Sizes(n=1, law=lambda rows, t: -np.log(10.0) * ((t > 0.45) & (t < 0.55)).double()
+                   .expand(-1, 3))
+    prior = _prior(weight=1.0, samples=1, times=np.linspace(0.0, 1.0, 121))
+    grow = float(prior.loss(steady, step=0))
+    assert grow == pytest.approx(3 * (np.log(4.0) * h) ** 2, rel=1e-9)
+    costs = [float(prior.loss(blink, step=s)) for s in range(400)]
+    assert max(costs) == pytest.approx(3 * np.log(10.0) ** 2, rel=1e-9)
+    assert max(costs) > 1e4 * grow
+
+
+def test_same_draw_for_the_same_step_and_off_cases():
+    model, prior = _Sizes(), _prior()
+    assert float(prior.loss(model, step=4)) == float(prior.loss(model, step=4))
+    assert float(prior.loss(model, step=4)) != float(prior.loss(model, step=5))
+    assert _prior(weight=0.0).loss(model, step=1) == 0.0
+    assert _prior(times=[0.3]).loss(model, step=1) == 0.0  # one time: no step
+
+
+def test_gradient_reaches_the_field():
+    """On a real field, the prior's gradient reaches the hex-plane and the decoder."""
+    from nehad.config import build_config
+    from nehad.field.deformation import DeformationField
+    from nehad.gaussians import GaussianParameters
+
+    cfg = build_config("test", None, [])
+    torch.manual_seed(0)
+    field = DeformationField(cfg.field, aabb=np.array([[-1.0] * 3, [1.0] * 3]), extent=2.0)
+    with torch.no_grad():  # a field that moves (its adapters start at zero, and its time
+        for p in field.adapters.parameters():  # planes at 1: no change in time)
+            p.normal_(0.0, 0.1)
+        for p in field.hexplane.parameters():
+            p.uniform_(0.1, 1.0)
+    n = 64
+    gauss = GaussianParameters(torch.rand(n, 3) * 2 - 1, torch.full((n, 3), -3.0),
+                               torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.zeros(n, 1),
+                               torch.zeros(n, 1, 3), torch.zeros(n, 15, 3))
+    model = SimpleNamespace(gaussians=gauss, field=field)
+    prior = _prior(weight=1.0, samples=32)
+    loss = prior.loss(model, step=2)
+    loss.backward()
+    assert float(loss.detach()) > 0
+    assert any(p.grad is not None and float(p.grad.abs().sum()) > 0
+               for p in field.hexplane.parameters())
+    assert float(field.adapters.scale.weight.grad.abs().sum()) > 0
+
+
+def test_training_runs_with_it_and_the_term_is_in_the_loss(tmp_path, monkeypatch):
+    """A short run with the prior on: the trainer calls it at every deforming step only, and the
+    run ends with a finite loss."""
+    from nehad.config import build_config
+    from nehad.data.synth import synthesize_scene
+    from nehad.trainer import Trainer
+
+    data = synthesize_scene(tmp_path / "scene", resolution=24, frames=8, seed=0)
+    cfg = build_config("test", None, ["loss.scale_rate_weight=1.0",
+                                      "loss.scale_rate_samples=64"])
+    tr = Trainer(cfg, data, tmp_path / "run", progress=False, log=None)
+    assert tr.scale_rate.step_h == pytest.approx(1 / 7)
+    steps = []
+    inner = tr.scale_rate.loss
+    monkeypatch.setattr(tr.scale_rate, "loss", lambda model, step: steps.append(step)
+                        or inner(model, step))
+    out = tr.train()
+    assert out["steps"] == 70 and np.isfinite(out["last"]["loss"])
+    deforming = out["steps"] - cfg.coarse.iterations
+    assert len(steps) == deforming > 0
