@@ -32,9 +32,7 @@ from nehad.model import NeHaDModel, RunError, model_from_state
 from nehad.optim import make_optimizer, set_learning_rates
 from nehad.runtime.interrupts import check as interrupt_point
 from nehad.initial import initial_gaussians, scene_bounds
-from nehad.acceleration import AccelerationPrior
-from nehad.isometry import IsometryPrior
-from nehad.scale_rate import ScaleRatePrior
+from nehad.motion_priors import MotionPriors
 from nehad.schedule import Phase, Schedule
 from nehad.splat.rasterize import render_torch
 from nehad.views import Views, downscale_views, recomposite, resolve_background, views_of
@@ -92,9 +90,7 @@ class Trainer:
         self.optimizer = make_optimizer(self.model, cfg.optim, self.extent)
         self.strategy = DensifyStrategy(cfg.densify, self.extent)
         self.densify_state = DensifyState.zeros(0)
-        self.isometry = IsometryPrior.of(cfg.loss)
-        self.acceleration = AccelerationPrior.of(cfg.loss, cfg.train.seed, self.train_views.times)
-        self.scale_rate = ScaleRatePrior.of(cfg.loss, cfg.train.seed, self.train_views.times)
+        self.priors = MotionPriors.of(cfg.loss, cfg.train.seed, self.train_views.times)
         self.carving = ResidualCarving(cfg.carve, cfg.train.seed, cfg.train.canonical_time,
                                        cfg.densify.max_gaussians, self.aabb.copy(), self.background,
                                        free_offset_of(cfg.field, float(field.extent)))
@@ -206,9 +202,8 @@ class Trainer:
             res = render_torch(*params, cam, background=background, sh_degree=degree)
             total = total + photometric_loss(res.rgb, target, cfg.loss.ssim_weight,
                                              cfg.loss.kernel) / len(picks)
-            if phase.deforms:  # the priors on the motion (nehad.isometry, nehad.acceleration)
-                prior = (self.isometry.loss(self.model.gaussians, params[0], step)
-                         + self.acceleration.loss(self.model, params[0], views.times[k], step))
+            if phase.deforms:  # the priors on the motion (nehad.motion_priors)
+                prior = self.priors.loss(self.model, params[0], views.times[k], step)
                 total = total + prior / len(picks)
             # logged against the evaluation background, whatever the step trained over
             psnrs.append(psnr(recomposite(res.rgb.detach(), res.alpha.detach()[:, :, None],
@@ -217,9 +212,8 @@ class Trainer:
                               if alpha is not None and background != self.background
                               else target))
             renders.append((res, cam))
-        if phase.deforms:  # the field's regularisers and the slow-size prior (nehad.scale_rate)
-            total = (total + self.model.field.regularization_loss()
-                     + self.scale_rate.loss(self.model, step))
+        if phase.deforms:
+            total = total + self.model.field.regularization_loss()
         if not torch.isfinite(total):
             raise RunError(f"step {step + 1}: the loss became {float(total.detach())}; training "
                            f"stopped (the last checkpoint in {self.run} is intact)")

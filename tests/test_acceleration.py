@@ -149,6 +149,6 @@ def test_training_runs_with_it(tmp_path):
     cfg = build_config("test", None, ["loss.acceleration_weight=1.0",
                                       "loss.acceleration_samples=64"])
     tr = Trainer(cfg, data, tmp_path / "run", progress=False, log=None)
-    assert tr.acceleration.step_h == pytest.approx(1 / 7)
+    assert tr.priors.acceleration.step_h == pytest.approx(1 / 7)
     out = tr.train()
     assert out["steps"] == 70 and np.isfinite(out["last"]["loss"])

@@ -195,12 +195,18 @@ def test_gradcheck_on_a_tiny_case(activation):
 
     quads = [torch.randn(4, 4, dtype=torch.float64, generator=torch.Generator().manual_seed(k))
              .requires_grad_(True) for k in (5, 6)]
-    for field, quadratic in ((False, False), (True, False), (True, True)):
-        def fn(h, *params):
-            return FusedInputGradients.apply(h, {"tanh": 0, "softplus": 1, "silu": 2}[activation],
-                                             True, field, quadratic, *params)
+    gen = torch.Generator().manual_seed(7)  # a trunk Linear(3, 4) in front: x = f (5, 3)
+    f = torch.randn(5, 3, dtype=torch.float64, generator=gen).requires_grad_(True)
+    trunk = [torch.randn(4, 3, dtype=torch.float64, generator=gen).requires_grad_(True),
+             torch.randn(4, dtype=torch.float64, generator=gen).requires_grad_(True)]
+    for field, quadratic, head in ((False, False, False), (True, False, False),
+                                   (True, True, False), (True, True, True)):
+        def fn(x, *params):
+            return FusedInputGradients.apply(x, {"tanh": 0, "softplus": 1, "silu": 2}[activation],
+                                             True, field, quadratic, head, *params)
 
-        inputs = (h, *params, *quads) if quadratic else (h, *params)
+        inputs = (f if head else h, *params, *(quads if quadratic else ()),
+                  *(trunk if head else ()))
         assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-7, rtol=1e-5)
 
 
@@ -331,3 +337,53 @@ def test_rows_with_gradient_are_the_rows_with_a_nonzero_entry(monkeypatch):
     assert rows.dtype == np.int64 and rows.tolist() == [1, 4, 6]
     monkeypatch.setattr(hnn_fused, "COMPACT_BELOW", 3 / 9)  # 3 rows of 9 are not fewer
     assert hnn_fused._rows_with_gradient(grads) is None
+
+
+@pytest.mark.parametrize("block_rows", [4096, 7])
+def test_trunk_inside_equals_trunk_in_front(block_rows, monkeypatch):
+    """fused_field with the trunk's Linear inside (`trunk`) against the Linear applied first and
+    then fused_field (float64): the same values, and the same gradients for f, the trunk's
+    weight and bias, both nets and the kinetic terms, with rows whose upstream gradient is zero
+    (rows 0-9 and 20-25: whole blocks of 7 included), every new buffer pre-filled with NaN."""
+    nets = _nets("softplus", 2, seed=30)
+    gen = torch.Generator().manual_seed(31)
+    f = torch.randn(30, 6, dtype=torch.float64, generator=gen).requires_grad_(True)
+    lin = torch.nn.Linear(6, 10).double()
+    quads = [torch.randn(10, 10, generator=gen, dtype=torch.float64).requires_grad_(True)
+             for _ in range(2)]
+    weights = [torch.randn(30, 10, generator=gen, dtype=torch.float64) for _ in range(3)]
+    for w in weights:
+        w[:10] = 0.0
+        w[20:26] = 0.0
+    wanted = [f, lin.weight, lin.bias] + net_parameters(nets[0]) + net_parameters(nets[1]) + quads
+
+    def run(inside: bool):
+        out = (fused_field(*nets, f, quads, (lin.weight, lin.bias)) if inside
+               else fused_field(*nets, lin(f), quads))
+        loss = sum((o * w).sum() for o, w in zip(out, weights))
+        return out, torch.autograd.grad(loss, wanted)
+
+    monkeypatch.setattr(hnn_fused, "BLOCK_ROWS", block_rows)
+    ref_out, ref_grads = run(False)
+    empty = torch.empty
+    monkeypatch.setattr(torch, "empty", lambda *a, **k: empty(*a, **k).fill_(float("nan")))
+    out, grads = run(True)
+    for r, o in zip(ref_out, out):
+        assert _rel(o, r) < 1e-12
+    for r, g in zip(ref_grads, grads):
+        assert r.abs().max() > 0 and _rel(g, r) < 1e-12
+    assert grads[0][:10].abs().max() == 0 and grads[0][20:26].abs().max() == 0
+
+
+def test_decoder_forward_features_fuses_the_trunk():
+    """HamiltonianDecoder.forward_features(f, trunk) equals forward(trunk(f)) (float64), fused
+    and in closed form."""
+    torch.manual_seed(32)
+    f = torch.randn(12, 6, dtype=torch.float64)
+    trunk = torch.nn.Linear(6, 8).double()
+    for mode in ("fused", "closed_form"):
+        dec = HamiltonianDecoder(8, 5, 2, "softplus", grad_mode=mode, quadratic=True).double()
+        with torch.no_grad():
+            dec.quad1.normal_()
+        for a, b in zip(dec.forward_features(f, trunk), dec(trunk(f))):
+            assert _rel(a, b) < 1e-12

@@ -117,10 +117,10 @@ def test_training_runs_with_it_and_the_term_is_in_the_loss(tmp_path, monkeypatch
     cfg = build_config("test", None, ["loss.scale_rate_weight=1.0",
                                       "loss.scale_rate_samples=64"])
     tr = Trainer(cfg, data, tmp_path / "run", progress=False, log=None)
-    assert tr.scale_rate.step_h == pytest.approx(1 / 7)
+    assert tr.priors.scale_rate.step_h == pytest.approx(1 / 7)
     steps = []
-    inner = tr.scale_rate.loss
-    monkeypatch.setattr(tr.scale_rate, "loss", lambda model, step: steps.append(step)
+    inner = tr.priors.scale_rate.loss
+    monkeypatch.setattr(tr.priors.scale_rate, "loss", lambda model, step: steps.append(step)
                         or inner(model, step))
     out = tr.train()
     assert out["steps"] == 70 and np.isfinite(out["last"]["loss"])

@@ -185,6 +185,12 @@ class DeformationField(nn.Module):
         """Step 1-2: h = M(HexPlane(normalize_aabb(mu), 2t - 1)), (N, W). With cfg.mipmap the
         lookups are mipmapped by the canonical Gaussians' world-axis scales (docs/design.md section 8), which
         then need `log_scales` and `quats`."""
+        return self.trunk(self.plane_features(means, t_col, log_scales, quats))
+
+    def plane_features(self, means: torch.Tensor, t_col: torch.Tensor,
+                       log_scales: Optional[torch.Tensor] = None,
+                       quats: Optional[torch.Tensor] = None) -> torch.Tensor:
+        """Step 1: f = HexPlane(normalize_aabb(mu), 2t - 1), the trunk's input (`features`)."""
         aabb = self.aabb.to(means.dtype)
         sigma = None
         if self.cfg.mipmap:
@@ -195,8 +201,7 @@ class DeformationField(nn.Module):
 
             sigma = world_axis_sigma(log_scales, quats, self.cfg.norm_eps) * (
                 2.0 / (aabb[1] - aabb[0]))
-        f = self.hexplane(normalize_aabb(means, aabb), 2.0 * t_col - 1.0, sigma)
-        return self.trunk(f)
+        return self.hexplane(normalize_aabb(means, aabb), 2.0 * t_col - 1.0, sigma)
 
     def forward(self, means: torch.Tensor, log_scales: torch.Tensor, quats: torch.Tensor,
                 t: TimeLike, mu_eq: Optional[torch.Tensor] = None,
@@ -207,14 +212,16 @@ class DeformationField(nn.Module):
         when BED position (mu_eq, t_eq) or BED scale (t_eq) is on with the HNN decoder."""
         n = means.shape[0]
         t_col = time_column(t, n, means)
-        h = self.features(means, t_col, log_scales, quats)
         if self.cfg.decoder == "mlp":
+            h = self.features(means, t_col, log_scales, quats)
             return self._forward_mlp(h, means, log_scales, quats, opacity_logits, sh)
         cfg = self.cfg
-        fo = self.field(h)
+        fo, h = self._decode(self.plane_features(means, t_col, log_scales, quats))
         ad = self.adapters(fo.v)
-        aux: dict[str, torch.Tensor] = {"h": h, "v": fo.v, "v_c": fo.v_c, "v_s": fo.v_s,
+        aux: dict[str, torch.Tensor] = {"v": fo.v, "v_c": fo.v_c, "v_s": fo.v_s,
                                         "dmu": ad.dmu, "ds": ad.ds, "q": ad.q}
+        if h is not None:
+            aux["h"] = h
         # 6. position Verlet: displacement mu~ - mu.
         disp = cfg.dt * ad.dmu
         if cfg.verlet:
@@ -254,6 +261,15 @@ class DeformationField(nn.Module):
         # 9. appearance.
         new_o, new_sh = self._appearance(opacity_logits, sh, ad.d_opacity, ad.d_sh)
         return DeformedGaussians(new_means, new_log_scales, new_quats, new_o, new_sh, aux)
+
+    def _decode(self, f: torch.Tensor):
+        """(FieldOutput, h) of the trunk and the decoder on the plane features f; with the
+        Hamiltonian decoder and a one-layer trunk both run as one fused call
+        (`HamiltonianDecoder.forward_features`), which gives no h (None)."""
+        if isinstance(self.field, HamiltonianDecoder) and self.trunk.depth == 1:
+            return self.field.forward_features(f, self.trunk[0]), None
+        h = self.trunk(f)
+        return self.field(h), h
 
     def _forward_mlp(self, h, means, log_scales, quats, opacity_logits, sh) -> DeformedGaussians:
         d = self.heads(h)

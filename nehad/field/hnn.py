@@ -199,6 +199,16 @@ class HamiltonianDecoder(nn.Module):
         """(A_1, A_2) of the kinetic terms (`quadratic`), or None without them."""
         return None if self.quad1 is None else (self.quad1, self.quad2)
 
+    def forward_features(self, f: torch.Tensor, trunk: nn.Linear) -> FieldOutput:
+        """forward(trunk(f)); with `grad_mode` "fused" the Linear runs inside the fused
+        Function (`nehad.field.hnn_fused.fused_field`'s `trunk`), its backward on the
+        Gaussians with a gradient only."""
+        head = (trunk.weight, trunk.bias)
+        if (self.grad_mode == "fused" and trunk.bias is not None and not is_capturing()
+                and fused_supported(self.f1, self.f2, f, self._kinetic_terms(), head)):
+            return FieldOutput(*fused_field(self.f1, self.f2, f, self._kinetic_terms(), head))
+        return self(trunk(f))
+
     def forward(self, h: torch.Tensor) -> FieldOutput:
         if self._fused(h):
             return FieldOutput(*fused_field(self.f1, self.f2, h, self._kinetic_terms()))

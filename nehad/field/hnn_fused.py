@@ -33,6 +33,10 @@ With the kinetic term (`FieldConfig.hnn_quadratic`: F_k += h^T S_k h / 2, S_k = 
 each g_k gains S_k h in the same blocks; its backward adds G_k S_k to dh and h^T G_k to dS_k,
 dL/dA_k = (dS_k + dS_k^T) / 2.
 
+With `fused_field`'s `trunk` the trunk's Linear(F, W) in front of the decoder runs in the same
+blocks: h = f W_t^T + b_t before the nets, and after them df = dh W_t, dW_t += dh^T f, db_t +=
+the row sums of dh, on the rows with a gradient only (below).
+
 The backward leaves out the rows whose upstream gradient is zero (a Gaussian that no pixel of the
 view sees): every term above is linear in G, so such a row adds zeros to every gradient. The
 sums over the remaining rows regroup, so the parameters' gradients may differ from the full
@@ -388,26 +392,66 @@ def _compact(saved: _Saved, rows: np.ndarray) -> _Saved:
                   pick(saved.curvs, 1), pick(saved.us, 1), pick(saved.deltas, 1))
 
 
-def _backward_rows(nets: _Nets, block: _Saved, grads: torch.Tensor, quads, grad_h: torch.Tensor,
-                   d_weights: list, d_biases: np.ndarray, d_w_out: np.ndarray, d_quads) -> None:
-    """`_backward_block` of one block on its rows with a gradient only (`_rows_with_gradient`;
-    grad_h of the others 0), plus the kinetic term's share: dh += G_k S_k, dS_k += h^T G_k."""
+def _backward_rows(nets: _Nets, block: _Saved, grads: torch.Tensor, quads, out_all: torch.Tensor,
+                   d_weights: list, d_biases: np.ndarray, d_w_out: np.ndarray, d_quads):
+    """`_backward_block` of one block on its rows with a gradient only (`_rows_with_gradient`),
+    plus the kinetic term's share: dh += G_k S_k, dS_k += h^T G_k. Returns (rows, dh): rows
+    None and dh = `out_all` (b, W) when every row went through; else the rows (int64) and
+    their dh (len(rows), W), or None when there is none (dh of the other rows is 0)."""
     rows = _rows_with_gradient(grads)
     if rows is not None:  # only those rows: the others add zeros everywhere
-        grad_h[:] = 0.0
         if len(rows) == 0:
-            return
+            return rows, None
         block, grads = _compact(block, rows), grads.index_select(1, torch.from_numpy(rows))
-    out = grad_h if rows is None else torch.empty((len(rows), grad_h.shape[1]),
-                                                  dtype=grad_h.dtype)
+    out = out_all if rows is None else torch.empty((len(rows), out_all.shape[1]),
+                                                   dtype=out_all.dtype)
     _backward_block(nets, block, grads, out, d_weights, d_biases, d_w_out)
     if quads is not None:
         hb = block.acts[0]
         for i in range(2):
             out.addmm_(grads[i], quads[i])
         d_quads.baddbmm_(hb.T.expand(2, hb.shape[1], hb.shape[0]), grads)
-    if rows is not None:
-        grad_h.index_copy_(0, torch.from_numpy(rows), out)
+    return rows, out
+
+
+def _place(dest: torch.Tensor, rows, part) -> None:
+    """dest = part at `rows` and 0 elsewhere (`_backward_rows`' result; rows None: every row,
+    already in place when part is dest)."""
+    if rows is None:
+        if part is not dest:
+            dest.copy_(part)
+        return
+    dest.zero_()
+    if part is not None:
+        dest.index_copy_(0, torch.from_numpy(rows), part)
+
+
+class _Trunk(NamedTuple):
+    """The trunk's Linear(F, W) fused in front of the decoder (`fused_field`'s `trunk`): h = f
+    W^T + b per block, and its backward on the rows with a gradient only."""
+
+    weight: torch.Tensor  # (W, F)
+    bias: torch.Tensor  # (W,)
+
+    def forward(self, f: torch.Tensor, h: torch.Tensor) -> None:
+        """h = f W^T + b, for a block (rows of f and h)."""
+        torch.addmm(self.bias, f, self.weight.T, out=h)
+
+    def backward(self, f: torch.Tensor, rows, dh, grad_f: torch.Tensor, d_weight: torch.Tensor,
+                 d_bias: torch.Tensor) -> None:
+        """A block's dL/df (into grad_f, 0 off `rows`) and its share of dL/dW, dL/db, from
+        `_backward_rows`' (rows, dh)."""
+        if dh is None:
+            grad_f.zero_()
+            return
+        if rows is None:
+            torch.mm(dh, self.weight, out=grad_f)
+            below = f
+        else:
+            _place(grad_f, rows, torch.mm(dh, self.weight))
+            below = f.index_select(0, torch.from_numpy(rows))
+        d_weight.addmm_(dh.T, below)
+        d_bias += dh.sum(dim=0)
 
 
 def _blocks(n: int):
@@ -419,56 +463,73 @@ class FusedInputGradients(torch.autograd.Function):
     """(grad_h F1, grad_h F2), each (N, W), of the two scalar nets given by their parameters
     (module docstring); with `field` the decoder's outputs (v, v_c, v_s) instead (v_c = g1,
     v_s = g2 M^T, v = v_c + v_s; paper Eq. (field)), so that no torch op (and no autograd node)
-    follows. Inputs: h (N, W), the activation code, whether to keep what the backward needs,
-    `field`, `quadratic`, then each net's W_1, b_1, ..., W_L, b_L, w_out (F1's, then F2's),
+    follows. Inputs: x, the activation code, whether to keep what the backward needs, `field`,
+    `quadratic`, `trunk`, then each net's W_1, b_1, ..., W_L, b_L, w_out (F1's, then F2's),
     then with `quadratic` the kinetic terms' A_1, A_2 (W, W): each g_k then gains S_k h,
     S_k = (A_k + A_k^T) / 2 (`fused_field`), in the same blocks, so that the kinetic term adds
-    no autograd node either.
+    no autograd node either; then with `trunk` the trunk's Linear(F, W) weight and bias: x is
+    then the trunk's input f (N, F) and h = f W^T + b is computed block by block (`_Trunk`);
+    else x is h (N, W).
 
     Forward and backward run block by block (`BLOCK_ROWS` rows), so that the temporaries of a
     block stay in the cache between the products and the element-wise passes."""
 
     @staticmethod
-    def forward(ctx, h, kind, keep, field, quadratic, *params):
-        quads = _kinetic(params[-2:]) if quadratic else None
-        nets = _Nets.stack(params[:-2] if quadratic else params, kind)
-        hd = h.detach().contiguous()
-        n, width = hd.shape
-        g = torch.empty((2, n, width), dtype=hd.dtype)
+    def forward(ctx, x, kind, keep, field, quadratic, trunk, *params):
+        head = _Trunk(*[p.detach() for p in params[-2:]]) if trunk else None
+        params_nets = params[:-2] if trunk else params
+        quads = _kinetic(params_nets[-2:]) if quadratic else None
+        nets = _Nets.stack(params_nets[:-2] if quadratic else params_nets, kind)
+        xd = x.detach().contiguous()
+        n = xd.shape[0]
+        width = nets.weights[0].shape[2]
+        hd = xd if head is None else torch.empty((n, width), dtype=xd.dtype)
+        g = torch.empty((2, n, width), dtype=xd.dtype)
         if field:
-            v, v_s = torch.empty((n, width), dtype=hd.dtype), torch.empty((n, width), dtype=hd.dtype)
+            v, v_s = torch.empty((n, width), dtype=xd.dtype), torch.empty((n, width), dtype=xd.dtype)
         saved = []
         for lo, hi in _blocks(n):
+            if head is not None:
+                head.forward(xd[lo:hi], hd[lo:hi])
             saved.append(_forward_block(nets, hd[lo:hi], g[:, lo:hi]))
             if quads is not None:  # g_k += S_k h (S_k symmetric: h S_k, row by row)
                 g[:, lo:hi].baddbmm_(hd[lo:hi].expand(2, hi - lo, width), quads)
             if field:
                 _field_rows(_np(g[:, lo:hi]), _np(v[lo:hi]), _np(v_s[lo:hi]), _chunks(hi - lo))
         if keep:
-            ctx.save_for_backward(h, *params)
-            ctx.kept = (nets, saved, field, quads)
+            ctx.save_for_backward(x, *params)
+            ctx.kept = (nets, saved, field, quads, head, xd)
         return (v, g[0], v_s) if field else (g[0], g[1])
 
     @staticmethod
     @once_differentiable
     def backward(ctx, *upstream):
-        ctx.saved_tensors  # raises if h or a parameter was modified in place since the forward
-        nets, saved, field, quads = ctx.kept
+        ctx.saved_tensors  # raises if x or a parameter was modified in place since the forward
+        nets, saved, field, quads, head, xd = ctx.kept
         upstream = [u.contiguous() for u in upstream]
         n, width = upstream[0].shape
-        grad_h = torch.empty((n, width), dtype=upstream[0].dtype)
+        dtype = upstream[0].dtype
+        grad_x = torch.empty(xd.shape, dtype=dtype)
+        dh_all = torch.empty((min(n, BLOCK_ROWS), width), dtype=dtype) if head else None
         d_quads = None if quads is None else torch.zeros_like(quads)
         d_weights = [torch.zeros_like(w) for w in nets.weights]
         d_biases = np.zeros((nets.depth, *nets.w_out.shape), dtype=nets.w_out.dtype)
         d_w_out = np.zeros_like(nets.w_out)
+        if head is not None:
+            d_head = (torch.zeros_like(head.weight), torch.zeros_like(head.bias))
         for (lo, hi), block in zip(_blocks(n), saved):
             if field:
-                grads = torch.empty((2, hi - lo, width), dtype=grad_h.dtype)
+                grads = torch.empty((2, hi - lo, width), dtype=dtype)
                 _field_grads(*[_np(u[lo:hi]) for u in upstream], _np(grads), _chunks(hi - lo))
             else:
                 grads = torch.stack([u[lo:hi] for u in upstream])
-            _backward_rows(nets, block, grads, quads, grad_h[lo:hi], d_weights, d_biases,
-                           d_w_out, d_quads)
+            out_all = grad_x[lo:hi] if head is None else dh_all[:hi - lo]
+            rows, dh = _backward_rows(nets, block, grads, quads, out_all, d_weights, d_biases,
+                                      d_w_out, d_quads)
+            if head is None:
+                _place(grad_x[lo:hi], rows, dh)
+            else:
+                head.backward(xd[lo:hi], rows, dh, grad_x[lo:hi], *d_head)
         net_grads = []
         for i in range(2):
             for k in range(nets.depth):
@@ -476,7 +537,9 @@ class FusedInputGradients(torch.autograd.Function):
             net_grads.append(torch.from_numpy(d_w_out[i].copy()).reshape(1, -1))
         if quads is not None:  # S = (A + A^T) / 2: dL/dA = (dS + dS^T) / 2
             net_grads += list(0.5 * (d_quads + d_quads.transpose(1, 2)))
-        return (grad_h, None, None, None, None, *net_grads)
+        if head is not None:
+            net_grads += list(d_head)
+        return (grad_x, None, None, None, None, None, *net_grads)
 
 
 # ----------------------------------------------------------------------------- entry points
@@ -488,11 +551,11 @@ def net_parameters(net) -> list[torch.Tensor]:
     return params + [net.out.weight]
 
 
-def fused_supported(f1, f2, h: torch.Tensor, quads=None) -> bool:
-    """Whether `fused_input_gradients` can run: CPU float32 or float64 input, the same dtype
-    for every parameter (the kinetic terms' `quads` too), the same depth and activation in both
-    nets."""
-    params = net_parameters(f1) + net_parameters(f2)
+def fused_supported(f1, f2, h: torch.Tensor, quads=None, trunk=None) -> bool:
+    """Whether `fused_input_gradients` (or `fused_field`) can run: CPU float32 or float64 input,
+    the same dtype for every parameter (the kinetic terms' `quads` and the `trunk`'s too), the
+    same depth and activation in both nets."""
+    params = net_parameters(f1) + net_parameters(f2) + list(trunk or ())
     return (h.device.type == "cpu" and h.dtype in (torch.float32, torch.float64)
             and f1.activation == f2.activation and f1.activation in ACTIVATION_CODES
             and len(f1.hidden_layers) == len(f2.hidden_layers)
@@ -506,11 +569,11 @@ def _kinetic(quads) -> torch.Tensor:
     return 0.5 * (a + a.transpose(1, 2))
 
 
-def _apply(f1, f2, h: torch.Tensor, field: bool, quads=None):
-    params = net_parameters(f1) + net_parameters(f2) + list(quads or ())
-    keep = torch.is_grad_enabled() and (h.requires_grad or any(p.requires_grad for p in params))
-    return FusedInputGradients.apply(h, ACTIVATION_CODES[f1.activation], keep, field,
-                                     quads is not None, *params)
+def _apply(f1, f2, x: torch.Tensor, field: bool, quads=None, trunk=None):
+    params = net_parameters(f1) + net_parameters(f2) + list(quads or ()) + list(trunk or ())
+    keep = torch.is_grad_enabled() and (x.requires_grad or any(p.requires_grad for p in params))
+    return FusedInputGradients.apply(x, ACTIVATION_CODES[f1.activation], keep, field,
+                                     quads is not None, trunk is not None, *params)
 
 
 def fused_input_gradients(f1, f2, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -519,13 +582,16 @@ def fused_input_gradients(f1, f2, h: torch.Tensor) -> tuple[torch.Tensor, torch.
     return _apply(f1, f2, h, field=False)
 
 
-def fused_field(f1, f2, h: torch.Tensor,
-                quads=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def fused_field(f1, f2, h: torch.Tensor, quads=None,
+                trunk=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """(v, v_c, v_s) of the Hamiltonian decoder with scalar nets f1, f2 (paper Eq. (field)) by
     `FusedInputGradients`; differentiable once. `quads` = (A_1, A_2), the kinetic terms'
     matrices (FieldConfig.hnn_quadratic: F_k += h^T S_k h / 2, S_k = (A_k + A_k^T) / 2, so
-    grad_h F_k gains S_k h), or None. Check `fused_supported` first."""
-    return _apply(f1, f2, h, field=True, quads=quads)
+    grad_h F_k gains S_k h), or None. `trunk` = (weight (W, F), bias (W,)) of a Linear in front
+    of the decoder, or None: with it `h` is that Linear's input f (N, F), and the Linear runs
+    inside the Function (its backward on the rows with a gradient only). Check
+    `fused_supported` first."""
+    return _apply(f1, f2, h, field=True, quads=quads, trunk=trunk)
 
 
 __all__ = ["ACTIVATION_CODES", "BLOCK_ROWS", "FusedInputGradients", "fused_field",
