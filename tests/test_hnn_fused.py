@@ -199,14 +199,18 @@ def test_gradcheck_on_a_tiny_case(activation):
     f = torch.randn(5, 3, dtype=torch.float64, generator=gen).requires_grad_(True)
     trunk = [torch.randn(4, 3, dtype=torch.float64, generator=gen).requires_grad_(True),
              torch.randn(4, dtype=torch.float64, generator=gen).requires_grad_(True)]
-    for field, quadratic, head in ((False, False, False), (True, False, False),
-                                   (True, True, False), (True, True, True)):
+    heads = [torch.randn(*shape, dtype=torch.float64, generator=gen).requires_grad_(True)
+             for shape in ((5, 4), (5,), (3, 4))]  # adapters (K = 5) and force behind it
+    for field, quadratic, head, tail in ((False, False, False, False), (True, False, False, False),
+                                         (True, True, False, False), (True, True, True, False),
+                                         (True, True, True, True)):
         def fn(x, *params):
-            return FusedInputGradients.apply(x, {"tanh": 0, "softplus": 1, "silu": 2}[activation],
-                                             True, field, quadratic, head, *params)
+            out = FusedInputGradients.apply(x, {"tanh": 0, "softplus": 1, "silu": 2}[activation],
+                                            True, field, quadratic, head, tail, *params)
+            return out[3:] if tail else out  # v, v_c, v_s carry no gradient with the heads
 
         inputs = (f if head else h, *params, *(quads if quadratic else ()),
-                  *(trunk if head else ()))
+                  *(trunk if head else ()), *(heads if tail else ()))
         assert torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-7, rtol=1e-5)
 
 
@@ -375,15 +379,40 @@ def test_trunk_inside_equals_trunk_in_front(block_rows, monkeypatch):
     assert grads[0][:10].abs().max() == 0 and grads[0][20:26].abs().max() == 0
 
 
-def test_decoder_forward_features_fuses_the_trunk():
-    """HamiltonianDecoder.forward_features(f, trunk) equals forward(trunk(f)) (float64), fused
-    and in closed form."""
+def test_decoder_forward_features_fuses_trunk_and_adapters(monkeypatch):
+    """HamiltonianDecoder.forward_features(f, trunk, adapters), fused, against the same modules
+    one after the other in closed form (float64, blocks of 5 over 12 rows): v, v_c, v_s, the
+    adapters' outputs and the force, and the gradients of a loss on the last two for f and every
+    parameter, with rows 0-4 and 8 out of the loss (a whole block included)."""
+    from nehad.field.adapters import Adapters
+
     torch.manual_seed(32)
-    f = torch.randn(12, 6, dtype=torch.float64)
+    f = torch.randn(12, 6, dtype=torch.float64, requires_grad=True)
     trunk = torch.nn.Linear(6, 8).double()
-    for mode in ("fused", "closed_form"):
-        dec = HamiltonianDecoder(8, 5, 2, "softplus", grad_mode=mode, quadratic=True).double()
-        with torch.no_grad():
-            dec.quad1.normal_()
-        for a, b in zip(dec.forward_features(f, trunk), dec(trunk(f))):
-            assert _rel(a, b) < 1e-12
+    adapters = Adapters(8).double()
+    with torch.no_grad():
+        for p in adapters.parameters():
+            p.normal_()
+    dec = HamiltonianDecoder(8, 5, 2, "softplus", grad_mode="fused", quadratic=True).double()
+    with torch.no_grad():
+        dec.quad1.normal_()
+    ref_dec = HamiltonianDecoder(8, 5, 2, "softplus", grad_mode="closed_form",
+                                 quadratic=True).double()
+    ref_dec.load_state_dict(dec.state_dict())
+    weights = torch.randn(12, 13, dtype=torch.float64)
+    weights[:5] = 0.0
+    weights[8] = 0.0
+    monkeypatch.setattr(hnn_fused, "BLOCK_ROWS", 5)
+
+    def run(decoder):
+        fo, ad, force = decoder.forward_features(f, trunk, adapters)
+        out = torch.cat([ad.dmu, ad.ds, ad.q, force], dim=1)
+        params = [f, *trunk.parameters(), *adapters.parameters(), *decoder.parameters()]
+        return list(fo) + [out], torch.autograd.grad((out * weights).sum(), params)
+
+    (ref_vals, ref_grads), (vals, grads) = run(ref_dec), run(dec)
+    for a, b in zip(vals, ref_vals):
+        assert _rel(a, b) < 1e-12
+    for a, b in zip(grads, ref_grads):
+        assert b.abs().max() > 0 and _rel(a, b) < 1e-12
+    assert grads[0][:5].abs().max() == 0 and grads[0][8].abs().max() == 0

@@ -45,21 +45,28 @@ class Adapters(nn.Module):
         self.register_buffer("identity_quat", torch.tensor([1.0, 0.0, 0.0, 0.0]),
                              persistent=False)
 
+    def stacked(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(weight (K, W), bias (K,)) of the adapters stacked: mu, scale, rot (+ opacity, sh)."""
+        layers = [self.mu, self.scale, self.rot]
+        if self.opacity is not None:
+            layers += [self.opacity, self.sh]
+        return torch.cat([lin.weight for lin in layers]), torch.cat([lin.bias for lin in layers])
+
     def forward(self, v: torch.Tensor) -> AdapterOutput:
         # the adapters as one product of v with their stacked weights, then split: one matrix
         # product (and one for each gradient) instead of one per adapter (10k Gaussians: 1.5
         # -> 1.0 ms forward and backward with the force, docs/performance.md)
-        layers = [self.mu, self.scale, self.rot]
-        if self.opacity is not None:
-            layers += [self.opacity, self.sh]
-        out = F.linear(v, torch.cat([lin.weight for lin in layers]),
-                       torch.cat([lin.bias for lin in layers]))
-        parts = out.split([lin.out_features for lin in layers], dim=1)
-        q = parts[2] + self.identity_quat.to(v.dtype)
+        return self.split(F.linear(v, *self.stacked()))
+
+    def split(self, out: torch.Tensor) -> AdapterOutput:
+        """The AdapterOutput of the stacked adapters' output `out` (N, K) (`stacked`)."""
+        sizes = [3, 3, 4] + ([1, 3 * self.sh_coeffs] if self.opacity is not None else [])
+        parts = out.split(sizes, dim=1)
+        q = parts[2] + self.identity_quat.to(out.dtype)
         d_o = d_sh = None
         if self.opacity is not None:
             d_o = parts[3]
-            d_sh = parts[4].reshape(v.shape[0], self.sh_coeffs, 3)
+            d_sh = parts[4].reshape(out.shape[0], self.sh_coeffs, 3)
         return AdapterOutput(parts[0], parts[1], q, d_o, d_sh)
 
     def force(self, v_c: torch.Tensor) -> torch.Tensor:

@@ -216,8 +216,7 @@ class DeformationField(nn.Module):
             h = self.features(means, t_col, log_scales, quats)
             return self._forward_mlp(h, means, log_scales, quats, opacity_logits, sh)
         cfg = self.cfg
-        fo, h = self._decode(self.plane_features(means, t_col, log_scales, quats))
-        ad = self.adapters(fo.v)
+        fo, ad, force, h = self._decode(self.plane_features(means, t_col, log_scales, quats))
         aux: dict[str, torch.Tensor] = {"v": fo.v, "v_c": fo.v_c, "v_s": fo.v_s,
                                         "dmu": ad.dmu, "ds": ad.ds, "q": ad.q}
         if h is not None:
@@ -225,7 +224,6 @@ class DeformationField(nn.Module):
         # 6. position Verlet: displacement mu~ - mu.
         disp = cfg.dt * ad.dmu
         if cfg.verlet:
-            force = self.adapters.force(fo.v_c)
             aux["force"] = force
             disp = disp + (0.5 * cfg.dt * cfg.dt) * force
         # 7. Boltzmann equilibrium blending.
@@ -263,13 +261,17 @@ class DeformationField(nn.Module):
         return DeformedGaussians(new_means, new_log_scales, new_quats, new_o, new_sh, aux)
 
     def _decode(self, f: torch.Tensor):
-        """(FieldOutput, h) of the trunk and the decoder on the plane features f; with the
-        Hamiltonian decoder and a one-layer trunk both run as one fused call
-        (`HamiltonianDecoder.forward_features`), which gives no h (None)."""
+        """Steps 2-5 on the plane features f: (FieldOutput, AdapterOutput, force, h). With the
+        Hamiltonian decoder and a one-layer trunk, trunk, decoder and adapters run as one call
+        (`HamiltonianDecoder.forward_features`, fused in training), which gives no h (None)."""
         if isinstance(self.field, HamiltonianDecoder) and self.trunk.depth == 1:
-            return self.field.forward_features(f, self.trunk[0]), None
+            fo, ad, force = self.field.forward_features(f, self.trunk[0], self.adapters,
+                                                        self.cfg.verlet)
+            return fo, ad, force, None
         h = self.trunk(f)
-        return self.field(h), h
+        fo = self.field(h)
+        force = self.adapters.force(fo.v_c) if self.cfg.verlet else None
+        return fo, self.adapters(fo.v), force, h
 
     def _forward_mlp(self, h, means, log_scales, quats, opacity_logits, sh) -> DeformedGaussians:
         d = self.heads(h)

@@ -459,6 +459,36 @@ def _blocks(n: int):
     return [(lo, min(n, lo + BLOCK_ROWS)) for lo in range(0, n, BLOCK_ROWS)]
 
 
+class _Heads(NamedTuple):
+    """The adapters and the Verlet force fused behind the decoder (`fused_field`'s `heads`):
+    out = v A^T + a (the stacked adapters, (K, W) and (K,)) and force = v_c A_mu'^T ((3, W), no
+    bias), per block while v and v_c are in the cache."""
+
+    weight: torch.Tensor  # (K, W)
+    bias: torch.Tensor  # (K,)
+    force_weight: torch.Tensor  # (3, W)
+
+    def forward(self, v, v_c, out, force) -> None:
+        torch.addmm(self.bias, v, self.weight.T, out=out)
+        torch.mm(v_c, self.force_weight.T, out=force)
+
+    def backward(self, v, v_c, g_out, g_force, grad_v, grad_c, d_weight, d_bias,
+                 d_force) -> None:
+        """dL/dv = G_out A and dL/dv_c = G_force A_mu' (into grad_v, grad_c) and the weights'
+        gradients of a block, from the upstream gradients of out and force (None: zero)."""
+        if g_out is None:
+            grad_v.zero_()
+        else:
+            torch.mm(g_out, self.weight, out=grad_v)
+            d_weight.addmm_(g_out.T, v)
+            d_bias += g_out.sum(dim=0)
+        if g_force is None:
+            grad_c.zero_()
+        else:
+            torch.mm(g_force, self.force_weight, out=grad_c)
+            d_force.addmm_(g_force.T, v_c)
+
+
 class FusedInputGradients(torch.autograd.Function):
     """(grad_h F1, grad_h F2), each (N, W), of the two scalar nets given by their parameters
     (module docstring); with `field` the decoder's outputs (v, v_c, v_s) instead (v_c = g1,
@@ -475,9 +505,12 @@ class FusedInputGradients(torch.autograd.Function):
     block stay in the cache between the products and the element-wise passes."""
 
     @staticmethod
-    def forward(ctx, x, kind, keep, field, quadratic, trunk, *params):
-        head = _Trunk(*[p.detach() for p in params[-2:]]) if trunk else None
-        params_nets = params[:-2] if trunk else params
+    def forward(ctx, x, kind, keep, field, quadratic, trunk, heads, *params):
+        ctx.set_materialize_grads(False)
+        tail = _Heads(*[p.detach() for p in params[-3:]]) if heads else None
+        before_tail = params[:-3] if heads else params
+        head = _Trunk(*[p.detach() for p in before_tail[-2:]]) if trunk else None
+        params_nets = before_tail[:-2] if trunk else before_tail
         quads = _kinetic(params_nets[-2:]) if quadratic else None
         nets = _Nets.stack(params_nets[:-2] if quadratic else params_nets, kind)
         xd = x.detach().contiguous()
@@ -487,6 +520,9 @@ class FusedInputGradients(torch.autograd.Function):
         g = torch.empty((2, n, width), dtype=xd.dtype)
         if field:
             v, v_s = torch.empty((n, width), dtype=xd.dtype), torch.empty((n, width), dtype=xd.dtype)
+        if tail is not None:
+            out = torch.empty((n, tail.weight.shape[0]), dtype=xd.dtype)
+            force = torch.empty((n, 3), dtype=xd.dtype)
         saved = []
         for lo, hi in _blocks(n):
             if head is not None:
@@ -496,19 +532,30 @@ class FusedInputGradients(torch.autograd.Function):
                 g[:, lo:hi].baddbmm_(hd[lo:hi].expand(2, hi - lo, width), quads)
             if field:
                 _field_rows(_np(g[:, lo:hi]), _np(v[lo:hi]), _np(v_s[lo:hi]), _chunks(hi - lo))
+            if tail is not None:
+                tail.forward(v[lo:hi], g[0, lo:hi], out[lo:hi], force[lo:hi])
         if keep:
             ctx.save_for_backward(x, *params)
-            ctx.kept = (nets, saved, field, quads, head, xd)
+            ctx.kept = (nets, saved, field, quads, head, xd, tail, (v, g[0]) if tail else None)
+        if tail is not None:  # v, v_c, v_s for inspection only: no gradient flows back from them
+            ctx.mark_non_differentiable(v, g[0], v_s)
+            return v, g[0], v_s, out, force
         return (v, g[0], v_s) if field else (g[0], g[1])
 
     @staticmethod
     @once_differentiable
     def backward(ctx, *upstream):
         ctx.saved_tensors  # raises if x or a parameter was modified in place since the forward
-        nets, saved, field, quads, head, xd = ctx.kept
-        upstream = [u.contiguous() for u in upstream]
-        n, width = upstream[0].shape
-        dtype = upstream[0].dtype
+        nets, saved, field, quads, head, xd, tail, tail_inputs = ctx.kept
+        n, width, dtype = xd.shape[0], nets.weights[0].shape[2], xd.dtype
+        if tail is not None:  # the adapters' and the force's upstream gradients (None: zero)
+            g_out, g_force = [None if u is None else u.contiguous() for u in upstream[3:]]
+            d_tail = [torch.zeros_like(p) for p in tail]
+            upstream = [torch.empty((min(n, BLOCK_ROWS), width), dtype=dtype) for _ in range(2)]
+            upstream.append(torch.zeros((min(n, BLOCK_ROWS), width), dtype=dtype))
+        else:  # an output nobody used has no gradient: zeros, as autograd would give
+            upstream = [torch.zeros((n, width), dtype=dtype) if u is None else u.contiguous()
+                        for u in upstream]
         grad_x = torch.empty(xd.shape, dtype=dtype)
         dh_all = torch.empty((min(n, BLOCK_ROWS), width), dtype=dtype) if head else None
         d_quads = None if quads is None else torch.zeros_like(quads)
@@ -518,7 +565,15 @@ class FusedInputGradients(torch.autograd.Function):
         if head is not None:
             d_head = (torch.zeros_like(head.weight), torch.zeros_like(head.bias))
         for (lo, hi), block in zip(_blocks(n), saved):
-            if field:
+            if tail is not None:  # dL/dv, dL/dv_c of the block (dL/dv_s = 0), in place of upstream
+                b = hi - lo
+                tail.backward(tail_inputs[0][lo:hi], tail_inputs[1][lo:hi],
+                              None if g_out is None else g_out[lo:hi],
+                              None if g_force is None else g_force[lo:hi],
+                              upstream[0][:b], upstream[1][:b], *d_tail)
+                grads = torch.empty((2, b, width), dtype=dtype)
+                _field_grads(*[_np(u[:b]) for u in upstream], _np(grads), _chunks(b))
+            elif field:
                 grads = torch.empty((2, hi - lo, width), dtype=dtype)
                 _field_grads(*[_np(u[lo:hi]) for u in upstream], _np(grads), _chunks(hi - lo))
             else:
@@ -539,7 +594,9 @@ class FusedInputGradients(torch.autograd.Function):
             net_grads += list(0.5 * (d_quads + d_quads.transpose(1, 2)))
         if head is not None:
             net_grads += list(d_head)
-        return (grad_x, None, None, None, None, None, *net_grads)
+        if tail is not None:
+            net_grads += d_tail
+        return (grad_x, None, None, None, None, None, None, *net_grads)
 
 
 # ----------------------------------------------------------------------------- entry points
@@ -551,11 +608,11 @@ def net_parameters(net) -> list[torch.Tensor]:
     return params + [net.out.weight]
 
 
-def fused_supported(f1, f2, h: torch.Tensor, quads=None, trunk=None) -> bool:
+def fused_supported(f1, f2, h: torch.Tensor, quads=None, trunk=None, heads=None) -> bool:
     """Whether `fused_input_gradients` (or `fused_field`) can run: CPU float32 or float64 input,
-    the same dtype for every parameter (the kinetic terms' `quads` and the `trunk`'s too), the
-    same depth and activation in both nets."""
-    params = net_parameters(f1) + net_parameters(f2) + list(trunk or ())
+    the same dtype for every parameter (the kinetic terms' `quads`, the `trunk`'s and the
+    `heads`' too), the same depth and activation in both nets."""
+    params = net_parameters(f1) + net_parameters(f2) + list(trunk or ()) + list(heads or ())
     return (h.device.type == "cpu" and h.dtype in (torch.float32, torch.float64)
             and f1.activation == f2.activation and f1.activation in ACTIVATION_CODES
             and len(f1.hidden_layers) == len(f2.hidden_layers)
@@ -569,11 +626,13 @@ def _kinetic(quads) -> torch.Tensor:
     return 0.5 * (a + a.transpose(1, 2))
 
 
-def _apply(f1, f2, x: torch.Tensor, field: bool, quads=None, trunk=None):
-    params = net_parameters(f1) + net_parameters(f2) + list(quads or ()) + list(trunk or ())
+def _apply(f1, f2, x: torch.Tensor, field: bool, quads=None, trunk=None, heads=None):
+    params = (net_parameters(f1) + net_parameters(f2) + list(quads or ()) + list(trunk or ())
+              + list(heads or ()))
     keep = torch.is_grad_enabled() and (x.requires_grad or any(p.requires_grad for p in params))
     return FusedInputGradients.apply(x, ACTIVATION_CODES[f1.activation], keep, field,
-                                     quads is not None, trunk is not None, *params)
+                                     quads is not None, trunk is not None, heads is not None,
+                                     *params)
 
 
 def fused_input_gradients(f1, f2, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -582,16 +641,17 @@ def fused_input_gradients(f1, f2, h: torch.Tensor) -> tuple[torch.Tensor, torch.
     return _apply(f1, f2, h, field=False)
 
 
-def fused_field(f1, f2, h: torch.Tensor, quads=None,
-                trunk=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def fused_field(f1, f2, h: torch.Tensor, quads=None, trunk=None, heads=None) -> tuple:
     """(v, v_c, v_s) of the Hamiltonian decoder with scalar nets f1, f2 (paper Eq. (field)) by
     `FusedInputGradients`; differentiable once. `quads` = (A_1, A_2), the kinetic terms'
     matrices (FieldConfig.hnn_quadratic: F_k += h^T S_k h / 2, S_k = (A_k + A_k^T) / 2, so
     grad_h F_k gains S_k h), or None. `trunk` = (weight (W, F), bias (W,)) of a Linear in front
     of the decoder, or None: with it `h` is that Linear's input f (N, F), and the Linear runs
-    inside the Function (its backward on the rows with a gradient only). Check
-    `fused_supported` first."""
-    return _apply(f1, f2, h, field=True, quads=quads, trunk=trunk)
+    inside the Function (its backward on the rows with a gradient only). `heads` = (A (K, W),
+    a (K,), A_mu' (3, W)), the stacked adapters and the Verlet force's weight, or None: with
+    them the result is (v, v_c, v_s, v A^T + a, v_c A_mu'^T), the first three without a
+    gradient (`_Heads`). Check `fused_supported` first."""
+    return _apply(f1, f2, h, field=True, quads=quads, trunk=trunk, heads=heads)
 
 
 __all__ = ["ACTIVATION_CODES", "BLOCK_ROWS", "FusedInputGradients", "fused_field",
