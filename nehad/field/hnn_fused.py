@@ -35,7 +35,9 @@ dL/dA_k = (dS_k + dS_k^T) / 2.
 
 With `fused_field`'s `trunk` the trunk's Linear(F, W) in front of the decoder runs in the same
 blocks: h = f W_t^T + b_t before the nets, and after them df = dh W_t, dW_t += dh^T f, db_t +=
-the row sums of dh, on the rows with a gradient only (below).
+the row sums of dh, on the rows with a gradient only (below). With its `heads` the stacked
+adapters and the Verlet force behind the decoder run there too: out = v A^T + a and force = v_c
+A_mu'^T per block, and dL/dv = G_out A, dL/dv_c = G_force A_mu' start the block's backward.
 
 The backward leaves out the rows whose upstream gradient is zero (a Gaussian that no pixel of the
 view sees): every term above is linear in G, so such a row adds zeros to every gradient. The
