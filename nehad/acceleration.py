@@ -32,6 +32,16 @@ import numpy as np
 import torch
 
 
+def time_step_and_span(times) -> tuple:
+    """(h, (first, last)) of the training views' times: h the median spacing of the distinct
+    ones (None with fewer than two), the span None without times."""
+    t = np.unique(np.asarray(times, np.float64))
+    steps = np.diff(t)
+    steps = steps[steps > 0]
+    return (float(np.median(steps)) if len(steps) else None,
+            (float(t[0]), float(t[-1])) if len(t) else None)
+
+
 class AccelerationPrior:
     """The prior's loss at the time of one view (module docstring)."""
 
@@ -52,11 +62,7 @@ class AccelerationPrior:
 
     def set_times(self, times) -> None:
         """The training views' times: h is the median spacing of the distinct ones."""
-        t = np.unique(np.asarray(times, np.float64))
-        steps = np.diff(t)
-        steps = steps[steps > 0]
-        self.step_h = float(np.median(steps)) if len(steps) else None
-        self.span = (float(t[0]), float(t[-1])) if len(t) else None
+        self.step_h, self.span = time_step_and_span(times)
 
     def loss(self, model, deformed_means: torch.Tensor, t: float, step: int):
         """L_acc at the view's time `t`, `deformed_means` (N, 3) the step's deformed means at
@@ -81,4 +87,4 @@ class AccelerationPrior:
         return self.weight * size.mean() / float(model.field.extent)
 
 
-__all__ = ["AccelerationPrior"]
+__all__ = ["AccelerationPrior", "time_step_and_span"]

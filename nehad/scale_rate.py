@@ -22,8 +22,9 @@ axis and step. The two times are one field evaluation of 2 x `samples` rows.
 
 from __future__ import annotations
 
-import numpy as np
 import torch
+
+from nehad.acceleration import time_step_and_span
 
 
 class ScaleRatePrior:
@@ -44,11 +45,7 @@ class ScaleRatePrior:
 
     def set_times(self, times) -> None:
         """The training views' times: h is the median spacing of the distinct ones."""
-        t = np.unique(np.asarray(times, np.float64))
-        steps = np.diff(t)
-        steps = steps[steps > 0]
-        self.step_h = float(np.median(steps)) if len(steps) else None
-        self.span = (float(t[0]), float(t[-1])) if len(t) else None
+        self.step_h, self.span = time_step_and_span(times)
 
     def draw(self, n: int, step: int) -> tuple[torch.Tensor, float]:
         """(rows, c): the Gaussians and the time of `step`'s term."""

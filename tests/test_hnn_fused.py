@@ -112,6 +112,18 @@ def test_kinetic_term_in_the_fused_field_in_float64(activation, monkeypatch):
             assert r.abs().max() > 0 and _rel(f, r) < 1e-12
 
 
+def _kinetic_and_gappy_weights(gen):
+    """The kinetic terms' A_1, A_2 (10, 10) and three (30, 10) loss weights for the decoder's
+    outputs, zero on rows 0-9 and 20-25 (no upstream gradient there), float64."""
+    quads = [torch.randn(10, 10, generator=gen, dtype=torch.float64).requires_grad_(True)
+             for _ in range(2)]
+    weights = [torch.randn(30, 10, generator=gen, dtype=torch.float64) for _ in range(3)]
+    for w in weights:
+        w[:10] = 0.0
+        w[20:26] = 0.0
+    return quads, weights
+
+
 @pytest.mark.parametrize("block_rows", [4096, 7])
 def test_rows_without_upstream_gradient_are_skipped_exactly(block_rows, monkeypatch):
     """Rows whose upstream gradient is zero (Gaussians no pixel sees) are left out of the
@@ -119,13 +131,7 @@ def test_rows_without_upstream_gradient_are_skipped_exactly(block_rows, monkeypa
     included (rows 0-9 with blocks of 7)."""
     nets = _nets("softplus", 2, seed=20)
     h = _inputs(n=30, seed=21)
-    gen = torch.Generator().manual_seed(22)
-    quads = [torch.randn(10, 10, generator=gen, dtype=torch.float64).requires_grad_(True)
-             for _ in range(2)]
-    weights = [torch.randn(30, 10, generator=gen, dtype=torch.float64) for _ in range(3)]
-    for w in weights:
-        w[:10] = 0.0
-        w[20:26] = 0.0
+    quads, weights = _kinetic_and_gappy_weights(torch.Generator().manual_seed(22))
 
     def grads():
         out = fused_field(*nets, h, quads)
@@ -353,12 +359,7 @@ def test_trunk_inside_equals_trunk_in_front(block_rows, monkeypatch):
     gen = torch.Generator().manual_seed(31)
     f = torch.randn(30, 6, dtype=torch.float64, generator=gen).requires_grad_(True)
     lin = torch.nn.Linear(6, 10).double()
-    quads = [torch.randn(10, 10, generator=gen, dtype=torch.float64).requires_grad_(True)
-             for _ in range(2)]
-    weights = [torch.randn(30, 10, generator=gen, dtype=torch.float64) for _ in range(3)]
-    for w in weights:
-        w[:10] = 0.0
-        w[20:26] = 0.0
+    quads, weights = _kinetic_and_gappy_weights(gen)
     wanted = [f, lin.weight, lin.bias] + net_parameters(nets[0]) + net_parameters(nets[1]) + quads
 
     def run(inside: bool):
@@ -379,9 +380,9 @@ def test_trunk_inside_equals_trunk_in_front(block_rows, monkeypatch):
     assert grads[0][:10].abs().max() == 0 and grads[0][20:26].abs().max() == 0
 
 
-def test_decoder_forward_features_fuses_trunk_and_adapters(monkeypatch):
-    """HamiltonianDecoder.forward_features(f, trunk, adapters), fused, against the same modules
-    one after the other in closed form (float64, blocks of 5 over 12 rows): v, v_c, v_s, the
+def test_decoder_fused_features_fuses_trunk_and_adapters(monkeypatch):
+    """HamiltonianDecoder.fused_features(f, trunk, adapters) against the same modules one
+    after the other in closed form (float64, blocks of 5 over 12 rows): v, v_c, v_s, the
     adapters' outputs and the force, and the gradients of a loss on the last two for f and every
     parameter, with rows 0-4 and 8 out of the loss (a whole block included)."""
     from nehad.field.adapters import Adapters
@@ -405,7 +406,11 @@ def test_decoder_forward_features_fuses_trunk_and_adapters(monkeypatch):
     monkeypatch.setattr(hnn_fused, "BLOCK_ROWS", 5)
 
     def run(decoder):
-        fo, ad, force = decoder.forward_features(f, trunk, adapters)
+        if decoder is dec:
+            fo, ad, force = decoder.fused_features(f, trunk, adapters)
+        else:
+            fo = decoder(trunk(f))
+            ad, force = adapters(fo.v), adapters.force(fo.v_c)
         out = torch.cat([ad.dmu, ad.ds, ad.q, force], dim=1)
         params = [f, *trunk.parameters(), *adapters.parameters(), *decoder.parameters()]
         return list(fo) + [out], torch.autograd.grad((out * weights).sum(), params)
@@ -416,3 +421,4 @@ def test_decoder_forward_features_fuses_trunk_and_adapters(monkeypatch):
     for a, b in zip(grads, ref_grads):
         assert b.abs().max() > 0 and _rel(a, b) < 1e-12
     assert grads[0][:5].abs().max() == 0 and grads[0][8].abs().max() == 0
+    assert ref_dec.fused_features(f, trunk, adapters) is None  # closed form: not fused

@@ -45,11 +45,16 @@ class Adapters(nn.Module):
         self.register_buffer("identity_quat", torch.tensor([1.0, 0.0, 0.0, 0.0]),
                              persistent=False)
 
-    def stacked(self) -> tuple[torch.Tensor, torch.Tensor]:
-        """(weight (K, W), bias (K,)) of the adapters stacked: mu, scale, rot (+ opacity, sh)."""
+    def _layers(self) -> list[nn.Linear]:
+        """mu, scale, rot (+ opacity, sh): the order of `stacked` and `split`."""
         layers = [self.mu, self.scale, self.rot]
         if self.opacity is not None:
             layers += [self.opacity, self.sh]
+        return layers
+
+    def stacked(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """(weight (K, W), bias (K,)) of the adapters stacked (`_layers`)."""
+        layers = self._layers()
         return torch.cat([lin.weight for lin in layers]), torch.cat([lin.bias for lin in layers])
 
     def forward(self, v: torch.Tensor) -> AdapterOutput:
@@ -60,8 +65,7 @@ class Adapters(nn.Module):
 
     def split(self, out: torch.Tensor) -> AdapterOutput:
         """The AdapterOutput of the stacked adapters' output `out` (N, K) (`stacked`)."""
-        sizes = [3, 3, 4] + ([1, 3 * self.sh_coeffs] if self.opacity is not None else [])
-        parts = out.split(sizes, dim=1)
+        parts = out.split([lin.out_features for lin in self._layers()], dim=1)
         q = parts[2] + self.identity_quat.to(out.dtype)
         d_o = d_sh = None
         if self.opacity is not None:

@@ -262,12 +262,12 @@ class DeformationField(nn.Module):
 
     def _decode(self, f: torch.Tensor):
         """Steps 2-5 on the plane features f: (FieldOutput, AdapterOutput, force, h). With the
-        Hamiltonian decoder and a one-layer trunk, trunk, decoder and adapters run as one call
-        (`HamiltonianDecoder.forward_features`, fused in training), which gives no h (None)."""
+        Hamiltonian decoder and a one-layer trunk, trunk, decoder and adapters run as one fused
+        call where they can (`HamiltonianDecoder.fused_features`), which gives no h (None)."""
         if isinstance(self.field, HamiltonianDecoder) and self.trunk.depth == 1:
-            fo, ad, force = self.field.forward_features(f, self.trunk[0], self.adapters,
-                                                        self.cfg.verlet)
-            return fo, ad, force, None
+            fused = self.field.fused_features(f, self.trunk[0], self.adapters)
+            if fused is not None:
+                return (*fused, None)
         h = self.trunk(f)
         fo = self.field(h)
         force = self.adapters.force(fo.v_c) if self.cfg.verlet else None

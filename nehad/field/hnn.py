@@ -199,22 +199,24 @@ class HamiltonianDecoder(nn.Module):
         """(A_1, A_2) of the kinetic terms (`quadratic`), or None without them."""
         return None if self.quad1 is None else (self.quad1, self.quad2)
 
-    def forward_features(self, f: torch.Tensor, trunk: nn.Linear, adapters, force: bool = True):
-        """(FieldOutput, AdapterOutput, force) of forward(trunk(f)) and the `adapters`
-        (`nehad.field.adapters.Adapters`, with its `force`; None unless `force`). With `grad_mode` "fused" the
-        trunk's Linear and the adapters (without the appearance ones) run inside the fused
-        Function (`nehad.field.hnn_fused.fused_field`'s `trunk` and `heads`), whose backward
-        then reaches the Gaussians with a gradient only; v, v_c and v_s carry no gradient
-        there."""
-        if trunk.bias is not None and adapters.opacity is None and self._fused(f):
-            head = (trunk.weight, trunk.bias)
-            tail = (*adapters.stacked(), adapters.mu.weight)
-            if fused_supported(self.f1, self.f2, f, self._kinetic_terms(), head, tail):
-                v, v_c, v_s, out, force = fused_field(self.f1, self.f2, f, self._kinetic_terms(),
-                                                      head, tail)
-                return FieldOutput(v, v_c, v_s), adapters.split(out), force
-        fo = self(trunk(f))
-        return fo, adapters(fo.v), adapters.force(fo.v_c) if force else None
+    def fused_features(self, f: torch.Tensor, trunk: nn.Linear, adapters):
+        """(FieldOutput, AdapterOutput, force) of forward(trunk(f)), the `adapters`
+        (`nehad.field.adapters.Adapters`) and their Verlet force, with the trunk's Linear and
+        the adapters inside the fused Function (`nehad.field.hnn_fused.fused_field`'s `trunk`
+        and `heads`), whose backward then reaches the Gaussians with a gradient only; v, v_c
+        and v_s carry no gradient. None where that Function cannot run it (`grad_mode` not
+        "fused", a graph being captured, appearance adapters, a trunk without bias, ...): the
+        caller then applies the modules one after the other."""
+        if (self.grad_mode != "fused" or is_capturing() or trunk.bias is None
+                or adapters.opacity is not None):
+            return None
+        head = (trunk.weight, trunk.bias)
+        tail = (*adapters.stacked(), adapters.mu.weight)
+        if not fused_supported(self.f1, self.f2, f, self._kinetic_terms(), head, tail):
+            return None
+        v, v_c, v_s, out, force = fused_field(self.f1, self.f2, f, self._kinetic_terms(), head,
+                                              tail)
+        return FieldOutput(v, v_c, v_s), adapters.split(out), force
 
     def forward(self, h: torch.Tensor) -> FieldOutput:
         if self._fused(h):
