@@ -16,7 +16,7 @@ import torch
 
 from nehad.checkpoint import RunError, load_state
 from nehad.config import config_from_dict
-from nehad.field.deformation import DeformationField
+from nehad.field.deformation import DeformationField, DeformedGaussians, time_column
 from nehad.gaussians import GaussianParameters
 
 
@@ -34,16 +34,44 @@ class NeHaDModel(torch.nn.Module):
         The opacities carry each Gaussian's life factor at t (GaussianParameters.life_factor)
         and the means its drift (GaussianParameters.drift), deformed or not."""
         g = self.gaussians
-        life, drift = g.life_factor(t), g.drift(t)
         if not deform or t is None:
-            means, scales, quats, opacities, sh = g.activated()
-        else:
-            sh = torch.cat([g.sh_dc, g.sh_rest], 1)
-            out = self.field(g.means, g.log_scales, g.quats, t, g.mu_eq, g.t_eq,
-                             opacity_logits=g.opacity_logits, sh=sh)
-            quats = out.quats / out.quats.norm(dim=-1, keepdim=True)
-            opacities = torch.sigmoid(out.opacity_logits).reshape(g.means.shape[0])
-            means, scales, sh = out.means, torch.exp(out.log_scales), out.sh
+            return self._alive_at(t, *g.activated())
+        sh = torch.cat([g.sh_dc, g.sh_rest], 1)
+        return self._activated_at(t, self.field(g.means, g.log_scales, g.quats, t, g.mu_eq,
+                                                g.t_eq, opacity_logits=g.opacity_logits, sh=sh))
+
+    def gaussians_and_samples_at(self, t, rows: torch.Tensor, times: torch.Tensor):
+        """(`gaussians_at(t)`'s tuple, the field's `DeformedGaussians` of the Gaussians `rows`
+        (M,), row i at time times[i]) from ONE field evaluation of N + M rows: the motion priors'
+        samples ride on the view's evaluation (`nehad.motion_priors`), where a call of their own
+        costs the field's fixed costs again (docs/performance.md). Each row is deformed on its
+        own, so both parts equal separate calls' to rounding."""
+        g = self.gaussians
+        n = g.means.shape[0]
+
+        def more(x):
+            return torch.cat([x, x[rows]])
+
+        sh = torch.cat([g.sh_dc, g.sh_rest], 1)
+        t_col = torch.cat([time_column(t, n, g.means),
+                           times.to(dtype=g.means.dtype).reshape(-1, 1)])
+        out = self.field(more(g.means), more(g.log_scales), more(g.quats), t_col, more(g.mu_eq),
+                         more(g.t_eq), opacity_logits=more(g.opacity_logits), sh=more(sh))
+        head = DeformedGaussians(out.means[:n], out.log_scales[:n], out.quats[:n],
+                                 out.opacity_logits[:n], out.sh[:n])
+        tail = DeformedGaussians(out.means[n:], out.log_scales[n:], out.quats[n:])
+        return self._activated_at(t, head), tail
+
+    def _activated_at(self, t, out):
+        """`gaussians_at`'s tuple from the field's output for every Gaussian at t."""
+        quats = out.quats / out.quats.norm(dim=-1, keepdim=True)
+        opacities = torch.sigmoid(out.opacity_logits).reshape(out.means.shape[0])
+        return self._alive_at(t, out.means, torch.exp(out.log_scales), quats, opacities, out.sh)
+
+    def _alive_at(self, t, means, scales, quats, opacities, sh):
+        """The activated Gaussians with each one's life factor and drift at t applied."""
+        g = self.gaussians
+        life, drift = g.life_factor(t), g.drift(t)
         if life is not None:
             opacities = opacities * life
         if drift is not None:

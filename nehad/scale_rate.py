@@ -17,7 +17,10 @@ resumed from a checkpoint takes the same draws), h the training views' time step
 spacing of their distinct times). The square lets a size that changes steadily pass almost
 free (the stress suite's `scaling` objects grow or shrink 4x over the whole time: 0.01 per
 frame step, 1e-4 squared) while a Gaussian that blinks within a few frames pays about 0.5 per
-axis and step. The two times are one field evaluation of 2 x `samples` rows.
+axis and step. The two times are 2 x `samples` rows of the field; in training they ride on
+the view's own field evaluation (`rows_and_times`, `NeHaDModel.gaussians_and_samples_at`),
+where a call of their own cost about 10 ms a step, mostly the field's fixed costs
+(docs/performance.md).
 """
 
 from __future__ import annotations
@@ -54,24 +57,33 @@ class ScaleRatePrior:
         u = float(torch.rand((), generator=gen, dtype=torch.float64))
         return rows, self.span[0] + u * (self.span[1] - self.span[0] - self.step_h)
 
-    def loss(self, model, step: int):
-        """L_rate of `step`; 0.0 when off, without a time step, or when the training times span
-        under one step."""
+    def rows_and_times(self, n: int, step: int):
+        """(rows, times): the Gaussians (each twice) and the times (c, then c + h) the field must
+        deform for `step`'s term among n Gaussians; None when the term is off, without a time
+        step, when the training times span under one step, or without Gaussians."""
         h = self.step_h
-        if self.weight <= 0.0 or h is None or self.span[1] - self.span[0] < h:
-            return 0.0
-        g = model.gaussians
-        n = int(g.means.shape[0])
-        if n == 0:
-            return 0.0
+        if self.weight <= 0.0 or h is None or self.span[1] - self.span[0] < h or n == 0:
+            return None
         rows, c = self.draw(n, step)
-        both = torch.cat([rows, rows])
-        dtype = g.means.dtype
-        t = torch.cat([torch.full((len(rows), 1), c, dtype=dtype),
-                       torch.full((len(rows), 1), c + h, dtype=dtype)])
-        out = model.field(g.means[both], g.log_scales[both], g.quats[both], t, g.mu_eq[both],
-                          g.t_eq[both])
-        change = out.log_scales[len(rows):] - out.log_scales[:len(rows)]
+        m = len(rows)
+        times = torch.cat([torch.full((m,), c, dtype=torch.float64),
+                           torch.full((m,), c + h, dtype=torch.float64)])
+        return torch.cat([rows, rows]), times
+
+    def loss(self, model, step: int, deformed=None):
+        """L_rate of `step` (0.0 when `rows_and_times` is None). `deformed`: the field's output
+        for `rows_and_times`' rows at its times, when the caller evaluated them; else the prior
+        calls the field itself."""
+        g = model.gaussians
+        picked = self.rows_and_times(int(g.means.shape[0]), step)
+        if picked is None:
+            return 0.0
+        if deformed is None:
+            rows, times = picked
+            deformed = model.field(g.means[rows], g.log_scales[rows], g.quats[rows],
+                                   times.to(g.means.dtype)[:, None], g.mu_eq[rows], g.t_eq[rows])
+        m = len(picked[0]) // 2
+        change = deformed.log_scales[m:] - deformed.log_scales[:m]
         return self.weight * (change * change).sum(dim=1).mean()
 
 

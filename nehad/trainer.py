@@ -194,7 +194,8 @@ class Trainer:
         total, psnrs, renders = 0.0, [], []
         for k in picks:
             cam, target, alpha = views.cameras[k], views.images[k], views.alphas[k]
-            params = self.model.gaussians_at(views.times[k], deform=phase.deforms)
+            params, sampled = self.priors.gaussians_at(self.model, views.times[k], step,
+                                                       phase.deforms)
             background = self.background
             if cfg.data.random_background and alpha is not None:
                 background = tuple(float(v) for v in rng.random(3))
@@ -203,7 +204,7 @@ class Trainer:
             total = total + photometric_loss(res.rgb, target, cfg.loss.ssim_weight,
                                              cfg.loss.kernel) / len(picks)
             if phase.deforms:  # the priors on the motion (nehad.motion_priors)
-                prior = self.priors.loss(self.model, params[0], views.times[k], step)
+                prior = self.priors.loss(self.model, params[0], views.times[k], step, sampled)
                 total = total + prior / len(picks)
             # logged against the evaluation background, whatever the step trained over
             psnrs.append(psnr(recomposite(res.rgb.detach(), res.alpha.detach()[:, :, None],

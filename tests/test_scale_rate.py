@@ -78,25 +78,56 @@ def test_same_draw_for_the_same_step_and_off_cases():
     assert _prior(times=[0.3]).loss(model, step=1) == 0.0  # one time: no step
 
 
-def test_gradient_reaches_the_field():
-    """On a real field, the prior's gradient reaches the hex-plane and the decoder."""
+def _moving_model(n: int = 64, dtype=torch.float32, hnn_grad: str | None = None):
+    """A real model whose field moves (its adapters start at zero, and its time planes at 1: no
+    change in time)."""
     from nehad.config import build_config
     from nehad.field.deformation import DeformationField
     from nehad.gaussians import GaussianParameters
+    from nehad.model import NeHaDModel
 
-    cfg = build_config("test", None, [])
+    cfg = build_config("test", None, [f"field.hnn_grad={hnn_grad}"] if hnn_grad else [])
     torch.manual_seed(0)
     field = DeformationField(cfg.field, aabb=np.array([[-1.0] * 3, [1.0] * 3]), extent=2.0)
-    with torch.no_grad():  # a field that moves (its adapters start at zero, and its time
-        for p in field.adapters.parameters():  # planes at 1: no change in time)
+    with torch.no_grad():
+        for p in field.adapters.parameters():
             p.normal_(0.0, 0.1)
         for p in field.hexplane.parameters():
             p.uniform_(0.1, 1.0)
-    n = 64
-    gauss = GaussianParameters(torch.rand(n, 3) * 2 - 1, torch.full((n, 3), -3.0),
-                               torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.zeros(n, 1),
-                               torch.zeros(n, 1, 3), torch.zeros(n, 15, 3))
-    model = SimpleNamespace(gaussians=gauss, field=field)
+    gauss = GaussianParameters(torch.rand(n, 3) * 2 - 1, torch.rand(n, 3) - 3.0,
+                               torch.nn.functional.normalize(torch.randn(n, 4), dim=1),
+                               torch.randn(n, 1), torch.randn(n, 1, 3), torch.randn(n, 15, 3))
+    gauss.mu_eq.data = gauss.means.data + 0.05 * torch.randn(n, 3)
+    gauss.t_eq.data = torch.rand(n, 1)
+    return NeHaDModel(gauss, field).to(dtype)
+
+
+def test_samples_in_the_views_evaluation_equal_a_call_of_their_own():
+    """`gaussians_and_samples_at` (one field evaluation of N + M rows) gives the view's
+    Gaussians as `gaussians_at` does and the samples as the prior's own call does, and the
+    loss's gradient on every parameter is the same (float64)."""
+    model = _moving_model(dtype=torch.float64, hnn_grad="closed_form")
+    prior = _prior(weight=1.0, samples=24)
+    rows, times = prior.rows_and_times(64, step=3)
+    view, sampled = model.gaussians_and_samples_at(0.37, rows, times)
+    for a, b in zip(view, model.gaussians_at(0.37)):
+        assert torch.allclose(a, b, rtol=1e-12, atol=1e-12)
+    folded = prior.loss(model, 3, sampled)
+    grads = torch.autograd.grad(folded, list(model.parameters()), allow_unused=True)
+    own = prior.loss(model, 3)
+    assert float(own.detach()) > 0
+    assert float(folded.detach()) == pytest.approx(float(own.detach()), rel=1e-12)
+    for g, w in zip(grads, torch.autograd.grad(own, list(model.parameters()), allow_unused=True)):
+        assert (g is None) == (w is None)
+        if g is not None:
+            assert torch.allclose(g, w, rtol=1e-9, atol=1e-12)
+    assert sum(g is not None and float(g.abs().sum()) > 0 for g in grads) >= 3
+
+
+def test_gradient_reaches_the_field():
+    """On a real field, the prior's gradient reaches the hex-plane and the decoder."""
+    model = _moving_model()
+    field = model.field
     prior = _prior(weight=1.0, samples=32)
     loss = prior.loss(model, step=2)
     loss.backward()
@@ -120,9 +151,10 @@ def test_training_runs_with_it_and_the_term_is_in_the_loss(tmp_path, monkeypatch
     assert tr.priors.scale_rate.step_h == pytest.approx(1 / 7)
     steps = []
     inner = tr.priors.scale_rate.loss
-    monkeypatch.setattr(tr.priors.scale_rate, "loss", lambda model, step: steps.append(step)
-                        or inner(model, step))
+    monkeypatch.setattr(tr.priors.scale_rate, "loss", lambda model, step, deformed:
+                        steps.append((step, deformed is not None)) or inner(model, step, deformed))
     out = tr.train()
     assert out["steps"] == 70 and np.isfinite(out["last"]["loss"])
     deforming = out["steps"] - cfg.coarse.iterations
     assert len(steps) == deforming > 0
+    assert all(folded for _, folded in steps)  # the samples rode on the view's evaluation
