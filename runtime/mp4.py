@@ -12,6 +12,13 @@ goes through here, so the rules below hold for all of them (docs/design.md secti
 * **Encoders.** ``encoder="auto"`` uses PyAV (libx264, H.264 yuv420p, quality `crf`, preset
   medium) and falls back to OpenCV's ``mp4v`` (MPEG-4 part 2, yuv420p; `crf` unused) when PyAV is
   missing; ``"pyav"`` / ``"opencv"`` ask for one.
+* **Reproducible.** ``reproducible=True`` turns x264's macroblock-tree rate control off: with
+  it on, this libx264 (PyAV 18.1) writes other bytes for the same frames from run to run, even
+  on one thread (decoded frames up to 48 levels apart; 2026-11-28), so the made-up captures of
+  :mod:`nehad.data.synth_capture`, which tests pose, ask for it. Off by default: what it does to
+  size and quality depends on the content (on an orbiting capture at crf 18: 11% smaller and
+  0.5 dB under; on frames that jump between cameras: 50% larger, 0.9 dB over). PyAV only;
+  OpenCV's mp4v ignores it.
 * **Lossless.** ``lossless=True`` writes H.264 in its RGB profile (``libx264rgb``, crf 0, preset
   ultrafast; `crf` unused): decoding with PyAV as ``rgb24`` gives back every 8-bit value exactly
   (yuv444p at qp 0 would not: its RGB -> YUV conversion changes values by up to 2). PyAV only;
@@ -124,12 +131,13 @@ class Mp4Writer:
     """
 
     def __init__(self, output, fps: float = DEFAULT_FPS, crf: int = DEFAULT_CRF,
-                 encoder: str = "auto", *, lossless: bool = False, error=Mp4Error):
+                 encoder: str = "auto", *, lossless: bool = False, reproducible: bool = False,
+                 error=Mp4Error):
         from .images import atomic_path
 
         self.output = Path(output)
         self.error = error
-        self.lossless = bool(lossless)
+        self.lossless, self.reproducible = bool(lossless), bool(reproducible)
         out = self.output
         if isinstance(fps, bool) or not isinstance(fps, (int, float, np.integer, np.floating)) \
                 or not (math.isfinite(fps) and MIN_FPS <= fps <= MAX_FPS):
@@ -241,7 +249,8 @@ class Mp4Writer:
             else:
                 stream = self._container.add_stream("libx264", rate=self.rate)
                 stream.pix_fmt = "yuv420p"
-                stream.options = {"crf": str(self.crf), "preset": _PRESET}
+                stream.options = {"crf": str(self.crf), "preset": _PRESET,
+                                  **({"x264-params": "mbtree=0"} if self.reproducible else {})}
             stream.width, stream.height = ew, eh
             self._stream = stream
         else:
@@ -293,12 +302,14 @@ class Mp4Writer:
 
 
 def encode(frames, output, fps: float = DEFAULT_FPS, crf: int = DEFAULT_CRF,
-           encoder: str = "auto", *, lossless: bool = False, error=Mp4Error) -> str:
+           encoder: str = "auto", *, lossless: bool = False, reproducible: bool = False,
+           error=Mp4Error) -> str:
     """Encode `frames` (an iterable of image files or uint8/float (H, W, 3) arrays) into the mp4
     `output`, atomically, by the rules of the module doc. Returns the encoder used, e.g.
     ``"H.264 yuv420p (PyAV)"`` or ``"mp4v (OpenCV)"``. Frames of another size than the first, an
     empty iterable and bad settings raise `error` (default :class:`Mp4Error`) naming `output`."""
-    with Mp4Writer(output, fps, crf, encoder, lossless=lossless, error=error) as video:
+    with Mp4Writer(output, fps, crf, encoder, lossless=lossless, reproducible=reproducible,
+                   error=error) as video:
         for frame in frames:
             video.write(frame)
     return video.description
