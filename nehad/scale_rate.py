@@ -72,17 +72,17 @@ class ScaleRatePrior:
 
     def loss(self, model, step: int, deformed=None):
         """L_rate of `step` (0.0 when `rows_and_times` is None). `deformed`: the field's output
-        for `rows_and_times`' rows at its times, when the caller evaluated them; else the prior
-        calls the field itself."""
-        g = model.gaussians
-        picked = self.rows_and_times(int(g.means.shape[0]), step)
-        if picked is None:
-            return 0.0
+        for `rows_and_times`' rows at its times, when the caller evaluated them (no second
+        draw then); else the prior draws and calls the field itself."""
         if deformed is None:
+            g = model.gaussians
+            picked = self.rows_and_times(int(g.means.shape[0]), step)
+            if picked is None:
+                return 0.0
             rows, times = picked
             deformed = model.field(g.means[rows], g.log_scales[rows], g.quats[rows],
                                    times.to(g.means.dtype)[:, None], g.mu_eq[rows], g.t_eq[rows])
-        m = len(picked[0]) // 2
+        m = deformed.log_scales.shape[0] // 2  # the rows at c, then the same rows at c + h
         change = deformed.log_scales[m:] - deformed.log_scales[:m]
         return self.weight * (change * change).sum(dim=1).mean()
 

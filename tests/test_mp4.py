@@ -135,15 +135,9 @@ def test_same_frames_give_the_same_bytes(tmp_path):
     wrote 2 to 4 different videos of these frames in 4 encodes (not every time; the test
     failed in 5 of 5 runs with x264's macroblock tree on, 2026-11-28), and the made-up captures
     of tests/test_prepare.py were not the same twice."""
-    from nehad.data import synth_capture as sc
-    from nehad.data.synth import draw_objects, new_buffers
+    from nehad.data.synth_capture import orbit_frames
 
-    backdrop, frames = sc.backdrop_objects(), []
-    for i, c2w in enumerate(sc.orbit_poses(24, 60.0)):
-        cam = sc._camera(c2w, 64, i / 23)
-        base = new_buffers(cam, 2)
-        draw_objects(backdrop, cam, base, 2)
-        frames.append(sc._frame("spheres", i / 23, cam, base, len(backdrop), 2))
+    frames = [image for _, _, image in orbit_frames(24, 60.0, 64)]
     videos = set()
     for i in range(10):
         encode(frames, tmp_path / f"v{i}.mp4", reproducible=True)

@@ -37,8 +37,8 @@ from nehad.data.synth import (Box, Surface, copy_buffers, draw_objects, new_buff
 from nehad.runtime.cameras import Camera
 from nehad.runtime.images import atomic_write_bytes
 
-__all__ = ["backdrop_objects", "rig_poses", "orbit_poses", "synthesize_capture", "pose_errors",
-           "CAPTURE_KINDS"]
+__all__ = ["backdrop_objects", "rig_poses", "orbit_poses", "orbit_frames", "synthesize_capture",
+           "pose_errors", "CAPTURE_KINDS"]
 
 CAPTURE_KINDS = ("rig", "orbit")
 
@@ -123,6 +123,19 @@ def _frame(scene: str, t: float, cam: Camera, backdrop_buffers, n_backdrop: int,
     return np.clip(np.round(rgba[..., :3] * 255.0), 0, 255).astype(np.uint8)
 
 
+def orbit_frames(frames: int, degrees: float, resolution: int, scene: str = "spheres",
+                 supersample: int = 2):
+    """(t, camera-to-world, uint8 (H, W, 3) image) of each frame of the ``orbit`` capture, frame
+    i at time i / (frames - 1), as `synthesize_capture` encodes them."""
+    backdrop = backdrop_objects()
+    for i, c2w in enumerate(orbit_poses(frames, degrees)):
+        t = i / (frames - 1)
+        cam = _camera(c2w, resolution, t)
+        base = new_buffers(cam, supersample)
+        draw_objects(backdrop, cam, base, supersample)
+        yield t, c2w, _frame(scene, t, cam, base, len(backdrop), supersample)
+
+
 def _truth_camera(c2w: np.ndarray, resolution: int) -> dict:
     focal = 0.5 * resolution / math.tan(0.5 * math.radians(_FOV_DEG))
     return {"camera_to_world": [[float(x) for x in row] for row in c2w], "focal": focal,
@@ -170,11 +183,8 @@ def synthesize_capture(out_dir, kind: str = "rig", scene: str = "spheres", resol
             truth["cameras"][name] = _truth_camera(c2w, resolution)
     else:
         images, truth["cameras"] = [], []
-        for i, (t, c2w) in enumerate(zip(times, orbit_poses(frames, orbit_degrees))):
-            cam = _camera(c2w, resolution, t)
-            base = new_buffers(cam, supersample)
-            draw_objects(backdrop, cam, base, supersample)
-            images.append(_frame(scene, t, cam, base, len(backdrop), supersample))
+        for _, c2w, image in orbit_frames(frames, orbit_degrees, resolution, scene, supersample):
+            images.append(image)
             truth["cameras"].append(_truth_camera(c2w, resolution))
             tick()
         encode(images, out / "orbit.mp4", fps, _CRF, reproducible=True)
