@@ -20,7 +20,6 @@ it scores far over, a stepping model would pass (docs/results.md, 2026-11-28).
 from __future__ import annotations
 
 import argparse
-import math
 import time
 
 import numpy as np
@@ -29,19 +28,16 @@ import numpy as np
 def stepping_scores(name: str, resolution: int, frames: int = 120, supersample: int = 2):
     """(per-object summaries as `nehad.evaluate.summarize_objects` gives them, seconds)."""
     from nehad.data.synth import class_mapping, label_mask, render_view
-    from nehad.data.synth_stress import _FOV_DEG, rig_cameras, stress_objects, stress_plan
+    from nehad.data.synth_stress import rig_camera, stress_objects, stress_plan
     from nehad.evaluate import object_errors, summarize_objects
-    from nehad.runtime.cameras import Camera
 
     start = time.perf_counter()
-    plan, rig = stress_plan(frames), rig_cameras()
-    focal = 0.5 * resolution / math.tan(0.5 * math.radians(_FOV_DEG))
+    plan = stress_plan(frames)
     train_times = np.array([t for _, t, _ in plan["train"]])
     white = np.ones(3)
     records = []
     for _, t, cam_id in plan["test"]:
-        cam = Camera.from_camera_to_world(rig[cam_id], resolution, resolution, focal, focal,
-                                          time=t)
+        cam = rig_camera(cam_id, resolution, time=t)
         objects = stress_objects(name, t)
         truth, coverage = render_view(objects, cam, supersample=supersample,
                                       return_coverage=True)

@@ -3,7 +3,6 @@ ray-cast scenes whose geometry is known."""
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest
@@ -12,16 +11,14 @@ torch = pytest.importorskip("torch")
 
 from nehad.carve import carve_points, new_gaussians, seed_rays, unexplained_mask  # noqa: E402
 from nehad.data.synth import Box, Sphere, render_view  # noqa: E402
-from nehad.data.synth_stress import rig_cameras  # noqa: E402
-from nehad.runtime.cameras import Camera  # noqa: E402
+from nehad.data.synth_stress import rig_camera  # noqa: E402
 
 SIZE = 64
 BOX = np.array([[-2.0, -2.0, -2.0], [2.0, 2.0, 2.0]])
 
 
 def _cams(ids=range(12)):
-    f = 0.5 * SIZE / math.tan(math.radians(25.0))
-    return [Camera.from_camera_to_world(rig_cameras()[i], SIZE, SIZE, f, f) for i in ids]
+    return [rig_camera(i, SIZE) for i in ids]
 
 
 def _views(objects, cams):
@@ -459,3 +456,4 @@ def test_a_chain_splits_into_its_trained_core_and_its_two_ends():
     alone = core_and_ends(np.array([0, 2, 4]), t_eq, trained)
     assert len(alone) == 1 and alone[0][1] is None
     np.testing.assert_array_equal(alone[0][0], [0, 2, 4])
+

@@ -4,21 +4,19 @@ the geometry, and each scene showing the failure class it is meant to probe."""
 from __future__ import annotations
 
 import json
-import math
 
 import numpy as np
 import pytest
 
 from nehad.data.synth import Sphere, label_mask, render_view
-from nehad.data.synth_stress import (STRESS_SCENES, rig_cameras, stress_objects, stress_plan,
-                                     synthesize_stress_scene)
+from nehad.data.synth_stress import (STRESS_SCENES, rig_camera, rig_cameras, stress_objects,
+                                     stress_plan, synthesize_stress_scene)
 from nehad.runtime.cameras import Camera
 from nehad.viz.masks import read_label_mask
 
 
 def _camera(cam_id: int, size: int = 64, t: float = 0.0) -> Camera:
-    f = 0.5 * size / math.tan(math.radians(25.0))
-    return Camera.from_camera_to_world(rig_cameras()[cam_id], size, size, f, f, time=t)
+    return rig_camera(cam_id, size, time=t)
 
 
 def test_plan_is_the_mujoco_protocol():

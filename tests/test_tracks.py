@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from nehad.data.synth import Box, Sphere, render_view
-from nehad.data.synth_stress import rig_cameras
+from nehad.data.synth_stress import rig_camera, rig_cameras
 from nehad.runtime.cameras import Camera
 from nehad.tracks import (Blob, blob_axes, fit_motion, fit_tracks, find_blobs,
                           motion_at, seeds_along)
@@ -26,9 +26,7 @@ def _centre(t):
 
 
 def _camera(i):
-    f = 0.5 * SIZE / math.tan(math.radians(25.0))
-    rig = rig_cameras()
-    return Camera.from_camera_to_world(rig[i % len(rig)], SIZE, SIZE, f, f)
+    return rig_camera(i, SIZE)
 
 
 WALL = Box("wall", np.array([1.6, 0.0, 0.6]), np.array([0.05, 0.7, 0.6]), np.eye(3),

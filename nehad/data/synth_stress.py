@@ -49,7 +49,7 @@ from nehad.runtime.images import atomic_write_bytes
 from .synth import (Box, Sphere, Surface, _axis_angle, class_mapping,
                     orbit_camera_to_world, write_frame)
 
-__all__ = ["STRESS_SCENES", "stress_objects", "rig_cameras", "stress_plan",
+__all__ = ["STRESS_SCENES", "stress_objects", "rig_cameras", "rig_camera", "stress_plan",
            "synthesize_stress_scene", "synthesize_stress_suite"]
 
 #: One scene per failure class (module docstring).
@@ -192,6 +192,15 @@ def rig_cameras() -> list[np.ndarray]:
             for az, el, dist in views]
 
 
+def rig_camera(cam_id: int, resolution: int, time: float | None = None) -> Camera:
+    """Rig camera `cam_id` (any integer: taken modulo the rig's 12) as the suite's frames see
+    it: square, `resolution` pixels wide, 50 degrees of horizontal field of view."""
+    rig = rig_cameras()
+    focal = 0.5 * resolution / math.tan(0.5 * math.radians(_FOV_DEG))
+    return Camera.from_camera_to_world(rig[int(cam_id) % len(rig)], resolution, resolution,
+                                       focal, focal, time=time)
+
+
 def stress_plan(frames: int) -> dict[str, list[tuple[int, float, int]]]:
     """Per split, the (timestamp index, time, rig camera) of each frame (module docstring)."""
     plan = {"train": [], "val": [], "test": []}
@@ -223,14 +232,12 @@ def synthesize_stress_scene(out_dir, name: str, resolution: int = 400, frames: i
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     angle_x = math.radians(_FOV_DEG)
-    focal = 0.5 * resolution / math.tan(0.5 * angle_x)
     rig = rig_cameras()
     for split, entries in stress_plan(frames).items():
         (out / split).mkdir(exist_ok=True)
         records = []
         for k, t, cam_id in entries:
-            cam = Camera.from_camera_to_world(rig[cam_id], resolution, resolution, focal, focal,
-                                              time=t)
+            cam = rig_camera(cam_id, resolution, time=t)
             file = f"r_{k:04d}"
             write_frame(out, split, file, stress_objects(name, t), cam, supersample)
             if progress is not None:
