@@ -3,7 +3,6 @@ ray-cast scenes whose geometry is known."""
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 
@@ -456,4 +455,3 @@ def test_a_chain_splits_into_its_trained_core_and_its_two_ends():
     alone = core_and_ends(np.array([0, 2, 4]), t_eq, trained)
     assert len(alone) == 1 and alone[0][1] is None
     np.testing.assert_array_equal(alone[0][0], [0, 2, 4])
-
