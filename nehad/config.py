@@ -241,6 +241,10 @@ class TrainConfig:
     # planes outside it at the window's edge values, so a time that enters the window starts
     # from the deformation of its nearest trained time instead of the planes' initial value.
     hold_time_planes: bool = True
+    # How the held rows are set (nehad.curriculum.hold_time_planes): "value", the edge row's;
+    # "slope", the edge row carried on along its last step (a time entering the window starts
+    # from its neighbours' motion continued, not stopped).
+    hold_mode: str = "value"
     # At the start of the fine stage, rescale the trunk's first layer so that its output h has
     # mean 0 and standard deviation 1 over the Gaussians (DeformationField.standardize_trunk):
     # otherwise h, and with it the decoder's output, starts out the same for every Gaussian.
@@ -394,6 +398,9 @@ class Config:
             raise ConfigError(f"loss.isometry_refresh: {refresh} must divide "
                               f"train.checkpoint_interval ({every}), so that a resumed run "
                               f"finds the pairs where the uninterrupted one does")
+        if self.train.hold_mode not in ("value", "slope"):
+            raise ConfigError(f"train.hold_mode: must be 'value' or 'slope', got "
+                              f"{self.train.hold_mode!r}")
         if self.carve.mode not in ("vote", "rays", "tracks"):
             raise ConfigError(f"carve.mode: must be 'vote', 'rays' or 'tracks', got "
                               f"{self.carve.mode!r}")

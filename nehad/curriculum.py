@@ -94,21 +94,42 @@ def time_plane_rows(window: TimeWindow, rows: int) -> tuple[int, int]:
     return max(first, 0), min(max(last, first), rows - 1)
 
 
+HOLD_MODES = ("value", "slope")
+
+
 @torch.no_grad()
-def hold_time_planes(hexplane, window: TimeWindow) -> None:
-    """Set the rows of every space-time plane outside `window` to its edge rows (see the
-    module doc). Planes are (1, C, T, S): the height axis is time."""
+def hold_time_planes(hexplane, window: TimeWindow, mode: str = "value") -> None:
+    """Set the rows of every space-time plane outside `window` from its edge rows (see the
+    module doc). Planes are (1, C, T, S): the height axis is time. `mode` "value": each outside
+    row equals the nearest edge row; "slope": it continues the edge's last step, row e + d (e -
+    e_in) at d rows past the edge e (e_in: the row inside it), so a time entering the window
+    starts from the motion of its nearest trained times carried on, not stopped."""
     from nehad.field.hexplane import TIME_PLANES
 
+    if mode not in HOLD_MODES:
+        raise ValueError(f"hold mode: expected one of {HOLD_MODES}, got {mode!r}")
     for scale in hexplane.planes:
         for k in TIME_PLANES:
             plane = scale[k]
             rows = plane.shape[2]
             first, last = time_plane_rows(window, rows)
             if first > 0:
-                plane[:, :, :first, :] = plane[:, :, first:first + 1, :]
+                _continue_rows(plane, first, first + 1, range(first - 1, -1, -1), mode)
             if last < rows - 1:
-                plane[:, :, last + 1:, :] = plane[:, :, last:last + 1, :]
+                _continue_rows(plane, last, last - 1, range(last + 1, rows), mode)
+
+
+def _continue_rows(plane, edge: int, inner: int, outside, mode: str) -> None:
+    """Rows `outside` (in order away from `edge`) of `plane` set from the edge row: its value,
+    or its value plus d times its step from row `inner` (d: rows from the edge)."""
+    edge_row = plane[:, :, edge:edge + 1, :]
+    outside = list(outside)
+    if mode == "value" or not 0 <= inner < plane.shape[2] or inner == edge:
+        plane[:, :, min(outside):max(outside) + 1, :] = edge_row
+        return
+    step = edge_row - plane[:, :, inner:inner + 1, :]
+    for d, row in enumerate(outside, start=1):
+        plane[:, :, row:row + 1, :] = edge_row + d * step
 
 
 def resolution_factor(schedule, step: int, total: int, short_side: int | None = None,
@@ -127,4 +148,5 @@ def resolution_factor(schedule, step: int, total: int, short_side: int | None = 
 
 
 __all__ = ["TimeWindow", "window_at", "eligible_frames", "widen_to_frames", "time_plane_rows", "hold_time_planes",
+           "HOLD_MODES",
            "resolution_factor"]

@@ -167,7 +167,8 @@ class StagedSchedule:
         if phase.deforms and self.cfg.train.hold_time_planes:
             lo, hi = trainer.scene.time_range
             if not (window.lo <= lo and window.hi >= hi):
-                hold_time_planes(trainer.model.field.hexplane, window)
+                hold_time_planes(trainer.model.field.hexplane, window,
+                                 self.cfg.train.hold_mode)
 
     def end(self, trainer: Trainer, phase: Phase, step: int, record: dict) -> None:
         pass

@@ -271,6 +271,32 @@ def test_time_planes_outside_the_window_are_held_at_its_edges(tmp_path, tiny_sce
                 plane[:, :, last + 1:]))
 
 
+def test_slope_hold_carries_a_linear_motion_on_past_the_window(tmp_path, tiny_scene):
+    """`train.hold_mode=slope`: rows that change linearly inside the window go on changing at
+    the same rate outside it, whatever they held before; the default holds the edge values."""
+    from nehad.curriculum import TimeWindow, hold_time_planes
+    from nehad.field.hexplane import TIME_PLANES
+
+    tr = _run(tmp_path, "slope", tiny_scene, **{"field.resolution": "[8,8,8,11]"})
+    hp = tr.model.field.hexplane
+    rows = torch.arange(11, dtype=torch.float32).reshape(1, 1, 11, 1)
+    lines = {}
+    with torch.no_grad():
+        for s, scale in enumerate(hp.planes):
+            for k in TIME_PLANES:
+                plane = scale[k]
+                a = torch.randn(1, plane.shape[1], 1, plane.shape[3])
+                b = torch.randn(1, plane.shape[1], 1, plane.shape[3])
+                lines[s, k] = a + b * rows
+                plane.copy_(lines[s, k] + 5.0 * torch.randn_like(plane))
+                plane[:, :, 3:8] = lines[s, k][:, :, 3:8]  # rows 3..7 hold the window
+    hold_time_planes(hp, TimeWindow(0.35, 0.62), mode="slope")
+    for (s, k), line in lines.items():
+        torch.testing.assert_close(hp.planes[s][k].detach(), line, rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError, match="hold mode"):
+        hold_time_planes(hp, TimeWindow(0.35, 0.62), mode="linear")
+
+
 def _chunks(items, n):
     size = len(items) // n
     return [items[i * size:(i + 1) * size] for i in range(n)]
