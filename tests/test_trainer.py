@@ -29,7 +29,9 @@ def tiny_scene(tmp_path_factory):
 def test_presets_yaml_and_overrides(tmp_path):
     cfg = build_config("cpu")
     assert cfg.preset == "cpu" and cfg.data.downscale == 2
+    assert cfg.field.hnn_depth == 1  # the cpu recipe's decoder (docs/results.md, 2026-11-28)
     assert build_config("paper").fine.iterations == 20000
+    assert build_config("paper").field.hnn_depth == 2
     yml = tmp_path / "c.yaml"
     yml.write_text("fine:\n  iterations: 123\nfield:\n  decoder: mlp\n")
     cfg = build_config("test", yml, ["fine.iterations=77", "field.multires=[1,2]",
@@ -42,7 +44,8 @@ def test_presets_yaml_and_overrides(tmp_path):
                       ("carve.mode=ray", "carve.mode"), ("carve.seed_views=0", "seed_views"),
                       ("carve.track_members=3", "track_members"),
                       ("carve.max_tracks=0", "max_tracks"),
-                      ("carve.check_pieces=member", "check_pieces")]:
+                      ("carve.check_pieces=member", "check_pieces"),
+                      ("train.hold_mode=linear", "hold_mode")]:
         with pytest.raises(ConfigError, match=word):
             build_config("test", None, [bad])
     with pytest.raises(ConfigError, match="preset"):
