@@ -147,6 +147,5 @@ def resolution_factor(schedule, step: int, total: int, short_side: int | None = 
     return factor
 
 
-__all__ = ["TimeWindow", "window_at", "eligible_frames", "widen_to_frames", "time_plane_rows", "hold_time_planes",
-           "HOLD_MODES",
-           "resolution_factor"]
+__all__ = ["TimeWindow", "window_at", "eligible_frames", "widen_to_frames", "time_plane_rows",
+           "HOLD_MODES", "hold_time_planes", "resolution_factor"]
