@@ -218,6 +218,10 @@ class LossConfig:
     scale_rate_samples: int = 1024  # Gaussians drawn each step for it
 
 
+#: How `train.hold_mode` sets the held space-time rows (nehad.curriculum.hold_time_planes).
+HOLD_MODES = ("value", "slope")
+
+
 @dataclass
 class TrainConfig:
     seed: int = 0
@@ -398,9 +402,9 @@ class Config:
             raise ConfigError(f"loss.isometry_refresh: {refresh} must divide "
                               f"train.checkpoint_interval ({every}), so that a resumed run "
                               f"finds the pairs where the uninterrupted one does")
-        if self.train.hold_mode not in ("value", "slope"):
-            raise ConfigError(f"train.hold_mode: must be 'value' or 'slope', got "
-                              f"{self.train.hold_mode!r}")
+        if self.train.hold_mode not in HOLD_MODES:
+            raise ConfigError(f"train.hold_mode: must be one of {', '.join(HOLD_MODES)}, "
+                              f"got {self.train.hold_mode!r}")
         if self.carve.mode not in ("vote", "rays", "tracks"):
             raise ConfigError(f"carve.mode: must be 'vote', 'rays' or 'tracks', got "
                               f"{self.carve.mode!r}")

@@ -30,6 +30,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from nehad.config import HOLD_MODES
+
 
 @dataclass(frozen=True)
 class TimeWindow:
@@ -94,9 +96,6 @@ def time_plane_rows(window: TimeWindow, rows: int) -> tuple[int, int]:
     return max(first, 0), min(max(last, first), rows - 1)
 
 
-HOLD_MODES = ("value", "slope")
-
-
 @torch.no_grad()
 def hold_time_planes(hexplane, window: TimeWindow, mode: str = "value") -> None:
     """Set the rows of every space-time plane outside `window` from its edge rows (see the
@@ -113,23 +112,24 @@ def hold_time_planes(hexplane, window: TimeWindow, mode: str = "value") -> None:
             plane = scale[k]
             rows = plane.shape[2]
             first, last = time_plane_rows(window, rows)
+            slope = mode == "slope" and last > first  # a step needs two rows inside
             if first > 0:
-                _continue_rows(plane, first, first + 1, range(first - 1, -1, -1), mode)
+                _continue_rows(plane, first, -1, first + 1 if slope else None)
             if last < rows - 1:
-                _continue_rows(plane, last, last - 1, range(last + 1, rows), mode)
+                _continue_rows(plane, last, +1, last - 1 if slope else None)
 
 
-def _continue_rows(plane, edge: int, inner: int, outside, mode: str) -> None:
-    """Rows `outside` (in order away from `edge`) of `plane` set from the edge row: its value,
-    or its value plus d times its step from row `inner` (d: rows from the edge)."""
+def _continue_rows(plane, edge: int, away: int, inner: int | None) -> None:
+    """The rows of `plane` past row `edge` in direction `away` (-1: down to row 0, +1: up to the
+    last row) set to the edge row, plus d times its step from row `inner` at d rows from the
+    edge (`inner` None: the edge row's value alone)."""
     edge_row = plane[:, :, edge:edge + 1, :]
-    outside = list(outside)
-    if mode == "value" or not 0 <= inner < plane.shape[2] or inner == edge:
-        plane[:, :, min(outside):max(outside) + 1, :] = edge_row
+    lo, hi = (0, edge) if away < 0 else (edge + 1, plane.shape[2])
+    if inner is None:
+        plane[:, :, lo:hi, :] = edge_row
         return
-    step = edge_row - plane[:, :, inner:inner + 1, :]
-    for d, row in enumerate(outside, start=1):
-        plane[:, :, row:row + 1, :] = edge_row + d * step
+    d = torch.arange(lo, hi, dtype=plane.dtype).sub_(edge).abs_().reshape(1, 1, -1, 1)
+    plane[:, :, lo:hi, :] = edge_row + d * (edge_row - plane[:, :, inner:inner + 1, :])
 
 
 def resolution_factor(schedule, step: int, total: int, short_side: int | None = None,
@@ -148,4 +148,4 @@ def resolution_factor(schedule, step: int, total: int, short_side: int | None = 
 
 
 __all__ = ["TimeWindow", "window_at", "eligible_frames", "widen_to_frames", "time_plane_rows",
-           "HOLD_MODES", "hold_time_planes", "resolution_factor"]
+           "hold_time_planes", "resolution_factor"]
