@@ -5,7 +5,9 @@
 Loads RUN (a `nehad train` output) and times, alternated in one process, three forward +
 backward passes over every Gaussian at one time: the view alone (`gaussians_at`); the view
 and the prior calling the field on its own samples (its stand-alone path); the view with the
-prior's samples in the same field evaluation (`gaussians_and_samples_at`, what training runs).
+prior's samples in the same field evaluation (`gaussians_and_samples_at`, what training runs);
+and the view with the prior paired with the view's time (`loss.scale_rate_times=view`: the
+view's own rows reused, one row per sample).
 Prints the medians (after two warm-up rounds) and each path's cost over the view alone beside
 the samples' share of the rows. Time it alone (docs/performance.md).
 """
@@ -34,7 +36,9 @@ def main() -> None:
 
     model, _ = load_run(args.run)
     prior = ScaleRatePrior(0.1, args.samples, seed=0)
-    prior.set_times(np.linspace(0.0, 1.0, 121))  # the MuJoCo scenes' frame step
+    paired = ScaleRatePrior(0.1, args.samples, seed=0, times="view")
+    for p in (prior, paired):
+        p.set_times(np.linspace(0.0, 1.0, 121))  # the MuJoCo scenes' frame step
     n = len(model.gaussians)
 
     def scalar(params):  # every Gaussian gets a gradient
@@ -51,8 +55,14 @@ def main() -> None:
             args.time, *prior.rows_and_times(n, step))
         return scalar(params) + prior.loss(model, step, sampled)
 
+    def paired_call(step):
+        params, sampled = model.gaussians_and_samples_at(
+            args.time, *paired.rows_and_times(n, step, args.time), with_view_rows=True)
+        return scalar(params) + paired.loss(model, step, sampled, args.time)
+
     paths = {"view alone": view, "prior in its own call": own_call,
-             "prior in the view's call": same_call}
+             "prior in the view's call": same_call,
+             "paired with the view": paired_call}
     times = {k: [] for k in paths}
     for r in range(args.repeats + 2):
         for label, path in paths.items():
@@ -68,7 +78,8 @@ def main() -> None:
     for label, ms in med.items():
         extra = "" if label == "view alone" else f"  (+{ms - base:.1f} ms)"
         print(f"  {label:26s} {ms:7.1f} ms{extra}")
-    print(f"  the prior rows' share of the view: {2 * args.samples / n * base:.1f} ms")
+    print(f"  the prior rows' share of the view: {2 * args.samples / n * base:.1f} ms "
+          f"(paired with the view: {args.samples / n * base:.1f})")
 
 
 if __name__ == "__main__":

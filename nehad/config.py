@@ -216,6 +216,10 @@ class LossConfig:
     # training frame step to the next, in the deforming stage (nehad.scale_rate,
     # docs/training.md "Gaussians that blink")
     scale_rate_samples: int = 1024  # Gaussians drawn each step for it
+    scale_rate_times: str = "uniform"  # the pair of times compared: c drawn uniformly over the
+    # training times and c + h, two field rows per sample ("uniform"), or the step's view's time
+    # and one frame step before or after it, the view's own rows reused, one more row per sample
+    # ("view")
 
 
 #: How `train.hold_mode` sets the held space-time rows (nehad.curriculum.hold_time_planes).
@@ -391,6 +395,9 @@ class Config:
             raise ConfigError("train.canonical_time: must lie in [0, 1]")
         if self.loss.kernel not in ("numba", "torch"):
             raise ConfigError(f"loss.kernel: {self.loss.kernel!r}; expected numba or torch")
+        if self.loss.scale_rate_times not in ("view", "uniform"):
+            raise ConfigError(f"loss.scale_rate_times: {self.loss.scale_rate_times!r}; "
+                              "choose from view, uniform")
         if self.loss.acceleration_times not in ("view", "uniform"):
             raise ConfigError(f"loss.acceleration_times: {self.loss.acceleration_times!r}; "
                               f"must be 'view' or 'uniform'")

@@ -40,12 +40,14 @@ class NeHaDModel(torch.nn.Module):
         return self._activated_at(t, self.field(g.means, g.log_scales, g.quats, t, g.mu_eq,
                                                 g.t_eq, opacity_logits=g.opacity_logits, sh=sh))
 
-    def gaussians_and_samples_at(self, t, rows: torch.Tensor, times: torch.Tensor):
+    def gaussians_and_samples_at(self, t, rows: torch.Tensor, times: torch.Tensor,
+                                 with_view_rows: bool = False):
         """(`gaussians_at(t)`'s tuple, the field's `DeformedGaussians` of the Gaussians `rows`
         (M,), row i at time times[i]) from ONE field evaluation of N + M rows: the motion priors'
         samples ride on the view's evaluation (`nehad.motion_priors`), where a call of their own
         costs the field's fixed costs again (docs/performance.md). Each row is deformed on its
-        own, so both parts equal separate calls' to rounding."""
+        own, so both parts equal separate calls' to rounding. `with_view_rows`: the second part
+        is 2M rows, the view's own rows `rows` at t first (no second evaluation of them)."""
         g = self.gaussians
         n = g.means.shape[0]
 
@@ -59,7 +61,11 @@ class NeHaDModel(torch.nn.Module):
                          more(g.t_eq), opacity_logits=more(g.opacity_logits), sh=more(sh))
         head = DeformedGaussians(out.means[:n], out.log_scales[:n], out.quats[:n],
                                  out.opacity_logits[:n], out.sh[:n])
-        tail = DeformedGaussians(out.means[n:], out.log_scales[n:], out.quats[n:])
+        if with_view_rows:
+            tail = DeformedGaussians(*(torch.cat([x[:n][rows], x[n:]])
+                                       for x in (out.means, out.log_scales, out.quats)))
+        else:
+            tail = DeformedGaussians(out.means[n:], out.log_scales[n:], out.quats[n:])
         return self._activated_at(t, head), tail
 
     def _activated_at(self, t, out):

@@ -27,17 +27,18 @@ class MotionPriors(NamedTuple):
         """(model.gaussians_at(t, deform)'s tuple, the field's output for the slow-size prior's
         samples or None): when the prior is on, its samples are deformed in the same field
         evaluation as the view (`NeHaDModel.gaussians_and_samples_at`)."""
-        picked = self.scale_rate.rows_and_times(len(model.gaussians), step) if deform else None
+        prior = self.scale_rate
+        picked = prior.rows_and_times(len(model.gaussians), step, t) if deform else None
         if picked is None:
             return model.gaussians_at(t, deform=deform), None
-        return model.gaussians_and_samples_at(t, *picked)
+        return model.gaussians_and_samples_at(t, *picked, with_view_rows=prior.pairs_with_view)
 
     def loss(self, model, deformed_means, t: float, step: int, sampled=None):
         """Their sum for the view at time `t` of `step`, `deformed_means` (N, 3) the step's
         deformed means at t, `sampled` what `gaussians_at` returned for the samples."""
         return (self.isometry.loss(model.gaussians, deformed_means, step)
                 + self.acceleration.loss(model, deformed_means, t, step)
-                + self.scale_rate.loss(model, step, sampled))
+                + self.scale_rate.loss(model, step, sampled, t))
 
 
 __all__ = ["MotionPriors"]

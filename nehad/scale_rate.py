@@ -21,6 +21,11 @@ axis and step. The two times are 2 x `samples` rows of the field; in training th
 the view's own field evaluation (`rows_and_times`, `NeHaDModel.gaussians_and_samples_at`),
 where a call of their own cost about 10 ms a step, mostly the field's fixed costs
 (docs/performance.md).
+
+With `times="view"` (`loss.scale_rate_times`) the pair is the step's view's time t and one
+frame step before or after it (a fair coin from the same generator; the one that stays inside
+the training times at their ends): the view's own rows at t are reused, so the prior adds one
+field row per sample instead of two.
 """
 
 from __future__ import annotations
@@ -33,8 +38,9 @@ from nehad.acceleration import time_step_and_span
 class ScaleRatePrior:
     """The prior's loss for one step (module docstring)."""
 
-    def __init__(self, weight: float, samples: int, seed: int = 0):
+    def __init__(self, weight: float, samples: int, seed: int = 0, times: str = "uniform"):
         self.weight, self.samples, self.seed = float(weight), int(samples), int(seed)
+        self.times = times  # "uniform": c anywhere, two rows per sample; "view": the view's t
         self.step_h = None  # the training views' time step (set from their times)
         self.span = None  # (first, last) training time
 
@@ -42,7 +48,8 @@ class ScaleRatePrior:
     def of(cls, loss_cfg, seed: int, times) -> "ScaleRatePrior":
         """The prior a `LossConfig` asks for (its scale_rate_* knobs), over the training views'
         `times`."""
-        prior = cls(loss_cfg.scale_rate_weight, loss_cfg.scale_rate_samples, seed)
+        prior = cls(loss_cfg.scale_rate_weight, loss_cfg.scale_rate_samples, seed,
+                    loss_cfg.scale_rate_times)
         prior.set_times(times)
         return prior
 
@@ -57,32 +64,61 @@ class ScaleRatePrior:
         u = float(torch.rand((), generator=gen, dtype=torch.float64))
         return rows, self.span[0] + u * (self.span[1] - self.span[0] - self.step_h)
 
-    def rows_and_times(self, n: int, step: int):
-        """(rows, times): the Gaussians (each twice) and the times (c, then c + h) the field must
-        deform for `step`'s term among n Gaussians; None when the term is off, without a time
-        step, when the training times span under one step, or without Gaussians."""
+    @property
+    def pairs_with_view(self) -> bool:
+        """Whether the first time of each pair is the view's, its rows the view's own."""
+        return self.times == "view"
+
+    def neighbour_time(self, t: float, step: int) -> float:
+        """With `times="view"`: the time one frame step from the view's t that `step` pairs it
+        with (after or before it by a fair coin; the one inside the training times at their
+        ends)."""
+        gen = torch.Generator().manual_seed(self.seed * 1_000_003 + int(step) + 11)
+        later = bool(torch.rand((), generator=gen, dtype=torch.float64) < 0.5)
+        h, (first, last) = self.step_h, self.span
+        if float(t) + h > last + 1e-9:
+            later = False
+        elif float(t) - h < first - 1e-9:
+            later = True
+        return float(t) + h if later else float(t) - h
+
+    def rows_and_times(self, n: int, step: int, t: float | None = None):
+        """(rows, times): the rows the field must deform for `step`'s term among n Gaussians
+        and their times: with `times="uniform"` the Gaussians twice, at c and then at c + h;
+        with `times="view"` (the view's time `t` required) once, at the neighbour time, the
+        view's own rows at t being the pair's first half. None when the term is off, without a
+        time step, when the training times span under one step, or without Gaussians."""
         h = self.step_h
         if self.weight <= 0.0 or h is None or self.span[1] - self.span[0] < h or n == 0:
             return None
         rows, c = self.draw(n, step)
         m = len(rows)
+        if self.pairs_with_view:
+            if t is None:
+                raise ValueError("the slow-size prior pairs with the view's time: give t")
+            return rows, torch.full((m,), self.neighbour_time(t, step), dtype=torch.float64)
         times = torch.cat([torch.full((m,), c, dtype=torch.float64),
                            torch.full((m,), c + h, dtype=torch.float64)])
         return torch.cat([rows, rows]), times
 
-    def loss(self, model, step: int, deformed=None):
+    def loss(self, model, step: int, deformed=None, t: float | None = None):
         """L_rate of `step` (0.0 when `rows_and_times` is None). `deformed`: the field's output
-        for `rows_and_times`' rows at its times, when the caller evaluated them (no second
-        draw then); else the prior draws and calls the field itself."""
+        for the pairs' rows, the first time's rows then the second's, when the caller evaluated
+        them (no second draw then: `NeHaDModel.gaussians_and_samples_at`); else the prior draws
+        and calls the field itself (at the view's time `t` and its neighbour with
+        `times="view"`)."""
         if deformed is None:
             g = model.gaussians
-            picked = self.rows_and_times(int(g.means.shape[0]), step)
+            picked = self.rows_and_times(int(g.means.shape[0]), step, t)
             if picked is None:
                 return 0.0
             rows, times = picked
+            if self.pairs_with_view:
+                rows = torch.cat([rows, rows])
+                times = torch.cat([torch.full_like(times, float(t)), times])
             deformed = model.field(g.means[rows], g.log_scales[rows], g.quats[rows],
                                    times.to(g.means.dtype)[:, None], g.mu_eq[rows], g.t_eq[rows])
-        m = deformed.log_scales.shape[0] // 2  # the rows at c, then the same rows at c + h
+        m = deformed.log_scales.shape[0] // 2  # the rows at one time, then the same at the other
         change = deformed.log_scales[m:] - deformed.log_scales[:m]
         return self.weight * (change * change).sum(dim=1).mean()
 

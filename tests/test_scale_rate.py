@@ -33,8 +33,8 @@ class _Sizes:
         return SimpleNamespace(log_scales=self.law(rows, t.reshape(-1, 1)))
 
 
-def _prior(weight=0.5, samples=16, times=np.linspace(0.0, 1.0, 11)):
-    prior = ScaleRatePrior(weight, samples, seed=5)
+def _prior(weight=0.5, samples=16, times=np.linspace(0.0, 1.0, 11), pair="uniform"):
+    prior = ScaleRatePrior(weight, samples, seed=5, times=pair)
     prior.set_times(times)
     return prior
 
@@ -52,6 +52,27 @@ def test_value_is_the_mean_squared_change_over_one_step():
     assert 0.0 <= c <= 0.9 and times.shape == (32,)
     assert torch.allclose(times[:16], torch.tensor(c, dtype=times.dtype))
     assert torch.allclose(times[16:], torch.tensor(c + 0.1, dtype=times.dtype))
+
+
+def test_paired_with_the_view_one_step_before_or_after_it():
+    """`times="view"`: the pair is the view's t and t +- h (h = 0.1 here), inside the training
+    times at their ends; a steady change costs w mean |b_i|^2 h^2 as with uniform times, and the
+    prior's own call deforms the drawn rows at t, then at the neighbour time."""
+    model, prior = _Sizes(), _prior(pair="view")
+    rows, _ = prior.draw(40, 9)
+    want = 0.5 * float((model.b[rows] ** 2).sum(dim=1).mean()) * 0.1 ** 2
+    assert float(prior.loss(model, step=9, t=0.4)) == pytest.approx(want, rel=1e-9)
+    times = model.calls[-1]
+    assert times.shape == (32,) and torch.all(times[:16] == 0.4)
+    assert float(abs(times[16] - 0.4)) == pytest.approx(0.1) and torch.all(times[16:] == times[16])
+    both = sorted({round(prior.neighbour_time(0.4, s), 9) for s in range(40)})
+    assert both == [0.3, 0.5]
+    assert {round(prior.neighbour_time(0.0, s), 9) for s in range(20)} == {0.1}
+    assert {round(prior.neighbour_time(1.0, s), 9) for s in range(20)} == {0.9}
+    picked_rows, picked_times = prior.rows_and_times(40, 9, t=0.4)
+    assert torch.equal(picked_rows, rows) and picked_times.shape == (16,)  # one row per sample
+    with pytest.raises(ValueError, match="give t"):
+        prior.rows_and_times(40, 9)
 
 
 def test_a_blink_costs_far_more_than_a_steady_growth():
@@ -102,19 +123,23 @@ def _moving_model(n: int = 64, dtype=torch.float32, hnn_grad: str | None = None)
     return NeHaDModel(gauss, field).to(dtype)
 
 
-def test_samples_in_the_views_evaluation_equal_a_call_of_their_own():
+@pytest.mark.parametrize("pair", ["uniform", "view"])
+def test_samples_in_the_views_evaluation_equal_a_call_of_their_own(pair):
     """`gaussians_and_samples_at` (one field evaluation of N + M rows) gives the view's
     Gaussians as `gaussians_at` does and the samples as the prior's own call does, and the
-    loss's gradient on every parameter is the same (float64)."""
+    loss's gradient on every parameter is the same (float64); paired with the view, its own
+    rows are the pairs' first half."""
     model = _moving_model(dtype=torch.float64, hnn_grad="closed_form")
-    prior = _prior(weight=1.0, samples=24)
-    rows, times = prior.rows_and_times(64, step=3)
-    view, sampled = model.gaussians_and_samples_at(0.37, rows, times)
+    prior = _prior(weight=1.0, samples=24, pair=pair)
+    rows, times = prior.rows_and_times(64, step=3, t=0.37)
+    assert len(times) == (24 if pair == "view" else 48)
+    view, sampled = model.gaussians_and_samples_at(0.37, rows, times,
+                                                   with_view_rows=pair == "view")
     for a, b in zip(view, model.gaussians_at(0.37)):
         assert torch.allclose(a, b, rtol=1e-12, atol=1e-12)
-    folded = prior.loss(model, 3, sampled)
+    folded = prior.loss(model, 3, sampled, t=0.37)
     grads = torch.autograd.grad(folded, list(model.parameters()), allow_unused=True)
-    own = prior.loss(model, 3)
+    own = prior.loss(model, 3, t=0.37)
     assert float(own.detach()) > 0
     assert float(folded.detach()) == pytest.approx(float(own.detach()), rel=1e-12)
     for g, w in zip(grads, torch.autograd.grad(own, list(model.parameters()), allow_unused=True)):
@@ -137,7 +162,8 @@ def test_gradient_reaches_the_field():
     assert float(field.adapters.scale.weight.grad.abs().sum()) > 0
 
 
-def test_training_runs_with_it_and_the_term_is_in_the_loss(tmp_path, monkeypatch):
+@pytest.mark.parametrize("pair", ["uniform", "view"])
+def test_training_runs_with_it_and_the_term_is_in_the_loss(tmp_path, monkeypatch, pair):
     """A short run with the prior on: the trainer calls it at every deforming step only, and the
     run ends with a finite loss."""
     from nehad.config import build_config
@@ -146,13 +172,15 @@ def test_training_runs_with_it_and_the_term_is_in_the_loss(tmp_path, monkeypatch
 
     data = synthesize_scene(tmp_path / "scene", resolution=24, frames=8, seed=0)
     cfg = build_config("test", None, ["loss.scale_rate_weight=1.0",
-                                      "loss.scale_rate_samples=64"])
+                                      "loss.scale_rate_samples=64",
+                                      f"loss.scale_rate_times={pair}"])
     tr = Trainer(cfg, data, tmp_path / "run", progress=False, log=None)
     assert tr.priors.scale_rate.step_h == pytest.approx(1 / 7)
     steps = []
     inner = tr.priors.scale_rate.loss
-    monkeypatch.setattr(tr.priors.scale_rate, "loss", lambda model, step, deformed:
-                        steps.append((step, deformed is not None)) or inner(model, step, deformed))
+    monkeypatch.setattr(tr.priors.scale_rate, "loss", lambda model, step, deformed, t:
+                        steps.append((step, deformed is not None))
+                        or inner(model, step, deformed, t))
     out = tr.train()
     assert out["steps"] == 70 and np.isfinite(out["last"]["loss"])
     deforming = out["steps"] - cfg.coarse.iterations
