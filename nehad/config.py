@@ -395,12 +395,10 @@ class Config:
             raise ConfigError("train.canonical_time: must lie in [0, 1]")
         if self.loss.kernel not in ("numba", "torch"):
             raise ConfigError(f"loss.kernel: {self.loss.kernel!r}; expected numba or torch")
-        if self.loss.scale_rate_times not in ("view", "uniform"):
-            raise ConfigError(f"loss.scale_rate_times: {self.loss.scale_rate_times!r}; "
-                              "choose from view, uniform")
-        if self.loss.acceleration_times not in ("view", "uniform"):
-            raise ConfigError(f"loss.acceleration_times: {self.loss.acceleration_times!r}; "
-                              f"must be 'view' or 'uniform'")
+        for key in ("acceleration_times", "scale_rate_times"):  # the motion priors' times
+            value = getattr(self.loss, key)
+            if value not in ("view", "uniform"):
+                raise ConfigError(f"loss.{key}: {value!r}; must be 'view' or 'uniform'")
         if self.loss.isometry_reference not in ("canonical", "time"):
             raise ConfigError(f"loss.isometry_reference: {self.loss.isometry_reference!r}; "
                               f"expected canonical or time")

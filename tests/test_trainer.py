@@ -45,7 +45,9 @@ def test_presets_yaml_and_overrides(tmp_path):
                       ("carve.track_members=3", "track_members"),
                       ("carve.max_tracks=0", "max_tracks"),
                       ("carve.check_pieces=member", "check_pieces"),
-                      ("train.hold_mode=linear", "hold_mode")]:
+                      ("train.hold_mode=linear", "hold_mode"),
+                      ("loss.scale_rate_times=random", "scale_rate_times"),
+                      ("loss.acceleration_times=random", "acceleration_times")]:
         with pytest.raises(ConfigError, match=word):
             build_config("test", None, [bad])
     with pytest.raises(ConfigError, match="preset"):
