@@ -209,11 +209,12 @@ def test_gradcheck_on_a_tiny_case(activation):
              for shape in ((5, 4), (5,), (3, 4))]  # adapters (K = 5) and force behind it
     for field, quadratic, head, tail in ((False, False, False, False), (True, False, False, False),
                                          (True, True, False, False), (True, True, True, False),
+                                         (True, True, False, True), (True, False, True, True),
                                          (True, True, True, True)):
         def fn(x, *params):
             out = FusedInputGradients.apply(x, {"tanh": 0, "softplus": 1, "silu": 2}[activation],
                                             True, field, quadratic, head, tail, *params)
-            return out[3:] if tail else out  # v, v_c, v_s carry no gradient with the heads
+            return out  # with the heads: (v A^T + a, v_c A_mu'^T), the kinetic terms folded in
 
         inputs = (f if head else h, *params, *(quads if quadratic else ()),
                   *(trunk if head else ()), *(heads if tail else ()))
@@ -382,8 +383,9 @@ def test_trunk_inside_equals_trunk_in_front(block_rows, monkeypatch):
 
 def test_decoder_fused_features_fuses_trunk_and_adapters(monkeypatch):
     """HamiltonianDecoder.fused_features(f, trunk, adapters) against the same modules one
-    after the other in closed form (float64, blocks of 5 over 12 rows): v, v_c, v_s, the
-    adapters' outputs and the force, and the gradients of a loss on the last two for f and every
+    after the other in closed form (float64, blocks of 5 over 12 rows): the adapters' outputs
+    and the force (the kinetic terms folded into them, hnn_fused._FoldedKinetic), and the
+    gradients of a loss on the last two for f and every
     parameter, with rows 0-4 and 8 out of the loss (a whole block included)."""
     from nehad.field.adapters import Adapters
 
@@ -397,6 +399,7 @@ def test_decoder_fused_features_fuses_trunk_and_adapters(monkeypatch):
     dec = HamiltonianDecoder(8, 5, 2, "softplus", grad_mode="fused", quadratic=True).double()
     with torch.no_grad():
         dec.quad1.normal_()
+        dec.quad2.normal_()
     ref_dec = HamiltonianDecoder(8, 5, 2, "softplus", grad_mode="closed_form",
                                  quadratic=True).double()
     ref_dec.load_state_dict(dec.state_dict())
@@ -408,12 +411,13 @@ def test_decoder_fused_features_fuses_trunk_and_adapters(monkeypatch):
     def run(decoder):
         if decoder is dec:
             fo, ad, force = decoder.fused_features(f, trunk, adapters)
+            assert fo is None  # v, v_c, v_s are not formed
         else:
             fo = decoder(trunk(f))
             ad, force = adapters(fo.v), adapters.force(fo.v_c)
         out = torch.cat([ad.dmu, ad.ds, ad.q, force], dim=1)
         params = [f, *trunk.parameters(), *adapters.parameters(), *decoder.parameters()]
-        return list(fo) + [out], torch.autograd.grad((out * weights).sum(), params)
+        return [out], torch.autograd.grad((out * weights).sum(), params)
 
     (ref_vals, ref_grads), (vals, grads) = run(ref_dec), run(dec)
     for a, b in zip(vals, ref_vals):

@@ -217,8 +217,9 @@ class DeformationField(nn.Module):
             return self._forward_mlp(h, means, log_scales, quats, opacity_logits, sh)
         cfg = self.cfg
         fo, ad, force, h = self._decode(self.plane_features(means, t_col, log_scales, quats))
-        aux: dict[str, torch.Tensor] = {"v": fo.v, "v_c": fo.v_c, "v_s": fo.v_s,
-                                        "dmu": ad.dmu, "ds": ad.ds, "q": ad.q}
+        aux: dict[str, torch.Tensor] = {"dmu": ad.dmu, "ds": ad.ds, "q": ad.q}
+        if fo is not None:  # the fused decoder does not form v (HamiltonianDecoder.fused_features)
+            aux.update(v=fo.v, v_c=fo.v_c, v_s=fo.v_s)
         if h is not None:
             aux["h"] = h
         # 6. position Verlet: displacement mu~ - mu.
@@ -263,7 +264,8 @@ class DeformationField(nn.Module):
     def _decode(self, f: torch.Tensor):
         """Steps 2-5 on the plane features f: (FieldOutput, AdapterOutput, force, h). With the
         Hamiltonian decoder and a one-layer trunk, trunk, decoder and adapters run as one fused
-        call where they can (`HamiltonianDecoder.fused_features`), which gives no h (None)."""
+        call where they can (`HamiltonianDecoder.fused_features`), which gives neither the
+        FieldOutput nor h (None)."""
         if isinstance(self.field, HamiltonianDecoder) and self.trunk.depth == 1:
             fused = self.field.fused_features(f, self.trunk[0], self.adapters)
             if fused is not None:

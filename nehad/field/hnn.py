@@ -200,11 +200,12 @@ class HamiltonianDecoder(nn.Module):
         return None if self.quad1 is None else (self.quad1, self.quad2)
 
     def fused_features(self, f: torch.Tensor, trunk: nn.Linear, adapters):
-        """(FieldOutput, AdapterOutput, force) of forward(trunk(f)), the `adapters`
-        (`nehad.field.adapters.Adapters`) and their Verlet force, with the trunk's Linear and
-        the adapters inside the fused Function (`nehad.field.hnn_fused.fused_field`'s `trunk`
-        and `heads`), whose backward then reaches the Gaussians with a gradient only; v, v_c
-        and v_s carry no gradient. None where that Function cannot run it (`grad_mode` not
+        """(None, AdapterOutput, force): the `adapters` (`nehad.field.adapters.Adapters`) and
+        their Verlet force of forward(trunk(f)), with the trunk's Linear and the adapters inside
+        the fused Function (`nehad.field.hnn_fused.fused_field`'s `trunk` and `heads`), whose
+        backward then reaches the Gaussians with a gradient only. The FieldOutput is None: v,
+        v_c and v_s are not formed there (the kinetic terms go straight into the adapters and
+        the force, `hnn_fused._FoldedKinetic`). None where that Function cannot run it (`grad_mode` not
         "fused", a graph being captured, appearance adapters, a trunk without bias, ...): the
         caller then applies the modules one after the other."""
         if (self.grad_mode != "fused" or is_capturing() or trunk.bias is None
@@ -214,9 +215,8 @@ class HamiltonianDecoder(nn.Module):
         tail = (*adapters.stacked(), adapters.mu.weight)
         if not fused_supported(self.f1, self.f2, f, self._kinetic_terms(), head, tail):
             return None
-        v, v_c, v_s, out, force = fused_field(self.f1, self.f2, f, self._kinetic_terms(), head,
-                                              tail)
-        return FieldOutput(v, v_c, v_s), adapters.split(out), force
+        out, force = fused_field(self.f1, self.f2, f, self._kinetic_terms(), head, tail)
+        return None, adapters.split(out), force
 
     def forward(self, h: torch.Tensor) -> FieldOutput:
         if self._fused(h):

@@ -491,6 +491,75 @@ class _Heads(NamedTuple):
             d_force.addmm_(g_force.T, v_c)
 
 
+def _swap(x: torch.Tensor) -> torch.Tensor:
+    """x M^T = (x_p, -x_q) on the last axis (x = (x_q, x_p)): the symplectic map of v_s."""
+    half = x.shape[-1] // 2
+    return torch.cat([x[..., half:], -x[..., :half]], dim=-1)
+
+
+def _unswap(y: torch.Tensor) -> torch.Tensor:
+    """y M = (-y_p, y_q) on the last axis: the transpose of `_swap`."""
+    half = y.shape[-1] // 2
+    return torch.cat([-y[..., half:], y[..., :half]], dim=-1)
+
+
+class _FoldedKinetic(NamedTuple):
+    """The kinetic terms folded into the heads (docs/design.md section 4.4): with both, only the
+    heads read v and v_c, and they read them through linear maps, so
+
+        out = v A^T + a,  v = g1 + h S_1 + (g2 + h S_2) M^T  ->  out = v_net A^T + a + h C A^T
+        force = v_c A_mu'^T, v_c = g1 + h S_1             ->  force = g1 A_mu'^T + h S_1 A_mu'^T
+
+    with C = S_1 + S_2 M^T and v_net, g1 the nets' parts alone. K = [C A^T | S_1 A_mu'^T] is
+    (W, K + 3): one (W x 13) product per row instead of the two (W x W) products S_k h, and the
+    same in the backward (dh += G K^T, dK += h^T G with G = [G_out | G_force]). The same
+    function, fewer multiply-adds; the parameters' gradients follow from dK once per call
+    (`quad_grads`)."""
+
+    s1: torch.Tensor  # (W, W) S_1
+    c: torch.Tensor  # (W, W) S_1 + S_2 M^T
+    k: torch.Tensor  # (W, K + 3)
+    n_out: int  # K
+
+    @staticmethod
+    def of(quads: torch.Tensor, tail: "_Heads") -> "_FoldedKinetic":
+        s1 = quads[0]
+        c = s1 + _swap(quads[1])
+        k = torch.cat([c @ tail.weight.T, s1 @ tail.force_weight.T], dim=1).contiguous()
+        return _FoldedKinetic(s1, c, k, tail.weight.shape[0])
+
+    def forward(self, h: torch.Tensor, out: torch.Tensor, force: torch.Tensor) -> None:
+        """out += h C A^T, force += h S_1 A_mu'^T for a block."""
+        kin = torch.mm(h, self.k)
+        out += kin[:, :self.n_out]
+        force += kin[:, self.n_out:]
+
+    def backward(self, h: torch.Tensor, g_out, g_force, rows, dh, d_k: torch.Tensor) -> None:
+        """A block's dK += h^T G and dh += G K^T (dh as `_backward_rows` gives it: every row,
+        the rows `rows`, or None where no row has a gradient: G K^T is then 0 as well)."""
+        b, dtype = h.shape[0], h.dtype
+        parts = [torch.zeros((b, n), dtype=dtype) if g is None else g
+                 for g, n in ((g_out, self.n_out), (g_force, 3))]
+        g = torch.cat(parts, dim=1)
+        d_k.addmm_(h.T, g)
+        if dh is None:
+            return
+        if rows is not None:
+            g = g.index_select(0, torch.from_numpy(rows))
+        dh.addmm_(g, self.k.T)
+
+    def quad_grads(self, d_k: torch.Tensor, tail: "_Heads", d_tail: list) -> torch.Tensor:
+        """(2, W, W) dL/dS_k (S_k taken as free matrices) from dK, and the kinetic share of the
+        adapters' and the force's weight gradients added to d_tail (dA += dK_out^T C,
+        dA_mu' += dK_f^T S_1)."""
+        dk_out, dk_f = d_k[:, :self.n_out], d_k[:, self.n_out:]
+        d_s1 = dk_out @ tail.weight + dk_f @ tail.force_weight
+        d_s2 = _unswap(dk_out @ tail.weight)
+        d_tail[0] += dk_out.T @ self.c
+        d_tail[2] += dk_f.T @ self.s1
+        return torch.stack([d_s1, d_s2])
+
+
 class FusedInputGradients(torch.autograd.Function):
     """(grad_h F1, grad_h F2), each (N, W), of the two scalar nets given by their parameters
     (module docstring); with `field` the decoder's outputs (v, v_c, v_s) instead (v_c = g1,
@@ -501,7 +570,9 @@ class FusedInputGradients(torch.autograd.Function):
     S_k = (A_k + A_k^T) / 2 (`fused_field`), in the same blocks, so that the kinetic term adds
     no autograd node either; then with `trunk` the trunk's Linear(F, W) weight and bias: x is
     then the trunk's input f (N, F) and h = f W^T + b is computed block by block (`_Trunk`);
-    else x is h (N, W).
+    else x is h (N, W); then with `heads` the stacked adapters' weight and bias and the force's
+    weight (`_Heads`): the result is then (v A^T + a, v_c A_mu'^T) alone, and with `quadratic`
+    the kinetic terms reach them folded into the heads (`_FoldedKinetic`).
 
     Forward and backward run block by block (`BLOCK_ROWS` rows), so that the temporaries of a
     block stay in the cache between the products and the element-wise passes."""
@@ -514,6 +585,7 @@ class FusedInputGradients(torch.autograd.Function):
         head = _Trunk(*[p.detach() for p in before_tail[-2:]]) if trunk else None
         params_nets = before_tail[:-2] if trunk else before_tail
         quads = _kinetic(params_nets[-2:]) if quadratic else None
+        fold = None if quads is None or tail is None else _FoldedKinetic.of(quads, tail)
         nets = _Nets.stack(params_nets[:-2] if quadratic else params_nets, kind)
         xd = x.detach().contiguous()
         n = xd.shape[0]
@@ -530,28 +602,30 @@ class FusedInputGradients(torch.autograd.Function):
             if head is not None:
                 head.forward(xd[lo:hi], hd[lo:hi])
             saved.append(_forward_block(nets, hd[lo:hi], g[:, lo:hi]))
-            if quads is not None:  # g_k += S_k h (S_k symmetric: h S_k, row by row)
+            if quads is not None and fold is None:  # g_k += S_k h (S_k symmetric: h S_k)
                 g[:, lo:hi].baddbmm_(hd[lo:hi].expand(2, hi - lo, width), quads)
             if field:
                 _field_rows(_np(g[:, lo:hi]), _np(v[lo:hi]), _np(v_s[lo:hi]), _chunks(hi - lo))
             if tail is not None:
                 tail.forward(v[lo:hi], g[0, lo:hi], out[lo:hi], force[lo:hi])
+            if fold is not None:
+                fold.forward(hd[lo:hi], out[lo:hi], force[lo:hi])
         if keep:
             ctx.save_for_backward(x, *params)
-            ctx.kept = (nets, saved, field, quads, head, xd, tail, (v, g[0]) if tail else None)
-        if tail is not None:  # v, v_c, v_s for inspection only: no gradient flows back from them
-            ctx.mark_non_differentiable(v, g[0], v_s)
-            return v, g[0], v_s, out, force
+            ctx.kept = (nets, saved, field, quads, head, xd, tail, (v, g[0]) if tail else None,
+                        fold)
+        if tail is not None:  # v, v_c of the nets alone with `fold`: not returned
+            return out, force
         return (v, g[0], v_s) if field else (g[0], g[1])
 
     @staticmethod
     @once_differentiable
     def backward(ctx, *upstream):
         ctx.saved_tensors  # raises if x or a parameter was modified in place since the forward
-        nets, saved, field, quads, head, xd, tail, tail_inputs = ctx.kept
+        nets, saved, field, quads, head, xd, tail, tail_inputs, fold = ctx.kept
         n, width, dtype = xd.shape[0], nets.weights[0].shape[2], xd.dtype
         if tail is not None:  # the adapters' and the force's upstream gradients (None: zero)
-            g_out, g_force = [None if u is None else u.contiguous() for u in upstream[3:]]
+            g_out, g_force = [None if u is None else u.contiguous() for u in upstream]
             d_tail = [torch.zeros_like(p) for p in tail]
             upstream = [torch.empty((min(n, BLOCK_ROWS), width), dtype=dtype) for _ in range(2)]
             upstream.append(torch.zeros((min(n, BLOCK_ROWS), width), dtype=dtype))
@@ -560,7 +634,8 @@ class FusedInputGradients(torch.autograd.Function):
                         for u in upstream]
         grad_x = torch.empty(xd.shape, dtype=dtype)
         dh_all = torch.empty((min(n, BLOCK_ROWS), width), dtype=dtype) if head else None
-        d_quads = None if quads is None else torch.zeros_like(quads)
+        d_quads = None if quads is None or fold is not None else torch.zeros_like(quads)
+        d_k = None if fold is None else torch.zeros_like(fold.k)
         d_weights = [torch.zeros_like(w) for w in nets.weights]
         d_biases = np.zeros((nets.depth, *nets.w_out.shape), dtype=nets.w_out.dtype)
         d_w_out = np.zeros_like(nets.w_out)
@@ -581,8 +656,11 @@ class FusedInputGradients(torch.autograd.Function):
             else:
                 grads = torch.stack([u[lo:hi] for u in upstream])
             out_all = grad_x[lo:hi] if head is None else dh_all[:hi - lo]
-            rows, dh = _backward_rows(nets, block, grads, quads, out_all, d_weights, d_biases,
-                                      d_w_out, d_quads)
+            rows, dh = _backward_rows(nets, block, grads, quads if fold is None else None, out_all,
+                                      d_weights, d_biases, d_w_out, d_quads)
+            if fold is not None:
+                fold.backward(block.acts[0], None if g_out is None else g_out[lo:hi],
+                              None if g_force is None else g_force[lo:hi], rows, dh, d_k)
             if head is None:
                 _place(grad_x[lo:hi], rows, dh)
             else:
@@ -592,6 +670,8 @@ class FusedInputGradients(torch.autograd.Function):
             for k in range(nets.depth):
                 net_grads += [d_weights[k][i], torch.from_numpy(d_biases[k, i].copy())]
             net_grads.append(torch.from_numpy(d_w_out[i].copy()).reshape(1, -1))
+        if fold is not None:
+            d_quads = fold.quad_grads(d_k, tail, d_tail)
         if quads is not None:  # S = (A + A^T) / 2: dL/dA = (dS + dS^T) / 2
             net_grads += list(0.5 * (d_quads + d_quads.transpose(1, 2)))
         if head is not None:
@@ -651,8 +731,9 @@ def fused_field(f1, f2, h: torch.Tensor, quads=None, trunk=None, heads=None) -> 
     of the decoder, or None: with it `h` is that Linear's input f (N, F), and the Linear runs
     inside the Function (its backward on the rows with a gradient only). `heads` = (A (K, W),
     a (K,), A_mu' (3, W)), the stacked adapters and the Verlet force's weight, or None: with
-    them the result is (v, v_c, v_s, v A^T + a, v_c A_mu'^T), the first three without a
-    gradient (`_Heads`). Check `fused_supported` first."""
+    them the result is (v A^T + a, v_c A_mu'^T) alone (`_Heads`; v, v_c and v_s are not
+    formed, the kinetic terms being folded into the heads, `_FoldedKinetic`). Check
+    `fused_supported` first."""
     return _apply(f1, f2, h, field=True, quads=quads, trunk=trunk, heads=heads)
 
 
