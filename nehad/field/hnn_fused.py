@@ -38,6 +38,8 @@ blocks: h = f W_t^T + b_t before the nets, and after them df = dh W_t, dW_t += d
 the row sums of dh, on the rows with a gradient only (below). With its `heads` the stacked
 adapters and the Verlet force behind the decoder run there too: out = v A^T + a and force = v_c
 A_mu'^T per block, and dL/dv = G_out A, dL/dv_c = G_force A_mu' start the block's backward.
+With the heads and the kinetic term both, the kinetic term goes straight into the heads
+(`_FoldedKinetic`): they are linear in v and v_c, so S_k h need not be formed per Gaussian.
 
 The backward leaves out the rows whose upstream gradient is zero (a Gaussian that no pixel of the
 view sees): every term above is linear in G, so such a row adds zeros to every gradient. The
@@ -511,10 +513,10 @@ class _FoldedKinetic(NamedTuple):
         force = v_c A_mu'^T, v_c = g1 + h S_1             ->  force = g1 A_mu'^T + h S_1 A_mu'^T
 
     with C = S_1 + S_2 M^T and v_net, g1 the nets' parts alone. K = [C A^T | S_1 A_mu'^T] is
-    (W, K + 3): one (W x 13) product per row instead of the two (W x W) products S_k h, and the
-    same in the backward (dh += G K^T, dK += h^T G with G = [G_out | G_force]). The same
-    function, fewer multiply-adds; the parameters' gradients follow from dK once per call
-    (`quad_grads`)."""
+    (W, K + 3), 13 columns for the position, scale and rotation adapters: one such product per
+    row instead of the two (W x W) products S_k h, and the same in the backward (dh += G K^T,
+    dK += h^T G with G = [G_out | G_force]). The same function, fewer multiply-adds; the
+    parameters' gradients follow from dK once per call (`quad_grads`)."""
 
     s1: torch.Tensor  # (W, W) S_1
     c: torch.Tensor  # (W, W) S_1 + S_2 M^T
