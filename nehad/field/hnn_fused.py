@@ -38,8 +38,8 @@ blocks: h = f W_t^T + b_t before the nets, and after them df = dh W_t, dW_t += d
 the row sums of dh, on the rows with a gradient only (below). With its `heads` the stacked
 adapters and the Verlet force behind the decoder run there too: out = v A^T + a and force = v_c
 A_mu'^T per block, and dL/dv = G_out A, dL/dv_c = G_force A_mu' start the block's backward.
-With the heads and the kinetic term both, the kinetic term goes straight into the heads
-(`_FoldedKinetic`): they are linear in v and v_c, so S_k h need not be formed per Gaussian.
+The heads are linear in v and v_c, so they read g1, g2 (and, with the kinetic term, h)
+straight: v, v_s and S_k h are then not formed per Gaussian (`_Heads`).
 
 The backward leaves out the rows whose upstream gradient is zero (a Gaussian that no pixel of the
 view sees): every term above is linear in G, so such a row adds zeros to every gradient. The
@@ -54,7 +54,7 @@ needs one; `hnn_grad="closed_form"` is the differentiable-twice reference.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import NamedTuple, Optional
 
 import numba
 import numpy as np
@@ -463,36 +463,6 @@ def _blocks(n: int):
     return [(lo, min(n, lo + BLOCK_ROWS)) for lo in range(0, n, BLOCK_ROWS)]
 
 
-class _Heads(NamedTuple):
-    """The adapters and the Verlet force fused behind the decoder (`fused_field`'s `heads`):
-    out = v A^T + a (the stacked adapters, (K, W) and (K,)) and force = v_c A_mu'^T ((3, W), no
-    bias), per block while v and v_c are in the cache."""
-
-    weight: torch.Tensor  # (K, W)
-    bias: torch.Tensor  # (K,)
-    force_weight: torch.Tensor  # (3, W)
-
-    def forward(self, v, v_c, out, force) -> None:
-        torch.addmm(self.bias, v, self.weight.T, out=out)
-        torch.mm(v_c, self.force_weight.T, out=force)
-
-    def backward(self, v, v_c, g_out, g_force, grad_v, grad_c, d_weight, d_bias,
-                 d_force) -> None:
-        """dL/dv = G_out A and dL/dv_c = G_force A_mu' (into grad_v, grad_c) and the weights'
-        gradients of a block, from the upstream gradients of out and force (None: zero)."""
-        if g_out is None:
-            grad_v.zero_()
-        else:
-            torch.mm(g_out, self.weight, out=grad_v)
-            d_weight.addmm_(g_out.T, v)
-            d_bias += g_out.sum(dim=0)
-        if g_force is None:
-            grad_c.zero_()
-        else:
-            torch.mm(g_force, self.force_weight, out=grad_c)
-            d_force.addmm_(g_force.T, v_c)
-
-
 def _swap(x: torch.Tensor) -> torch.Tensor:
     """x M^T = (x_p, -x_q) on the last axis (x = (x_q, x_p)): the symplectic map of v_s."""
     half = x.shape[-1] // 2
@@ -505,61 +475,103 @@ def _unswap(y: torch.Tensor) -> torch.Tensor:
     return torch.cat([-y[..., half:], y[..., :half]], dim=-1)
 
 
-class _FoldedKinetic(NamedTuple):
-    """The kinetic terms folded into the heads (docs/design.md section 4.4): with both, only the
-    heads read v and v_c, and they read them through linear maps, so
+class _Heads(NamedTuple):
+    """The adapters and the Verlet force fused behind the decoder (`fused_field`'s `heads`):
+    out = v A^T + a (the stacked adapters, (K, W) and (K,)) and force = v_c A_mu'^T ((3, W), no
+    bias). Both are linear in v and v_c, so they are read straight from the nets' g1, g2 and,
+    with the kinetic terms, from h (docs/design.md section 4.4):
 
-        out = v A^T + a,  v = g1 + h S_1 + (g2 + h S_2) M^T  ->  out = v_net A^T + a + h C A^T
-        force = v_c A_mu'^T, v_c = g1 + h S_1             ->  force = g1 A_mu'^T + h S_1 A_mu'^T
+        v = g1 + h S_1 + (g2 + h S_2) M^T,  v_c = g1 + h S_1
+        [out - a | force] = g1 P0 + [g2 P1 | 0] + h K
 
-    with C = S_1 + S_2 M^T and v_net, g1 the nets' parts alone. K = [C A^T | S_1 A_mu'^T] is
-    (W, K + 3), 13 columns for the position, scale and rotation adapters: one such product per
-    row instead of the two (W x W) products S_k h, and the same in the backward (dh += G K^T,
-    dK += h^T G with G = [G_out | G_force]). The same function, fewer multiply-adds; the
-    parameters' gradients follow from dK once per call (`quad_grads`)."""
+    with P0 = [A^T | A_mu'^T] (W, K + 3), P1 = M^T A^T (W, K), K = [C A^T | S_1 A_mu'^T] and
+    C = S_1 + S_2 M^T. Neither v, v_c nor S_k h is formed per Gaussian: three products of
+    13 (or 10) columns a row, where v, v_s and the two (W x W) products S_k h took two
+    element-wise passes and 2 W^2 multiply-adds. Backward: dL/dg1 = G P0^T, dL/dg2 = G_out P1^T,
+    dh += G K^T (G = [G_out | G_force]), and the weights' gradients from dP0 = g1^T G,
+    dP1 = g2^T G_out and dK = h^T G, summed over the blocks, once per call (`weight_grads`)."""
 
-    s1: torch.Tensor  # (W, W) S_1
-    c: torch.Tensor  # (W, W) S_1 + S_2 M^T
-    k: torch.Tensor  # (W, K + 3)
-    n_out: int  # K
+    weight: torch.Tensor  # A (K, W)
+    bias: torch.Tensor  # a (K,)
+    force_weight: torch.Tensor  # A_mu' (3, W)
+    p0: torch.Tensor  # (W, K + 3)
+    p1: torch.Tensor  # (W, K)
+    s1: Optional[torch.Tensor]  # (W, W) S_1, or None without the kinetic terms
+    c: Optional[torch.Tensor]  # (W, W) C
+    k: Optional[torch.Tensor]  # (W, K + 3) K
 
     @staticmethod
-    def of(quads: torch.Tensor, tail: "_Heads") -> "_FoldedKinetic":
-        s1 = quads[0]
-        c = s1 + _swap(quads[1])
-        k = torch.cat([c @ tail.weight.T, s1 @ tail.force_weight.T], dim=1).contiguous()
-        return _FoldedKinetic(s1, c, k, tail.weight.shape[0])
+    def of(weight, bias, force_weight, quads) -> "_Heads":
+        """From A, a, A_mu' and the kinetic terms' (2, W, W) S_k (or None)."""
+        p0 = torch.cat([weight.T, force_weight.T], dim=1).contiguous()
+        p1 = _unswap(weight).T.contiguous()
+        s1 = c = k = None
+        if quads is not None:
+            s1 = quads[0]
+            c = s1 + _swap(quads[1])
+            k = torch.cat([c @ weight.T, s1 @ force_weight.T], dim=1).contiguous()
+        return _Heads(weight, bias, force_weight, p0, p1, s1, c, k)
 
-    def forward(self, h: torch.Tensor, out: torch.Tensor, force: torch.Tensor) -> None:
-        """out += h C A^T, force += h S_1 A_mu'^T for a block."""
-        kin = torch.mm(h, self.k)
-        out += kin[:, :self.n_out]
-        force += kin[:, self.n_out:]
+    @property
+    def n_out(self) -> int:
+        return self.weight.shape[0]
 
-    def backward(self, h: torch.Tensor, g_out, g_force, rows, dh, d_k: torch.Tensor) -> None:
-        """A block's dK += h^T G and dh += G K^T (dh as `_backward_rows` gives it: every row,
-        the rows `rows`, or None where no row has a gradient: G K^T is then 0 as well)."""
+    def forward(self, g: torch.Tensor, h: torch.Tensor, both: torch.Tensor) -> None:
+        """both (b, K + 3) = [out - a | force] of a block from its g = (g1, g2) and h."""
+        torch.mm(g[0], self.p0, out=both)
+        both[:, :self.n_out].addmm_(g[1], self.p1)
+        if self.k is not None:
+            both.addmm_(h, self.k)
+
+    def backward(self, g: torch.Tensor, h: torch.Tensor, g_out, g_force, grads: torch.Tensor,
+                 sums: list) -> torch.Tensor:
+        """grads (2, b, W) = (dL/dg1, dL/dg2) of a block from the upstream gradients of out and
+        force (None: zero), and its share of dP0, dP1, dK, da added to `sums`. Returns G."""
         b, dtype = h.shape[0], h.dtype
-        parts = [torch.zeros((b, n), dtype=dtype) if g is None else g
-                 for g, n in ((g_out, self.n_out), (g_force, 3))]
-        g = torch.cat(parts, dim=1)
-        d_k.addmm_(h.T, g)
-        if dh is None:
+        g_out = torch.zeros((b, self.n_out), dtype=dtype) if g_out is None else g_out
+        g_force = torch.zeros((b, 3), dtype=dtype) if g_force is None else g_force
+        both = torch.cat([g_out, g_force], dim=1)
+        torch.mm(both, self.p0.T, out=grads[0])
+        torch.mm(g_out, self.p1.T, out=grads[1])
+        d_p0, d_p1, d_k, d_bias = sums
+        d_p0.addmm_(g[0].T, both)
+        d_p1.addmm_(g[1].T, g_out)
+        if d_k is not None:
+            d_k.addmm_(h.T, both)
+        d_bias += g_out.sum(dim=0)
+        return both
+
+    def add_dh(self, both: torch.Tensor, rows, dh) -> None:
+        """dh += G K^T (dh as `_backward_rows` gives it: every row, the rows `rows`, or None
+        where no row has a gradient: G K^T is then 0 as well)."""
+        if self.k is None or dh is None:
             return
         if rows is not None:
-            g = g.index_select(0, torch.from_numpy(rows))
-        dh.addmm_(g, self.k.T)
+            both = both.index_select(0, torch.from_numpy(rows))
+        dh.addmm_(both, self.k.T)
 
-    def quad_grads(self, d_k: torch.Tensor, tail: "_Heads", d_tail: list) -> torch.Tensor:
-        """(2, W, W) dL/dS_k (S_k taken as free matrices) from dK, and the kinetic share of the
-        adapters' and the force's weight gradients added to d_tail (dA += dK_out^T C,
-        dA_mu' += dK_f^T S_1)."""
-        dk_out, dk_f = d_k[:, :self.n_out], d_k[:, self.n_out:]
-        d_s1 = dk_out @ tail.weight + dk_f @ tail.force_weight
-        d_s2 = _unswap(dk_out @ tail.weight)
-        d_tail[0] += dk_out.T @ self.c
-        d_tail[2] += dk_f.T @ self.s1
-        return torch.stack([d_s1, d_s2])
+    def zero_sums(self) -> list:
+        """The accumulators of `backward`: dP0, dP1, dK (None without it), da."""
+        return [torch.zeros_like(self.p0), torch.zeros_like(self.p1),
+                None if self.k is None else torch.zeros_like(self.k),
+                torch.zeros_like(self.bias)]
+
+    def weight_grads(self, sums: list):
+        """(dA, da, dA_mu', dS) from the summed dP0, dP1, dK: dA = dP0_out^T + dP1^T M^T
+        + dK_out^T C, dA_mu' = dP0_f^T + dK_f^T S_1, and dS_k (S_k taken as free matrices:
+        dS_1 = dK_out A + dK_f A_mu', dS_2 = dK_out A M), or None without the kinetic terms."""
+        d_p0, d_p1, d_k, d_bias = sums
+        n = self.n_out
+        d_a = d_p0[:, :n].T + _swap(d_p1.T)
+        d_f = d_p0[:, n:].T.contiguous()
+        d_s = None
+        if d_k is not None:
+            dk_out, dk_f = d_k[:, :n], d_k[:, n:]
+            d_a = d_a + dk_out.T @ self.c
+            d_f = d_f + dk_f.T @ self.s1
+            d_s = torch.stack([dk_out @ self.weight + dk_f @ self.force_weight,
+                               _unswap(dk_out @ self.weight)])
+        return d_a, d_bias, d_f, d_s
 
 
 class FusedInputGradients(torch.autograd.Function):
@@ -573,8 +585,8 @@ class FusedInputGradients(torch.autograd.Function):
     no autograd node either; then with `trunk` the trunk's Linear(F, W) weight and bias: x is
     then the trunk's input f (N, F) and h = f W^T + b is computed block by block (`_Trunk`);
     else x is h (N, W); then with `heads` the stacked adapters' weight and bias and the force's
-    weight (`_Heads`): the result is then (v A^T + a, v_c A_mu'^T) alone, and with `quadratic`
-    the kinetic terms reach them folded into the heads (`_FoldedKinetic`).
+    weight (`_Heads`): the result is then (v A^T + a, v_c A_mu'^T) alone, read from g1, g2
+    (and h for the kinetic terms) without forming v.
 
     Forward and backward run block by block (`BLOCK_ROWS` rows), so that the temporaries of a
     block stay in the cache between the products and the element-wise passes."""
@@ -582,87 +594,76 @@ class FusedInputGradients(torch.autograd.Function):
     @staticmethod
     def forward(ctx, x, kind, keep, field, quadratic, trunk, heads, *params):
         ctx.set_materialize_grads(False)
-        tail = _Heads(*[p.detach() for p in params[-3:]]) if heads else None
         before_tail = params[:-3] if heads else params
         head = _Trunk(*[p.detach() for p in before_tail[-2:]]) if trunk else None
         params_nets = before_tail[:-2] if trunk else before_tail
         quads = _kinetic(params_nets[-2:]) if quadratic else None
-        fold = None if quads is None or tail is None else _FoldedKinetic.of(quads, tail)
+        tail = _Heads.of(*[p.detach() for p in params[-3:]], quads) if heads else None
         nets = _Nets.stack(params_nets[:-2] if quadratic else params_nets, kind)
         xd = x.detach().contiguous()
         n = xd.shape[0]
         width = nets.weights[0].shape[2]
         hd = xd if head is None else torch.empty((n, width), dtype=xd.dtype)
         g = torch.empty((2, n, width), dtype=xd.dtype)
-        if field:
+        if field and tail is None:
             v, v_s = torch.empty((n, width), dtype=xd.dtype), torch.empty((n, width), dtype=xd.dtype)
-        if tail is not None:
-            out = torch.empty((n, tail.weight.shape[0]), dtype=xd.dtype)
-            force = torch.empty((n, 3), dtype=xd.dtype)
+        if tail is not None:  # [out - a | force]
+            both = torch.empty((n, tail.n_out + 3), dtype=xd.dtype)
         saved = []
         for lo, hi in _blocks(n):
             if head is not None:
                 head.forward(xd[lo:hi], hd[lo:hi])
             saved.append(_forward_block(nets, hd[lo:hi], g[:, lo:hi]))
-            if quads is not None and fold is None:  # g_k += S_k h (S_k symmetric: h S_k)
+            if tail is not None:
+                tail.forward(g[:, lo:hi], hd[lo:hi], both[lo:hi])
+                continue
+            if quads is not None:  # g_k += S_k h (S_k symmetric: h S_k)
                 g[:, lo:hi].baddbmm_(hd[lo:hi].expand(2, hi - lo, width), quads)
             if field:
                 _field_rows(_np(g[:, lo:hi]), _np(v[lo:hi]), _np(v_s[lo:hi]), _chunks(hi - lo))
-            if tail is not None:
-                tail.forward(v[lo:hi], g[0, lo:hi], out[lo:hi], force[lo:hi])
-            if fold is not None:
-                fold.forward(hd[lo:hi], out[lo:hi], force[lo:hi])
         if keep:
             ctx.save_for_backward(x, *params)
-            ctx.kept = (nets, saved, field, quads, head, xd, tail, (v, g[0]) if tail else None,
-                        fold)
-        if tail is not None:  # v, v_c of the nets alone with `fold`: not returned
-            return out, force
+            ctx.kept = (nets, saved, field, quads, head, xd, tail, g if tail else None)
+        if tail is not None:
+            return both[:, :tail.n_out] + tail.bias, both[:, tail.n_out:]
         return (v, g[0], v_s) if field else (g[0], g[1])
 
     @staticmethod
     @once_differentiable
     def backward(ctx, *upstream):
         ctx.saved_tensors  # raises if x or a parameter was modified in place since the forward
-        nets, saved, field, quads, head, xd, tail, tail_inputs, fold = ctx.kept
+        nets, saved, field, quads, head, xd, tail, g_all = ctx.kept
         n, width, dtype = xd.shape[0], nets.weights[0].shape[2], xd.dtype
         if tail is not None:  # the adapters' and the force's upstream gradients (None: zero)
             g_out, g_force = [None if u is None else u.contiguous() for u in upstream]
-            d_tail = [torch.zeros_like(p) for p in tail]
-            upstream = [torch.empty((min(n, BLOCK_ROWS), width), dtype=dtype) for _ in range(2)]
-            upstream.append(torch.zeros((min(n, BLOCK_ROWS), width), dtype=dtype))
+            sums = tail.zero_sums()
         else:  # an output nobody used has no gradient: zeros, as autograd would give
             upstream = [torch.zeros((n, width), dtype=dtype) if u is None else u.contiguous()
                         for u in upstream]
         grad_x = torch.empty(xd.shape, dtype=dtype)
         dh_all = torch.empty((min(n, BLOCK_ROWS), width), dtype=dtype) if head else None
-        d_quads = None if quads is None or fold is not None else torch.zeros_like(quads)
-        d_k = None if fold is None else torch.zeros_like(fold.k)
+        d_quads = None if quads is None or tail is not None else torch.zeros_like(quads)
         d_weights = [torch.zeros_like(w) for w in nets.weights]
         d_biases = np.zeros((nets.depth, *nets.w_out.shape), dtype=nets.w_out.dtype)
         d_w_out = np.zeros_like(nets.w_out)
         if head is not None:
             d_head = (torch.zeros_like(head.weight), torch.zeros_like(head.bias))
         for (lo, hi), block in zip(_blocks(n), saved):
-            if tail is not None:  # dL/dv, dL/dv_c of the block (dL/dv_s = 0), in place of upstream
-                b = hi - lo
-                tail.backward(tail_inputs[0][lo:hi], tail_inputs[1][lo:hi],
-                              None if g_out is None else g_out[lo:hi],
-                              None if g_force is None else g_force[lo:hi],
-                              upstream[0][:b], upstream[1][:b], *d_tail)
-                grads = torch.empty((2, b, width), dtype=dtype)
-                _field_grads(*[_np(u[:b]) for u in upstream], _np(grads), _chunks(b))
+            if tail is not None:  # (dL/dg1, dL/dg2) of the block straight from the heads
+                grads = torch.empty((2, hi - lo, width), dtype=dtype)
+                both = tail.backward(g_all[:, lo:hi], block.acts[0],
+                                     None if g_out is None else g_out[lo:hi],
+                                     None if g_force is None else g_force[lo:hi], grads, sums)
             elif field:
                 grads = torch.empty((2, hi - lo, width), dtype=dtype)
                 _field_grads(*[_np(u[lo:hi]) for u in upstream], _np(grads), _chunks(hi - lo))
             else:
                 grads = torch.stack([u[lo:hi] for u in upstream])
             out_all = grad_x[lo:hi] if head is None else dh_all[:hi - lo]
-            rows, dh = _backward_rows(nets, block, grads, quads if fold is None else None, out_all,
-                                      d_weights, d_biases, d_w_out, d_quads)
-            if fold is not None:
-                fold.backward(block.acts[0], None if g_out is None else g_out[lo:hi],
-                              None if g_force is None else g_force[lo:hi], rows, dh, d_k)
+            rows, dh = _backward_rows(nets, block, grads, quads if tail is None else None,
+                                      out_all, d_weights, d_biases, d_w_out, d_quads)
+            if tail is not None:
+                tail.add_dh(both, rows, dh)
             if head is None:
                 _place(grad_x[lo:hi], rows, dh)
             else:
@@ -672,14 +673,14 @@ class FusedInputGradients(torch.autograd.Function):
             for k in range(nets.depth):
                 net_grads += [d_weights[k][i], torch.from_numpy(d_biases[k, i].copy())]
             net_grads.append(torch.from_numpy(d_w_out[i].copy()).reshape(1, -1))
-        if fold is not None:
-            d_quads = fold.quad_grads(d_k, tail, d_tail)
+        if tail is not None:
+            d_a, d_bias, d_force, d_quads = tail.weight_grads(sums)
         if quads is not None:  # S = (A + A^T) / 2: dL/dA = (dS + dS^T) / 2
             net_grads += list(0.5 * (d_quads + d_quads.transpose(1, 2)))
         if head is not None:
             net_grads += list(d_head)
         if tail is not None:
-            net_grads += d_tail
+            net_grads += [d_a, d_bias, d_force]
         return (grad_x, None, None, None, None, None, None, *net_grads)
 
 
@@ -733,9 +734,8 @@ def fused_field(f1, f2, h: torch.Tensor, quads=None, trunk=None, heads=None) -> 
     of the decoder, or None: with it `h` is that Linear's input f (N, F), and the Linear runs
     inside the Function (its backward on the rows with a gradient only). `heads` = (A (K, W),
     a (K,), A_mu' (3, W)), the stacked adapters and the Verlet force's weight, or None: with
-    them the result is (v A^T + a, v_c A_mu'^T) alone (`_Heads`; v, v_c and v_s are not
-    formed, the kinetic terms being folded into the heads, `_FoldedKinetic`). Check
-    `fused_supported` first."""
+    them the result is (v A^T + a, v_c A_mu'^T) alone (`_Heads`: read from g1, g2 and h, v, v_c
+    and v_s are not formed). Check `fused_supported` first."""
     return _apply(f1, f2, h, field=True, quads=quads, trunk=trunk, heads=heads)
 
 
