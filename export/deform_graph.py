@@ -47,6 +47,7 @@ from nehad.field.bed import position_mask, scale_mask
 from nehad.field.hexplane import (PLANE_AXES, SPACE_PLANES, TIME_PLANES, bilinear_gather,
                                   normalize_aabb)
 from nehad.field.hnn import HamiltonianDecoder, activation_with_derivative
+from nehad.field.hnn_fused import symplectic_transpose
 from nehad.field.rigidity import clamp_rotation_delta, quat_multiply, safe_normalize
 
 # ---------------------------------------------------------------------------- hex-plane (4.1)
@@ -263,9 +264,9 @@ def quadratic_map(decoder, trunk_last: nn.Linear, q_c: torch.Tensor,
 
 
 def symplectic_rows(q: torch.Tensor) -> torch.Tensor:
-    """J Q for v_s = g M^T = g J (`symplectic`): v_s Q = g (J Q), J Q = (-Q[d:], Q[:d])."""
-    d = q.shape[0] // 2
-    return torch.cat([-q[d:], q[:d]], 0)
+    """J Q for v_s = g M^T = g J (`symplectic`): v_s Q = g (J Q), J Q = (-Q[d:], Q[:d]),
+    i.e. (Q^T M)^T (`symplectic_transpose` of Q's columns)."""
+    return symplectic_transpose(q.t()).t()
 
 
 class ClosedFormNet(nn.Module):

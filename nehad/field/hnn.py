@@ -26,7 +26,8 @@ from torch import nn
 
 from nehad.field._trace import is_capturing
 from nehad.field.config import SMOOTH_ACTIVATIONS
-from nehad.field.hnn_fused import fused_field, fused_input_gradients, fused_supported
+from nehad.field.hnn_fused import (fused_field, fused_input_gradients, fused_supported,
+                                   symplectic)
 
 
 # log1p(e) on [0, 1] to 5.4e-4 as e (c1 + e (c2 + e c3)), fitted by weighted least squares
@@ -118,12 +119,6 @@ def scalar_net_input_grad(net: ScalarNet, h: torch.Tensor) -> torch.Tensor:
     for k in range(len(derivs) - 1, 0, -1):
         delta = derivs[k - 1] * (delta @ net.hidden_layers[k].weight)
     return delta @ net.hidden_layers[0].weight
-
-
-def symplectic(g: torch.Tensor) -> torch.Tensor:
-    """g M^T = (g_p, -g_q) for g = (g_q, g_p), M = [[0, I], [-I, 0]] (paper Eq. (field))."""
-    d = g.shape[-1] // 2
-    return torch.cat([g[..., d:], -g[..., :d]], dim=-1)
 
 
 class FieldOutput(NamedTuple):

@@ -463,16 +463,18 @@ def _blocks(n: int):
     return [(lo, min(n, lo + BLOCK_ROWS)) for lo in range(0, n, BLOCK_ROWS)]
 
 
-def _swap(x: torch.Tensor) -> torch.Tensor:
-    """x M^T = (x_p, -x_q) on the last axis (x = (x_q, x_p)): the symplectic map of v_s."""
-    half = x.shape[-1] // 2
-    return torch.cat([x[..., half:], -x[..., :half]], dim=-1)
+def symplectic(g: torch.Tensor) -> torch.Tensor:
+    """g M^T = (g_p, -g_q) for g = (g_q, g_p) on the last axis, M = [[0, I], [-I, 0]] (paper
+    Eq. (field): v_s = g2 M^T)."""
+    d = g.shape[-1] // 2
+    return torch.cat([g[..., d:], -g[..., :d]], dim=-1)
 
 
-def _unswap(y: torch.Tensor) -> torch.Tensor:
-    """y M = (-y_p, y_q) on the last axis: the transpose of `_swap`."""
-    half = y.shape[-1] // 2
-    return torch.cat([-y[..., half:], y[..., :half]], dim=-1)
+def symplectic_transpose(y: torch.Tensor) -> torch.Tensor:
+    """y M = (-y_p, y_q) on the last axis: the transpose of `symplectic` (the gradient of
+    v_s = g M^T is G M)."""
+    d = y.shape[-1] // 2
+    return torch.cat([-y[..., d:], y[..., :d]], dim=-1)
 
 
 class _Heads(NamedTuple):
@@ -504,11 +506,11 @@ class _Heads(NamedTuple):
     def of(weight, bias, force_weight, quads) -> "_Heads":
         """From A, a, A_mu' and the kinetic terms' (2, W, W) S_k (or None)."""
         p0 = torch.cat([weight.T, force_weight.T], dim=1).contiguous()
-        p1 = _unswap(weight).T.contiguous()
+        p1 = symplectic_transpose(weight).T.contiguous()
         s1 = c = k = None
         if quads is not None:
             s1 = quads[0]
-            c = s1 + _swap(quads[1])
+            c = s1 + symplectic(quads[1])
             k = torch.cat([c @ weight.T, s1 @ force_weight.T], dim=1).contiguous()
         return _Heads(weight, bias, force_weight, p0, p1, s1, c, k)
 
@@ -562,7 +564,7 @@ class _Heads(NamedTuple):
         dS_1 = dK_out A + dK_f A_mu', dS_2 = dK_out A M), or None without the kinetic terms."""
         d_p0, d_p1, d_k, d_bias = sums
         n = self.n_out
-        d_a = d_p0[:, :n].T + _swap(d_p1.T)
+        d_a = d_p0[:, :n].T + symplectic(d_p1.T)
         d_f = d_p0[:, n:].T.contiguous()
         d_s = None
         if d_k is not None:
@@ -570,7 +572,7 @@ class _Heads(NamedTuple):
             d_a = d_a + dk_out.T @ self.c
             d_f = d_f + dk_f.T @ self.s1
             d_s = torch.stack([dk_out @ self.weight + dk_f @ self.force_weight,
-                               _unswap(dk_out @ self.weight)])
+                               symplectic_transpose(dk_out @ self.weight)])
         return d_a, d_bias, d_f, d_s
 
 
@@ -740,4 +742,5 @@ def fused_field(f1, f2, h: torch.Tensor, quads=None, trunk=None, heads=None) -> 
 
 
 __all__ = ["ACTIVATION_CODES", "BLOCK_ROWS", "FusedInputGradients", "fused_field",
-           "fused_input_gradients", "fused_supported", "net_parameters"]
+           "fused_input_gradients", "fused_supported", "net_parameters", "symplectic",
+           "symplectic_transpose"]
