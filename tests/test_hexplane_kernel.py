@@ -68,7 +68,7 @@ LAYOUTS = [torch.contiguous_format, torch.channels_last]
 
 
 @pytest.mark.parametrize("layout", LAYOUTS)
-@pytest.mark.parametrize("shape", [(1, 8, 6, 5), (1, 32, 64, 64), (1, 3, 2, 9)])
+@pytest.mark.parametrize("shape", [(1, 8, 6, 5), (1, 32, 64, 64), (1, 3, 2, 9), (1, 4, 3, 2)])
 def test_plane_tv_and_gradient_match_autograd(shape, layout):
     """The Numba total variation (nehad.field.hexplane_kernel.plane_tv) against the torch
     function (_tv) and its autograd gradient in float64, scaled by an upstream gradient."""

@@ -34,6 +34,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 import torch
+from torch.autograd.function import once_differentiable
 
 _ONE = np.float32(1.0)
 _ZERO = np.float32(0.0)
@@ -259,18 +260,26 @@ def _tv_row(p, row, width, height, lag, wh, ww, grad):
     (H, W, C) of a channel-last plane: a row is y, neighbours along W are `lag` = C floats
     apart; or the flat (C, H, W): a row is (c, y), `lag` = 1): the sum of dH^2 between the row
     and the next, the sum of its dW^2, and its gradient entries (weights wh = 4 / n_H, ww =
-    4 / n_W). The loops run over views of single rows without a branch inside, so that they
-    vectorise (indexed through the whole arrays, they did not: 17 ns an element)."""
+    4 / n_W). The loops run over views of single rows, shifted views where they pair
+    neighbours, and index them with the loop counter alone, so that they vectorise: indexed
+    through the whole arrays they took 17 ns an element; with v[x - lag] in the loop, whose
+    index Numba must check for wrap-around, 1 ns; as now, about 0.1 ns (docs/performance.md)."""
     y = row % height
     base = row * width
     v = p[base:base + width]
     g = grad[base:base + width]
     sum_w = 0.0
-    for x in range(width - lag):
-        d = v[x + lag] - v[x]
+    pairs = max(width - lag, 0)
+    ahead, behind = v[lag:lag + pairs], v[:pairs]
+    for x in range(pairs):
+        d = ahead[x] - behind[x]
         sum_w += d * d
-    for x in range(lag, width - lag):
-        g[x] = ww * (np.float32(2.0) * v[x] - v[x - lag] - v[x + lag])
+    # the inner second differences through three shifted views (docstring)
+    inner = max(width - 2 * lag, 0)
+    centre, left, right = v[lag:lag + inner], v[:inner], v[2 * lag:2 * lag + inner]
+    g_inner = g[lag:lag + inner]
+    for x in range(inner):
+        g_inner[x] = ww * (np.float32(2.0) * centre[x] - left[x] - right[x])
     if width > lag:
         for x in range(lag):
             g[x] = ww * (v[x] - v[x + lag])
@@ -339,8 +348,10 @@ class PlaneTV(torch.autograd.Function):
         return plane.new_tensor(value)
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, grad_value):
-        return ctx.grad * grad_value
+        grad, ctx.grad = ctx.grad, None  # the forward's own array, scaled in place: no copy
+        return grad.mul_(grad_value)
 
 
 def plane_tv(plane: torch.Tensor) -> torch.Tensor:
@@ -415,8 +426,10 @@ class TimeRegularisers(torch.autograd.Function):
         return plane.new_tensor(second), plane.new_tensor(l1)
 
     @staticmethod
+    @once_differentiable
     def backward(ctx, grad_second, grad_l1):
-        return ctx.grads[0] * grad_second + ctx.grads[1] * grad_l1
+        (second, l1), ctx.grads = ctx.grads, None  # the forward's own arrays: summed in place
+        return second.mul_(grad_second).add_(l1.mul_(grad_l1))
 
 
 def time_regularisers(plane: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
