@@ -57,10 +57,15 @@ class NeHaDModel(torch.nn.Module):
         sh = torch.cat([g.sh_dc, g.sh_rest], 1)
         t_col = torch.cat([time_column(t, n, g.means),
                            times.to(dtype=g.means.dtype).reshape(-1, 1)])
+        # opacities and SH go through the field only where it changes them; else they pass
+        # unchanged, and copying them into the extra rows cost a pass each way for nothing
+        appearance = self.field.cfg.deform_opacity_sh
         out = self.field(more(g.means), more(g.log_scales), more(g.quats), t_col, more(g.mu_eq),
-                         more(g.t_eq), opacity_logits=more(g.opacity_logits), sh=more(sh))
+                         more(g.t_eq), opacity_logits=more(g.opacity_logits) if appearance else None,
+                         sh=more(sh) if appearance else None)
         head = DeformedGaussians(out.means[:n], out.log_scales[:n], out.quats[:n],
-                                 out.opacity_logits[:n], out.sh[:n])
+                                 out.opacity_logits[:n] if appearance else g.opacity_logits,
+                                 out.sh[:n] if appearance else sh)
         if with_view_rows:
             tail = DeformedGaussians(*(torch.cat([x[:n][rows], x[n:]])
                                        for x in (out.means, out.log_scales, out.quats)))

@@ -99,7 +99,8 @@ def test_same_draw_for_the_same_step_and_off_cases():
     assert _prior(times=[0.3]).loss(model, step=1) == 0.0  # one time: no step
 
 
-def _moving_model(n: int = 64, dtype=torch.float32, hnn_grad: str | None = None):
+def _moving_model(n: int = 64, dtype=torch.float32, hnn_grad: str | None = None,
+                  overrides=()):
     """A real model whose field moves (its adapters start at zero, and its time planes at 1: no
     change in time)."""
     from nehad.config import build_config
@@ -107,7 +108,8 @@ def _moving_model(n: int = 64, dtype=torch.float32, hnn_grad: str | None = None)
     from nehad.gaussians import GaussianParameters
     from nehad.model import NeHaDModel
 
-    cfg = build_config("test", None, [f"field.hnn_grad={hnn_grad}"] if hnn_grad else [])
+    cfg = build_config("test", None,
+                       [*([f"field.hnn_grad={hnn_grad}"] if hnn_grad else []), *overrides])
     torch.manual_seed(0)
     field = DeformationField(cfg.field, aabb=np.array([[-1.0] * 3, [1.0] * 3]), extent=2.0)
     with torch.no_grad():
@@ -123,13 +125,16 @@ def _moving_model(n: int = 64, dtype=torch.float32, hnn_grad: str | None = None)
     return NeHaDModel(gauss, field).to(dtype)
 
 
+@pytest.mark.parametrize("appearance", [False, True])
 @pytest.mark.parametrize("pair", ["uniform", "view"])
-def test_samples_in_the_views_evaluation_equal_a_call_of_their_own(pair):
+def test_samples_in_the_views_evaluation_equal_a_call_of_their_own(pair, appearance):
     """`gaussians_and_samples_at` (one field evaluation of N + M rows) gives the view's
     Gaussians as `gaussians_at` does and the samples as the prior's own call does, and the
     loss's gradient on every parameter is the same (float64); paired with the view, its own
-    rows are the pairs' first half."""
-    model = _moving_model(dtype=torch.float64, hnn_grad="closed_form")
+    rows are the pairs' first half. With the field deforming opacities and SH too, and
+    without (they then do not go through the field)."""
+    model = _moving_model(dtype=torch.float64, hnn_grad="closed_form",
+                          overrides=[f"field.deform_opacity_sh={str(appearance).lower()}"])
     prior = _prior(weight=1.0, samples=24, pair=pair)
     rows, times = prior.rows_and_times(64, step=3, t=0.37)
     assert len(times) == (24 if pair == "view" else 48)

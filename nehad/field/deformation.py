@@ -283,11 +283,14 @@ class DeformationField(nn.Module):
                                  new_o, new_sh, aux)
 
     def _appearance(self, opacity_logits, sh, d_o, d_sh):
-        if d_o is None:
+        """(opacity logits, SH) at t: passed through, or deformed with `deform_opacity_sh`.
+        A caller that asks for the geometry only (neither given: the motion priors, the
+        positions of some rows) gets (None, None)."""
+        if d_o is None or (opacity_logits is None and sh is None):
             return opacity_logits, sh
         if opacity_logits is None or sh is None:
             raise ValueError("DeformationField.forward: deform_opacity_sh needs opacity_logits "
-                             "and sh")
+                             "and sh together")
         k = sh.shape[1]
         if k > self.cfg.sh_coeffs:
             raise ValueError(f"DeformationField.forward: sh has {k} coefficients per channel, "
