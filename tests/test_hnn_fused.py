@@ -384,7 +384,7 @@ def test_trunk_inside_equals_trunk_in_front(block_rows, monkeypatch):
 def test_decoder_fused_features_fuses_trunk_and_adapters(monkeypatch):
     """HamiltonianDecoder.fused_features(f, trunk, adapters) against the same modules one
     after the other in closed form (float64, blocks of 5 over 12 rows): the adapters' outputs
-    and the force (read from g1, g2 and h, hnn_fused._Heads), and the
+    and the force (trunk, first layers and heads composed, hnn_fused._Composed), and the
     gradients of a loss on the last two for f and every
     parameter, with rows 0-4 and 8 out of the loss (a whole block included)."""
     from nehad.field.adapters import Adapters

@@ -295,8 +295,9 @@ class _Saved(NamedTuple):
     deltas: list  # delta_k
 
 
-def _forward_block(nets: _Nets, h: torch.Tensor, g: torch.Tensor) -> _Saved:
-    """g[i] = grad_h F_i(h) for a block of rows h (b, W), g (2, b, W) views of the output."""
+def _forward_block(nets: _Nets, h: torch.Tensor, g: Optional[torch.Tensor]) -> _Saved:
+    """g[i] = grad_h F_i(h) for a block of rows h (b, W), g (2, b, W) views of the output; g
+    None: not formed (`_Composed` reads delta_1 instead)."""
     b = h.shape[0]
     chunks = _chunks(b)
     acts, derivs, curvs = [h], [], []
@@ -323,22 +324,27 @@ def _forward_block(nets: _Nets, h: torch.Tensor, g: torch.Tensor) -> _Saved:
         us[k] = _per_net(deltas[k + 1], nets.weights[k + 1])
         deltas[k] = torch.empty_like(us[k])
         _product(_np(derivs[k]), _np(us[k]), _np(deltas[k]), chunks)
-    torch.bmm(deltas[0], nets.weights[0], out=g)
+    if g is not None:
+        torch.bmm(deltas[0], nets.weights[0], out=g)
     return _Saved(acts, derivs, curvs, us, deltas)
 
 
 def _backward_block(nets: _Nets, saved: _Saved, grads, grad_h: torch.Tensor, d_weights: list,
-                    d_biases: np.ndarray, d_w_out: np.ndarray) -> None:
+                    d_biases: np.ndarray, d_w_out: np.ndarray,
+                    d_delta: Optional[torch.Tensor] = None) -> None:
     """For one block of rows: grad_h (b, W) = dL/dh of the block, and the block's share of the
     parameters' gradients added to d_weights (W_k's, (2, H, in)), d_biases (L, 2, H) and
-    d_w_out (2, H); grads (2, b, W) = (dL/dg1, dL/dg2) of the block."""
+    d_w_out (2, H); grads (2, b, W) = (dL/dg1, dL/dg2) of the block. Or, given `d_delta` =
+    dL/ddelta_1 (2, b, H) instead of grads (`_Composed`, where g is not formed), from there on:
+    d_weights[0] then gets only the first layer's input side, dz^T h."""
     acts, derivs, curvs, us, deltas = saved
     h, depth = acts[0], nets.depth
     b, hidden = h.shape[0], nets.weights[0].shape[1]
     chunks = _chunks(b)
     parts = np.empty((chunks, 2, hidden), dtype=nets.w_out.dtype)
-    d_delta = torch.bmm(grads, nets.weights[0].transpose(1, 2))
-    d_weights[0].baddbmm_(deltas[0].transpose(1, 2), grads)
+    if d_delta is None:
+        d_delta = torch.bmm(grads, nets.weights[0].transpose(1, 2))
+        d_weights[0].baddbmm_(deltas[0].transpose(1, 2), grads)
     partial = [None] * depth  # P_k
     for k in range(depth - 1):
         du, p = torch.empty_like(d_delta), torch.empty_like(d_delta)
@@ -576,6 +582,146 @@ class _Heads(NamedTuple):
         return d_a, d_bias, d_f, d_s
 
 
+class _Composed(NamedTuple):
+    """The training path (`fused_field` with both `trunk` and `heads`): the trunk, the nets'
+    first layers and the heads composed into smaller maps. Every map from the trunk's input f to
+    the heads' output is linear except the nets' activations, so
+
+        z_1,k = h W1_k^T + b1_k = f C_k^T + c_k,    C_k = W1_k Wt,  c_k = W1_k bt + b1_k
+        [out | force] = g1 P0 + [g2 P1 | 0] + h K + [a | 0]
+                      = delta_1,1 Q_1 + delta_1,2 Q_2 + f KW + const,
+        Q_1 = W1_1 P0,  Q_2 = [W1_2 P1 | 0],  KW = Wt^T K,  const = [a | 0] + bt K
+
+    (g_k = delta_1,k W1_k, `_Heads` for P0, P1, K). Neither h nor g is formed: a row costs the
+    two (H x F) products of z and small ones of J = K + 3 columns, where the trunk, z and g took
+    five (W x W)-sized products forward and the backward eight more (the trunk's two, g's two
+    pairs, dL/dh). The backward (`backward_block`) starts at dL/ddelta_1 = G Q_k^T, and the
+    parameters' gradients come from those of C, c, Q, KW and const once per call
+    (`parameter_grads`): dW1_k = dC_k Wt^T + dc_k bt^T + dQ_k P_k^T, dWt = sum_k W1_k^T dC_k
+    + K dKW^T, dbt = sum_k W1_k^T dc_k + K dconst, dP0 = W1_1^T dQ_1, dP1 = W1_2^T dQ_2,
+    dK = Wt dKW + bt dconst^T, da = dconst (its first K entries)."""
+
+    nets: _Nets  # the nets with C in place of W1 and c in place of b1
+    w1: torch.Tensor  # (2, H, W) the nets' own W1
+    trunk: _Trunk
+    tail: _Heads
+    q: torch.Tensor  # (2, H, J): Q_1, Q_2
+    kw: Optional[torch.Tensor]  # (F, J) or None without the kinetic terms
+    const: torch.Tensor  # (J,)
+
+    @staticmethod
+    def of(nets: _Nets, trunk: _Trunk, tail: _Heads) -> "_Composed":
+        w1, wt, bt = nets.weights[0], trunk.weight, trunk.bias
+        c = torch.matmul(w1, wt)  # (2, H, F)
+        c_bias = (torch.matmul(w1, bt) + torch.from_numpy(nets.biases[0])).numpy()
+        n = tail.n_out
+        q = torch.zeros((2, w1.shape[1], n + 3), dtype=w1.dtype)
+        q[0] = w1[0] @ tail.p0
+        q[1, :, :n] = w1[1] @ tail.p1
+        const = torch.cat([tail.bias, torch.zeros(3, dtype=w1.dtype)])
+        kw = None
+        if tail.k is not None:
+            kw = (wt.T @ tail.k).contiguous()
+            const = const + bt @ tail.k
+        composed = nets._replace(weights=[c.contiguous(), *nets.weights[1:]],
+                                 biases=[c_bias, *nets.biases[1:]])
+        return _Composed(composed, w1, trunk, tail, q, kw, const)
+
+    def forward_block(self, f: torch.Tensor, both: torch.Tensor) -> _Saved:
+        """both (b, J) = [out | force] of a block of rows f (b, F); what its backward reads."""
+        saved = _forward_block(self.nets, f, None)
+        d1 = saved.deltas[0]
+        torch.addmm(self.const, d1[0], self.q[0], out=both)
+        both.addmm_(d1[1], self.q[1])
+        if self.kw is not None:
+            both.addmm_(f, self.kw)
+        return saved
+
+    def zero_sums(self) -> list:
+        """The per-call accumulators: dC (2, H, F), dc (L, 2, H), dw_out, the deeper layers'
+        dW, dQ, dKW (or None), dconst."""
+        nets = self.nets
+        return [[torch.zeros_like(w) for w in nets.weights],
+                np.zeros((nets.depth, *nets.w_out.shape), dtype=nets.w_out.dtype),
+                np.zeros_like(nets.w_out), torch.zeros_like(self.q),
+                None if self.kw is None else torch.zeros_like(self.kw),
+                torch.zeros_like(self.const)]
+
+    def backward_block(self, saved: _Saved, grad: torch.Tensor, grad_f: torch.Tensor,
+                       sums: list) -> None:
+        """grad_f (b, F) = dL/df of a block (0 on its rows without a gradient) from grad (b, J)
+        = dL/d[out | force] (contiguous), and the block's share of the sums (`zero_sums`)."""
+        f = saved.acts[0]
+        d_weights, d_biases, d_w_out, d_q, d_kw, d_const = sums
+        rows = _rows_with_gradient(grad[None])
+        if rows is not None:
+            if len(rows) == 0:
+                grad_f.zero_()
+                return
+            saved, grad = _compact(saved, rows), grad.index_select(0, torch.from_numpy(rows))
+            f = saved.acts[0]
+        m = grad.shape[0]
+        both = grad.expand(2, m, grad.shape[1])
+        d_delta = torch.bmm(both, self.q.transpose(1, 2))
+        d_q.baddbmm_(saved.deltas[0].transpose(1, 2), both)
+        out = grad_f if rows is None else torch.empty((m, grad_f.shape[1]), dtype=grad_f.dtype)
+        _backward_block(self.nets, saved, None, out, d_weights, d_biases, d_w_out, d_delta)
+        if self.kw is not None:
+            out.addmm_(grad, self.kw.T)
+            d_kw.addmm_(f.T, grad)
+        d_const += grad.sum(dim=0)
+        if rows is not None:
+            _place(grad_f, rows, out)
+
+    def parameter_grads(self, sums: list):
+        """(the nets' dW_k (2, H, in) per layer, db_k (L, 2, H), dw_out (2, H), (dWt, dbt), the
+        tail's sums for `_Heads.weight_grads`) from the per-call sums (class docstring); db_1 is
+        dc itself."""
+        d_weights, d_biases, d_w_out, d_q, d_kw, d_const = sums
+        wt, bt, tail, w1 = self.trunk.weight, self.trunk.bias, self.tail, self.w1
+        n = tail.n_out
+        d_c, d_cb = d_weights[0], torch.from_numpy(d_biases[0].copy())
+        d_w1 = torch.matmul(d_c, wt.T) + d_cb[:, :, None] * bt[None, None, :]
+        d_w1[0] += d_q[0] @ tail.p0.T
+        d_w1[1] += d_q[1, :, :n] @ tail.p1.T
+        d_wt = torch.einsum("khw,khf->wf", w1, d_c)
+        d_bt = torch.einsum("khw,kh->w", w1, d_cb)
+        d_p0 = w1[0].T @ d_q[0]
+        d_p1 = w1[1].T @ d_q[1, :, :n]
+        d_k = None
+        if self.kw is not None:
+            d_k = wt @ d_kw + bt[:, None] * d_const[None, :]
+            d_wt = d_wt + tail.k @ d_kw.T
+            d_bt = d_bt + tail.k @ d_const
+        return ([d_w1, *d_weights[1:]], d_biases, d_w_out, (d_wt, d_bt),
+                [d_p0, d_p1, d_k, d_const[:n].clone()])
+
+
+def _composed_backward(composed: _Composed, saved: list, xd: torch.Tensor, upstream,
+                       quadratic: bool) -> tuple:
+    """`FusedInputGradients.backward` of the training path (`_Composed`)."""
+    tail, n, dtype = composed.tail, xd.shape[0], xd.dtype
+    grad = torch.zeros((n, tail.n_out + 3), dtype=dtype)
+    for part, u in ((grad[:, :tail.n_out], upstream[0]), (grad[:, tail.n_out:], upstream[1])):
+        if u is not None:
+            part.copy_(u)
+    grad_x = torch.empty(xd.shape, dtype=dtype)
+    sums = composed.zero_sums()
+    for (lo, hi), block in zip(_blocks(n), saved):
+        composed.backward_block(block, grad[lo:hi], grad_x[lo:hi], sums)
+    d_weights, d_biases, d_w_out, d_head, tail_sums = composed.parameter_grads(sums)
+    net_grads = []
+    for i in range(2):
+        for k in range(composed.nets.depth):
+            net_grads += [d_weights[k][i], torch.from_numpy(d_biases[k, i].copy())]
+        net_grads.append(torch.from_numpy(d_w_out[i].copy()).reshape(1, -1))
+    d_a, d_bias, d_force, d_quads = tail.weight_grads(tail_sums)
+    if quadratic:  # S = (A + A^T) / 2: dL/dA = (dS + dS^T) / 2
+        net_grads += list(0.5 * (d_quads + d_quads.transpose(1, 2)))
+    net_grads += [*d_head, d_a, d_bias, d_force]
+    return (grad_x, None, None, None, None, None, None, *net_grads)
+
+
 class FusedInputGradients(torch.autograd.Function):
     """(grad_h F1, grad_h F2), each (N, W), of the two scalar nets given by their parameters
     (module docstring); with `field` the decoder's outputs (v, v_c, v_s) instead (v_c = g1,
@@ -605,14 +751,18 @@ class FusedInputGradients(torch.autograd.Function):
         xd = x.detach().contiguous()
         n = xd.shape[0]
         width = nets.weights[0].shape[2]
-        hd = xd if head is None else torch.empty((n, width), dtype=xd.dtype)
-        g = torch.empty((2, n, width), dtype=xd.dtype)
+        composed = _Composed.of(nets, head, tail) if head is not None and tail is not None else None
+        hd = xd if head is None or composed is not None else torch.empty((n, width), dtype=xd.dtype)
+        g = None if composed is not None else torch.empty((2, n, width), dtype=xd.dtype)
         if field and tail is None:
             v, v_s = torch.empty((n, width), dtype=xd.dtype), torch.empty((n, width), dtype=xd.dtype)
         if tail is not None:  # [out - a | force]
             both = torch.empty((n, tail.n_out + 3), dtype=xd.dtype)
         saved = []
         for lo, hi in _blocks(n):
+            if composed is not None:  # the training path: neither h nor g is formed
+                saved.append(composed.forward_block(xd[lo:hi], both[lo:hi]))
+                continue
             if head is not None:
                 head.forward(xd[lo:hi], hd[lo:hi])
             saved.append(_forward_block(nets, hd[lo:hi], g[:, lo:hi]))
@@ -625,7 +775,10 @@ class FusedInputGradients(torch.autograd.Function):
                 _field_rows(_np(g[:, lo:hi]), _np(v[lo:hi]), _np(v_s[lo:hi]), _chunks(hi - lo))
         if keep:
             ctx.save_for_backward(x, *params)
-            ctx.kept = (nets, saved, field, quads, head, xd, tail, g if tail else None)
+            ctx.kept = (nets, saved, field, quads, head, xd, tail, g if tail is not None else None,
+                        composed)
+        if composed is not None:  # const holds the adapters' bias
+            return both[:, :tail.n_out], both[:, tail.n_out:]
         if tail is not None:
             return both[:, :tail.n_out] + tail.bias, both[:, tail.n_out:]
         return (v, g[0], v_s) if field else (g[0], g[1])
@@ -634,8 +787,10 @@ class FusedInputGradients(torch.autograd.Function):
     @once_differentiable
     def backward(ctx, *upstream):
         ctx.saved_tensors  # raises if x or a parameter was modified in place since the forward
-        nets, saved, field, quads, head, xd, tail, g_all = ctx.kept
+        nets, saved, field, quads, head, xd, tail, g_all, composed = ctx.kept
         n, width, dtype = xd.shape[0], nets.weights[0].shape[2], xd.dtype
+        if composed is not None:
+            return _composed_backward(composed, saved, xd, upstream, quads is not None)
         if tail is not None:  # the adapters' and the force's upstream gradients (None: zero)
             g_out, g_force = [None if u is None else u.contiguous() for u in upstream]
             sums = tail.zero_sums()
