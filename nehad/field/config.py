@@ -117,6 +117,11 @@ class FieldConfig:
     hex-plane lookup and its backward, and the planes' regularisers (total variation, the
     time planes' smoothness and L1) with their gradients, run as Numba passes (nehad.field.hexplane_kernel, tested against grid_sample and
     autograd); "torch": `F.grid_sample` and autograd, the reference and the GPU path."""
+    rotation_kernel: str = "numba"
+    """"numba": on the CPU (float32 or float64, outside export) step 8's rigidity clamp,
+    quaternion product and normalisation run as one Numba pass each way
+    (nehad.field.rigidity_kernel, tested against the torch functions); "torch": those functions
+    through autograd, the reference and the GPU path."""
     use_hnn: bool = True
     """False = "HNN off" ablation: the two scalar networks and their input gradients are replaced
     by two direct MLPs of the same hidden width/depth mapping h -> R^W, whose outputs take the
@@ -261,6 +266,8 @@ class FieldConfig:
             self._bad("activation", why)
         if self.hexplane_kernel not in ("numba", "torch"):
             self._bad("hexplane_kernel", "must be numba or torch")
+        if self.rotation_kernel not in ("numba", "torch"):
+            self._bad("rotation_kernel", "must be numba or torch")
         if self.hnn_grad not in HNN_GRAD_MODES:
             self._bad("hnn_grad", f"must be one of {HNN_GRAD_MODES}")
         if (isinstance(self.mipmap_levels, bool) or not isinstance(self.mipmap_levels, int)

@@ -22,6 +22,7 @@ from nehad.field.hexplane import HexPlane, normalize_aabb
 from nehad.field.hnn import DirectFieldDecoder, HamiltonianDecoder
 from nehad.field.mlp_decoder import MLPHeads
 from nehad.field.rigidity import clamp_rotation_delta, quat_multiply, safe_normalize
+from nehad.field.rigidity_kernel import clamped_rotation, fused_rotation_supported
 from nehad.field.trunk import Trunk
 
 TimeLike = Union[float, torch.Tensor]
@@ -250,16 +251,26 @@ class DeformationField(nn.Module):
             ds = ds * (1.0 - m_scale)
         new_log_scales = log_scales + ds
         # 8. rotation: rigidity clamp of the quaternion delta, then r' = N(r (x) dr').
-        if cfg.rigidity:
-            rd = clamp_rotation_delta(ad.q, cfg.phi_max, cfg.norm_eps)
-            dr = rd.dr
-            aux["phi"], aux["phi_clamped"] = rd.phi, rd.phi_clamped
+        if cfg.rigidity and self._rotation_fused(quats, ad.q):  # the same in one Numba pass
+            new_quats, aux["phi"], aux["phi_clamped"] = clamped_rotation(
+                quats, ad.q, cfg.phi_max, cfg.norm_eps)
         else:
-            dr = ad.q
-        new_quats = safe_normalize(quat_multiply(quats, dr), cfg.norm_eps)
+            if cfg.rigidity:
+                rd = clamp_rotation_delta(ad.q, cfg.phi_max, cfg.norm_eps)
+                dr = rd.dr
+                aux["phi"], aux["phi_clamped"] = rd.phi, rd.phi_clamped
+            else:
+                dr = ad.q
+            new_quats = safe_normalize(quat_multiply(quats, dr), cfg.norm_eps)
         # 9. appearance.
         new_o, new_sh = self._appearance(opacity_logits, sh, ad.d_opacity, ad.d_sh)
         return DeformedGaussians(new_means, new_log_scales, new_quats, new_o, new_sh, aux)
+
+    def _rotation_fused(self, quats: torch.Tensor, q: torch.Tensor) -> bool:
+        """Whether step 8 runs as `nehad.field.rigidity_kernel`'s pass (`rotation_kernel`
+        "numba", CPU float tensors, no graph being captured)."""
+        return (self.cfg.rotation_kernel == "numba" and not is_capturing()
+                and fused_rotation_supported(quats, q))
 
     def _decode(self, f: torch.Tensor):
         """Steps 2-5 on the plane features f: (FieldOutput, AdapterOutput, force, h). With the
