@@ -50,19 +50,23 @@ class NeHaDModel(torch.nn.Module):
         is 2M rows, the view's own rows `rows` at t first (no second evaluation of them)."""
         g = self.gaussians
         n = g.means.shape[0]
+        index = torch.cat([torch.arange(n), rows.to(torch.int64)])
 
-        def more(x):
-            return torch.cat([x, x[rows]])
+        def more(x, needed=True):
+            """x's rows, then x's `rows` again (one gather; its backward one scatter-add). The
+            inputs the field does not read (opacities and SH it does not deform, the
+            equilibria without BED) are not copied: None."""
+            return x.index_select(0, index) if needed else None
 
         sh = torch.cat([g.sh_dc, g.sh_rest], 1)
         t_col = torch.cat([time_column(t, n, g.means),
                            times.to(dtype=g.means.dtype).reshape(-1, 1)])
-        # opacities and SH go through the field only where it changes them; else they pass
-        # unchanged, and copying them into the extra rows cost a pass each way for nothing
-        appearance = self.field.cfg.deform_opacity_sh
-        out = self.field(more(g.means), more(g.log_scales), more(g.quats), t_col, more(g.mu_eq),
-                         more(g.t_eq), opacity_logits=more(g.opacity_logits) if appearance else None,
-                         sh=more(sh) if appearance else None)
+        cfg = self.field.cfg
+        appearance = cfg.deform_opacity_sh
+        out = self.field(more(g.means), more(g.log_scales), more(g.quats), t_col,
+                         more(g.mu_eq, cfg.bed_position), more(g.t_eq, cfg.bed_position or cfg.bed_scale),
+                         opacity_logits=more(g.opacity_logits, appearance),
+                         sh=more(sh, appearance))
         head = DeformedGaussians(out.means[:n], out.log_scales[:n], out.quats[:n],
                                  out.opacity_logits[:n] if appearance else g.opacity_logits,
                                  out.sh[:n] if appearance else sh)
