@@ -93,18 +93,30 @@ class HexPlane(nn.Module):
         self.multires = tuple(int(m) for m in multires)
         self.base_resolution = tuple(int(r) for r in resolution)
         self.planes = nn.ModuleList()
+        shapes = []
         for m in self.multires:
             res = [r * m for r in self.base_resolution[:3]] + [self.base_resolution[3]]
+            shapes += [(res[b], res[a]) for a, b in PLANE_AXES]
+        # every plane a view of one flat buffer, each in channel-last memory (shape (1, C, H, W),
+        # memory (H, W, C)): the Numba kernels read and write the planes without reordering or
+        # gathering them (nehad.field.hexplane_kernel)
+        c = self.out_dim
+        flat = torch.empty(sum(c * h * w for h, w in shapes))
+        views, lo = [], 0
+        for h, w in shapes:
+            views.append(flat[lo:lo + c * h * w].view(h, w, c).permute(2, 0, 1)[None])
+            lo += c * h * w
+        for i, _ in enumerate(self.multires):
             scale = nn.ParameterList()
-            for a, b in PLANE_AXES:
-                p = torch.empty(1, self.out_dim, res[b], res[a])
+            for k, (a, b) in enumerate(PLANE_AXES):
+                view = views[6 * i + k]
+                p = torch.empty(view.shape)  # drawn in (C, H, W) order, as always
                 if b == 3:
                     nn.init.constant_(p, time_init)
                 else:
                     nn.init.uniform_(p, init_low, init_high)
-                # channel-last memory (shape unchanged): the Numba kernels read and write the
-                # planes without reordering them (nehad.field.hexplane_kernel)
-                scale.append(nn.Parameter(p.contiguous(memory_format=torch.channels_last)))
+                view.copy_(p)
+                scale.append(nn.Parameter(view))
             self.planes.append(scale)
         #: grid_sample point batches; 0 = automatic (see `_num_batches`), 1 = a single batch.
         self.sample_batches = 0

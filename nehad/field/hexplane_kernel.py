@@ -477,6 +477,19 @@ def _chunks(n: int) -> int:
     return max(1, min(n, 64 * numba.get_num_threads()))
 
 
+def _shared_table(planes, offsets):
+    """The planes' one flat (H, W, C)-per-plane table without a copy, when they are channel-last
+    views of one buffer, one after the other (as HexPlane allocates them); else None (planes
+    converted with `.to()`, loaded on their own, ...)."""
+    first = planes[0]
+    base, ptr = first.storage_offset(), first.untyped_storage().data_ptr()
+    for p, lo in zip(planes, offsets[:-1]):
+        if (p.dtype != torch.float32 or not p.is_contiguous(memory_format=torch.channels_last)
+                or p.untyped_storage().data_ptr() != ptr or p.storage_offset() != base + lo):
+            return None
+    return torch.as_strided(first.detach(), (int(offsets[-1]),), (1,), base).numpy()
+
+
 class HexPlaneLookup(torch.autograd.Function):
     """features (N, S C) = the product over planes of bilinear samples (module docstring), for
     u (N, 4) = (x, y, z, t') and the S x 6 planes (1, C, H, W) in HexPlane's order."""
@@ -487,12 +500,14 @@ class HexPlaneLookup(torch.autograd.Function):
         n_scales = len(planes) // 6
         sizes = [p.numel() for p in planes]
         offsets = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-        flat = np.empty(int(offsets[-1]), np.float32)
-        for p, lo, hi in zip(planes, offsets[:-1], offsets[1:]):  # each plane as (H, W, C)
-            if p.is_contiguous(memory_format=torch.channels_last):  # HexPlane's layout: a copy
-                flat[lo:hi] = p.detach()[0].permute(1, 2, 0).numpy().reshape(-1)
-            else:
-                _to_channel_last(np.ascontiguousarray(p.detach()[0].numpy()), flat[lo:hi])
+        flat = _shared_table(planes, offsets)
+        if flat is None:  # planes of their own: gathered into one table
+            flat = np.empty(int(offsets[-1]), np.float32)
+            for p, lo, hi in zip(planes, offsets[:-1], offsets[1:]):  # each plane as (H, W, C)
+                if p.is_contiguous(memory_format=torch.channels_last):
+                    flat[lo:hi] = p.detach()[0].permute(1, 2, 0).numpy().reshape(-1)
+                else:
+                    _to_channel_last(np.ascontiguousarray(p.detach()[0].numpy()), flat[lo:hi])
         heights = np.array([p.shape[2] for p in planes], np.int64)
         widths = np.array([p.shape[3] for p in planes], np.int64)
         axis_a = np.array([a for a, _ in axes], np.int64)
