@@ -71,26 +71,34 @@ def _corners(u, n, p, k, offsets, heights, widths, axis_a, axis_b, channels):
 @numba.njit(fastmath=True, cache=True)
 def _forward_points(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
                     out, order, start, stop):
-    samples = np.empty(channels, np.float32)
-    for i in range(start, stop):
-        n = order[i]
-        for s in range(n_scales):
-            f = out[n, s * channels:(s + 1) * channels]
-            for c in range(channels):
-                f[c] = _ONE
-            for k in range(6):
+    """out's rows of the points order[start:stop], one plane after the other: each plane's
+    texels are then read as one stream in the points' spatial order, which the hardware
+    prefetcher follows, where the twelve planes read point by point were twelve streams at
+    once (a step's lookup finds the planes out of the cache: 7000 points, 1 thread, after the
+    cache was flushed, 1.9-2.1 ms against 3.8-8.1; the same when the planes are cached). The
+    same products in the same order (the first plane's sample is assigned, not multiplied
+    into 1)."""
+    for s in range(n_scales):
+        for k in range(6):
+            for i in range(start, stop):
+                n = order[i]
+                f = out[n, s * channels:(s + 1) * channels]
                 base, dx, dy, fx, fy, _, _ = _corners(u, n, s * 6 + k, k, offsets, heights,
                                                       widths, axis_a, axis_b, channels)
                 t00 = tables[base:base + channels]
                 t01 = tables[base + dx:base + dx + channels]
                 t10 = tables[base + dy:base + dy + channels]
                 t11 = tables[base + dy + dx:base + dy + dx + channels]
-                for c in range(channels):
-                    top = t00[c] + fx * (t01[c] - t00[c])
-                    bottom = t10[c] + fx * (t11[c] - t10[c])
-                    samples[c] = top + fy * (bottom - top)
-                for c in range(channels):
-                    f[c] *= samples[c]
+                if k == 0:
+                    for c in range(channels):
+                        top = t00[c] + fx * (t01[c] - t00[c])
+                        bottom = t10[c] + fx * (t11[c] - t10[c])
+                        f[c] = top + fy * (bottom - top)
+                else:
+                    for c in range(channels):
+                        top = t00[c] + fx * (t01[c] - t00[c])
+                        bottom = t10[c] + fx * (t11[c] - t10[c])
+                        f[c] *= top + fy * (bottom - top)
 
 
 @numba.njit(parallel=True, cache=True)
