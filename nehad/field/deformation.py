@@ -251,20 +251,25 @@ class DeformationField(nn.Module):
             ds = ds * (1.0 - m_scale)
         new_log_scales = log_scales + ds
         # 8. rotation: rigidity clamp of the quaternion delta, then r' = N(r (x) dr').
-        if cfg.rigidity and self._rotation_fused(quats, ad.q):  # the same in one Numba pass
-            new_quats, aux["phi"], aux["phi_clamped"] = clamped_rotation(
-                quats, ad.q, cfg.phi_max, cfg.norm_eps)
-        else:
-            if cfg.rigidity:
-                rd = clamp_rotation_delta(ad.q, cfg.phi_max, cfg.norm_eps)
-                dr = rd.dr
-                aux["phi"], aux["phi_clamped"] = rd.phi, rd.phi_clamped
-            else:
-                dr = ad.q
-            new_quats = safe_normalize(quat_multiply(quats, dr), cfg.norm_eps)
+        new_quats = self._rotate(quats, ad.q, aux)
         # 9. appearance.
         new_o, new_sh = self._appearance(opacity_logits, sh, ad.d_opacity, ad.d_sh)
         return DeformedGaussians(new_means, new_log_scales, new_quats, new_o, new_sh, aux)
+
+    def _rotate(self, quats: torch.Tensor, q: torch.Tensor, aux: dict) -> torch.Tensor:
+        """Step 8: r' = N(r (x) dr'), dr' the rigidity clamp of the raw delta q (or q itself
+        with `rigidity` off); the angles phi, phi' go to `aux`."""
+        cfg = self.cfg
+        if cfg.rigidity and self._rotation_fused(quats, q):  # the same in one Numba pass
+            new_quats, aux["phi"], aux["phi_clamped"] = clamped_rotation(
+                quats, q, cfg.phi_max, cfg.norm_eps)
+            return new_quats
+        dr = q
+        if cfg.rigidity:
+            rd = clamp_rotation_delta(q, cfg.phi_max, cfg.norm_eps)
+            dr = rd.dr
+            aux["phi"], aux["phi_clamped"] = rd.phi, rd.phi_clamped
+        return safe_normalize(quat_multiply(quats, dr), cfg.norm_eps)
 
     def _rotation_fused(self, quats: torch.Tensor, q: torch.Tensor) -> bool:
         """Whether step 8 runs as `nehad.field.rigidity_kernel`'s pass (`rotation_kernel`
