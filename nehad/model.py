@@ -61,10 +61,10 @@ class NeHaDModel(torch.nn.Module):
         sh = torch.cat([g.sh_dc, g.sh_rest], 1)
         t_col = torch.cat([time_column(t, n, g.means),
                            times.to(dtype=g.means.dtype).reshape(-1, 1)])
-        cfg = self.field.cfg
-        appearance = cfg.deform_opacity_sh
+        reads = self.field.reads
+        appearance = reads("appearance")
         out = self.field(more(g.means), more(g.log_scales), more(g.quats), t_col,
-                         more(g.mu_eq, cfg.bed_position), more(g.t_eq, cfg.bed_position or cfg.bed_scale),
+                         more(g.mu_eq, reads("mu_eq")), more(g.t_eq, reads("t_eq")),
                          opacity_logits=more(g.opacity_logits, appearance),
                          sh=more(sh, appearance))
         head = DeformedGaussians(out.means[:n], out.log_scales[:n], out.quats[:n],

@@ -229,8 +229,8 @@ class DeformationField(nn.Module):
             aux["force"] = force
             disp = disp + (0.5 * cfg.dt * cfg.dt) * force
         # 7. Boltzmann equilibrium blending.
-        if cfg.bed_position or cfg.bed_scale:
-            if t_eq is None or (cfg.bed_position and mu_eq is None):
+        if self.reads("t_eq"):
+            if t_eq is None or (self.reads("mu_eq") and mu_eq is None):
                 raise ValueError("DeformationField.forward: mu_eq and t_eq are required with "
                                  "bed_position / bed_scale on")
             t_eq = t_eq.reshape(n, 1)
@@ -255,6 +255,14 @@ class DeformationField(nn.Module):
         # 9. appearance.
         new_o, new_sh = self._appearance(opacity_logits, sh, ad.d_opacity, ad.d_sh)
         return DeformedGaussians(new_means, new_log_scales, new_quats, new_o, new_sh, aux)
+
+    def reads(self, name: str) -> bool:
+        """Whether `forward` reads its optional input `name` under this config: "mu_eq" (BED's
+        position mask), "t_eq" (either BED mask), "appearance" (the opacity logits and SH it
+        deforms); where it does not, the caller may pass None."""
+        cfg = self.cfg
+        return {"mu_eq": cfg.bed_position, "t_eq": cfg.bed_position or cfg.bed_scale,
+                "appearance": cfg.deform_opacity_sh}[name]
 
     def _rotate(self, quats: torch.Tensor, q: torch.Tensor, aux: dict) -> torch.Tensor:
         """Step 8: r' = N(r (x) dr'), dr' the rigidity clamp of the raw delta q (or q itself

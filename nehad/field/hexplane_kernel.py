@@ -68,6 +68,13 @@ def _corners(u, n, p, k, offsets, heights, widths, axis_a, axis_b, channels):
     return offsets[p] + (y0 * w + x0) * channels, dx, dy, fx, fy, slope_x, slope_y
 
 
+@numba.njit(inline="always")
+def _bilinear(a, b, d, e, fx, fy):
+    """The bilinear sample of texels a (corner), b (right), d (below), e (below right)."""
+    top = a + fx * (b - a)
+    return top + fy * (d + fx * (e - d) - top)
+
+
 @numba.njit(fastmath=True, cache=True)
 def _forward_points(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
                     out, order, start, stop):
@@ -91,14 +98,10 @@ def _forward_points(u, tables, offsets, heights, widths, axis_a, axis_b, n_scale
                 t11 = tables[base + dy + dx:base + dy + dx + channels]
                 if k == 0:
                     for c in range(channels):
-                        top = t00[c] + fx * (t01[c] - t00[c])
-                        bottom = t10[c] + fx * (t11[c] - t10[c])
-                        f[c] = top + fy * (bottom - top)
+                        f[c] = _bilinear(t00[c], t01[c], t10[c], t11[c], fx, fy)
                 else:
                     for c in range(channels):
-                        top = t00[c] + fx * (t01[c] - t00[c])
-                        bottom = t10[c] + fx * (t11[c] - t10[c])
-                        f[c] *= top + fy * (bottom - top)
+                        f[c] *= _bilinear(t00[c], t01[c], t10[c], t11[c], fx, fy)
 
 
 @numba.njit(parallel=True, cache=True)

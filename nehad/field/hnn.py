@@ -202,8 +202,7 @@ class HamiltonianDecoder(nn.Module):
         v_c and v_s are not formed there: the trunk, the nets' first layers, the adapters and the
         force are composed into smaller maps (`hnn_fused._Composed`). None where that Function
         cannot run it (`grad_mode` not "fused", a graph being captured, appearance adapters, a
-        trunk without bias, ...): the
-        caller then applies the modules one after the other."""
+        trunk without bias, ...): the caller then applies the modules one after the other."""
         if (self.grad_mode != "fused" or is_capturing() or trunk.bias is None
                 or adapters.opacity is not None):
             return None
