@@ -9,7 +9,8 @@ Random inputs of the `cpu` preset's shapes (plane features 64 -> W 64, one hidde
 softplus units per net, kinetic terms, 10 adapter outputs and the 3 of the force); a random
 linear loss on the adapters' outputs and the force, zero on a (1 - --live) share of the rows
 (in a real step about half the Gaussians get no gradient from the view, docs/performance.md).
-With --against, `nehad/field/hnn_fused.py` of that checkout is loaded beside this one's (the
+With --against, `nehad/field/hnn_fused.py` of that checkout (and the modules it imports from
+nehad/field) is loaded beside this one's (the
 Function's call is the same in both; its last two outputs are the adapters' and the force),
 the two parities are checked and the two run in turns, alternating which goes first; it prints
 each one's median and the paired differences. docs/performance.md ("The kinetic terms folded
@@ -21,6 +22,7 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import os
+import sys
 import time
 from pathlib import Path
 
@@ -30,12 +32,32 @@ import torch
 import nehad.field.hnn_fused as this
 
 
+#: The modules of the fused decoder, in import order (an older checkout has fewer of them).
+_DECODER_MODULES = ("vecmath", "hnn_kernels", "hnn_blocks", "hnn_heads", "hnn_fused")
+
+
 def _load(checkout: str):
-    path = Path(checkout) / "nehad" / "field" / "hnn_fused.py"
-    spec = importlib.util.spec_from_file_location("other_hnn_fused", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    """The other checkout's `hnn_fused`, with the modules it imports from nehad.field taken from
+    that checkout too (while they load, they stand in for this checkout's in sys.modules)."""
+    field = Path(checkout) / "nehad" / "field"
+    names = [f"nehad.field.{m}" for m in _DECODER_MODULES]
+    ours = {name: sys.modules.get(name) for name in names}
+    try:
+        for name in names:
+            path = field / f"{name.rsplit('.', 1)[1]}.py"
+            if not path.is_file():
+                continue
+            spec = importlib.util.spec_from_file_location(name, path)
+            module = importlib.util.module_from_spec(spec)
+            sys.modules[name] = module
+            spec.loader.exec_module(module)
+        return module
+    finally:
+        for name, module in ours.items():
+            if module is None:
+                sys.modules.pop(name, None)
+            else:
+                sys.modules[name] = module
 
 
 def main() -> None:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from nehad.field import hnn_fused
+from nehad.field import hnn_blocks
 from nehad.field.config import FieldConfig
 from nehad.field.hnn import HamiltonianDecoder, ScalarNet, scalar_net_input_grad, symplectic
 from nehad.field.hnn_fused import (FusedInputGradients, fused_field, fused_input_gradients,
@@ -104,7 +104,7 @@ def test_kinetic_term_in_the_fused_field_in_float64(activation, monkeypatch):
 
     ref_grads = grads(ref)
     for rows in (4096, 7):
-        monkeypatch.setattr(hnn_fused, "BLOCK_ROWS", rows)
+        monkeypatch.setattr(hnn_blocks, "BLOCK_ROWS", rows)
         fused = fused_field(*nets, h, quads)
         for r, f in zip(ref, fused):
             assert _rel(f, r) < 1e-12
@@ -139,15 +139,15 @@ def test_rows_without_upstream_gradient_are_skipped_exactly(block_rows, monkeypa
         return torch.autograd.grad(loss, [h] + net_parameters(nets[0])
                                    + net_parameters(nets[1]) + quads)
 
-    monkeypatch.setattr(hnn_fused, "BLOCK_ROWS", block_rows)
-    monkeypatch.setattr(hnn_fused, "COMPACT_BELOW", 0.0)  # every row through the backward
+    monkeypatch.setattr(hnn_blocks, "BLOCK_ROWS", block_rows)
+    monkeypatch.setattr(hnn_blocks, "COMPACT_BELOW", 0.0)  # every row through the backward
     full = grads()
-    monkeypatch.setattr(hnn_fused, "COMPACT_BELOW", 0.85)
+    monkeypatch.setattr(hnn_blocks, "COMPACT_BELOW", 0.85)
     empty = torch.empty  # every buffer the code allocates starts as NaN: a row it forgets shows
     monkeypatch.setattr(torch, "empty", lambda *a, **k: empty(*a, **k).fill_(float("nan")))
     calls = []
-    compact = hnn_fused._compact
-    monkeypatch.setattr(hnn_fused, "_compact", lambda *a: calls.append(1) or compact(*a))
+    compact = hnn_blocks._compact
+    monkeypatch.setattr(hnn_blocks, "_compact", lambda *a: calls.append(1) or compact(*a))
     skipped = grads()
     assert calls  # the rows were gathered
     for r, f in zip(full, skipped):
@@ -161,13 +161,13 @@ def test_rows_in_several_blocks(monkeypatch):
     h = _inputs(n=30, seed=11)
     ref = fused_input_gradients(*nets, h)
     ref_grads = _loss_grads(ref, h, nets)
-    monkeypatch.setattr(hnn_fused, "BLOCK_ROWS", 7)
-    assert len(hnn_fused._blocks(30)) == 5
+    monkeypatch.setattr(hnn_blocks, "BLOCK_ROWS", 7)
+    assert len(hnn_blocks._blocks(30)) == 5
     blocked = fused_input_gradients(*nets, h)
     for r, f in zip(list(ref) + list(ref_grads), list(blocked) + list(_loss_grads(blocked, h, nets))):
         assert _rel(f, r) < 1e-12
     field_ref = fused_field(*nets, h.detach())
-    monkeypatch.setattr(hnn_fused, "BLOCK_ROWS", 4096)
+    monkeypatch.setattr(hnn_blocks, "BLOCK_ROWS", 4096)
     for r, f in zip(fused_field(*nets, h.detach()), field_ref):
         assert _rel(f, r) < 1e-12
 
@@ -338,16 +338,16 @@ def test_config_accepts_fused():
 def test_rows_with_gradient_are_the_rows_with_a_nonzero_entry(monkeypatch):
     """`_rows_with_gradient` against a hand-made block: a row counts when either net's
     gradient has an entry that is not zero (a NaN counts, -0.0 does not); with too many such
-    rows (COMPACT_BELOW) it gives None (the full backward)."""
+    rows (hnn_blocks.COMPACT_BELOW) it gives None (the full backward)."""
     grads = torch.zeros((2, 9, 4), dtype=torch.float32)
     grads[0, 1, 3] = 2.0
     grads[1, 4, 0] = -1e-30
     grads[0, 6, 2] = float("nan")
     grads[1, 7, 1] = -0.0
-    rows = hnn_fused._rows_with_gradient(grads)
+    rows = hnn_blocks._rows_with_gradient(grads)
     assert rows.dtype == np.int64 and rows.tolist() == [1, 4, 6]
-    monkeypatch.setattr(hnn_fused, "COMPACT_BELOW", 3 / 9)  # 3 rows of 9 are not fewer
-    assert hnn_fused._rows_with_gradient(grads) is None
+    monkeypatch.setattr(hnn_blocks, "COMPACT_BELOW", 3 / 9)  # 3 rows of 9 are not fewer
+    assert hnn_blocks._rows_with_gradient(grads) is None
 
 
 @pytest.mark.parametrize("block_rows", [4096, 7])
@@ -369,7 +369,7 @@ def test_trunk_inside_equals_trunk_in_front(block_rows, monkeypatch):
         loss = sum((o * w).sum() for o, w in zip(out, weights))
         return out, torch.autograd.grad(loss, wanted)
 
-    monkeypatch.setattr(hnn_fused, "BLOCK_ROWS", block_rows)
+    monkeypatch.setattr(hnn_blocks, "BLOCK_ROWS", block_rows)
     ref_out, ref_grads = run(False)
     empty = torch.empty
     monkeypatch.setattr(torch, "empty", lambda *a, **k: empty(*a, **k).fill_(float("nan")))
@@ -384,7 +384,7 @@ def test_trunk_inside_equals_trunk_in_front(block_rows, monkeypatch):
 def test_decoder_fused_features_fuses_trunk_and_adapters(monkeypatch):
     """HamiltonianDecoder.fused_features(f, trunk, adapters) against the same modules one
     after the other in closed form (float64, blocks of 5 over 12 rows): the adapters' outputs
-    and the force (trunk, first layers and heads composed, hnn_fused._Composed), and the
+    and the force (trunk, first layers and heads composed, hnn_heads._Composed), and the
     gradients of a loss on the last two for f and every
     parameter, with rows 0-4 and 8 out of the loss (a whole block included)."""
     from nehad.field.adapters import Adapters
@@ -406,7 +406,7 @@ def test_decoder_fused_features_fuses_trunk_and_adapters(monkeypatch):
     weights = torch.randn(12, 13, dtype=torch.float64)
     weights[:5] = 0.0
     weights[8] = 0.0
-    monkeypatch.setattr(hnn_fused, "BLOCK_ROWS", 5)
+    monkeypatch.setattr(hnn_blocks, "BLOCK_ROWS", 5)
 
     def run(decoder):
         if decoder is dec:

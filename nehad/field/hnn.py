@@ -200,7 +200,7 @@ class HamiltonianDecoder(nn.Module):
         the fused Function (`nehad.field.hnn_fused.fused_field`'s `trunk` and `heads`), whose
         backward then reaches the Gaussians with a gradient only. The FieldOutput is None: v,
         v_c and v_s are not formed there: the trunk, the nets' first layers, the adapters and the
-        force are composed into smaller maps (`hnn_fused._Composed`). None where that Function
+        force are composed into smaller maps (`hnn_heads._Composed`). None where that Function
         cannot run it (`grad_mode` not "fused", a graph being captured, appearance adapters, a
         trunk without bias, ...): the caller then applies the modules one after the other."""
         if (self.grad_mode != "fused" or is_capturing() or trunk.bias is None

@@ -21,7 +21,7 @@ check the kernels' algebra against autograd).
 The kernels that call these must not allow floating-point reassociation (`KERNEL_FASTMATH`):
 it could merge the two parts of the Cody-Waite constant and lose the reduction's precision.
 Numba's on-disk cache of those kernels (cache=True) checks only their own file: after editing
-this one, touch nehad/field/hnn_fused.py so that they are compiled anew.
+this one, touch nehad/field/hnn_kernels.py so that they are compiled anew.
 """
 
 from __future__ import annotations
