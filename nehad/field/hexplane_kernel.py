@@ -78,18 +78,18 @@ def _bilinear(a, b, d, e, fx, fy):
 @numba.njit(fastmath=True, cache=True)
 def _forward_points(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
                     out, order, start, stop):
-    """out's rows of the points order[start:stop], one plane after the other: each plane's
-    texels are then read as one stream in the points' spatial order, which the hardware
-    prefetcher follows, where the twelve planes read point by point were twelve streams at
-    once (a step's lookup finds the planes out of the cache: 7000 points, 1 thread, after the
-    cache was flushed, 1.9-2.1 ms against 3.8-8.1; the same when the planes are cached). The
-    same products in the same order (the first plane's sample is assigned, not multiplied
-    into 1)."""
+    """out's rows order[start:stop] (u in the lookup's spatial order: u[i] is point order[i];
+    out in the points' own order), one plane after the
+    other: each plane's texels are then read as one stream in the points' spatial order, which
+    the hardware prefetcher follows, where the twelve planes read point by point were twelve
+    streams at once (a step's lookup finds the planes out of the cache: 7000 points, 1 thread,
+    after the cache was flushed, 1.9-2.1 ms against 3.8-8.1; the same when the planes are
+    cached). The same products in the same order (the first plane's sample is assigned, not
+    multiplied into 1)."""
     for s in range(n_scales):
         for k in range(6):
-            for i in range(start, stop):
-                n = order[i]
-                f = out[n, s * channels:(s + 1) * channels]
+            for n in range(start, stop):
+                f = out[order[n], s * channels:(s + 1) * channels]
                 base, dx, dy, fx, fy, _, _ = _corners(u, n, s * 6 + k, k, offsets, heights,
                                                       widths, axis_a, axis_b, channels)
                 t00 = tables[base:base + channels]
@@ -111,6 +111,35 @@ def _forward(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, chan
     for j in numba.prange(chunks):
         _forward_points(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
                         out, order, j * n // chunks, (j + 1) * n // chunks)
+
+
+@numba.njit(parallel=True, cache=True)
+def _take_rows(src, rows, dst):
+    """dst[i] = src[rows[i]] (a gather into the spatial order)."""
+    for i in numba.prange(rows.shape[0]):
+        dst[i] = src[rows[i]]
+
+
+@numba.njit(parallel=True, cache=True)
+def _put_rows(src, rows, dst):
+    """dst[rows[i]] = src[i] (a scatter back to the Gaussians' order)."""
+    for i in numba.prange(rows.shape[0]):
+        dst[rows[i]] = src[i]
+
+
+@numba.njit(parallel=True, cache=True)
+def _live_rows(g, live):
+    """live[n] = whether row n of g has an entry that is not zero (a NaN counts as one); a row
+    stops at its first such entry (numpy's `any` over a (g != 0) temporary took 0.5 ms for
+    16k rows of 64)."""
+    for n in numba.prange(g.shape[0]):
+        row = g[n]
+        found = False
+        for c in range(row.shape[0]):
+            if row[c] != 0:
+                found = True
+                break
+        live[n] = found
 
 
 @numba.njit(inline="always")
@@ -142,50 +171,44 @@ def _taps_with_slopes(u, n, s, tables, offsets, heights, widths, axis_a, axis_b,
 
 
 @numba.njit(inline="always")
-def _products_of_the_others(g, samples, others, running, channels):
+def _products_of_the_others(g, samples, others, channels):
     """others[k] = g * prod_{j != k} samples[j] (plane k at k * channels): a prefix times a
-    suffix product, three passes over the six samples, not thirty products."""
+    suffix product per channel, not thirty products. Channel by channel, the six planes in
+    registers: plane by plane through a running row it took twice as long."""
     for c in range(channels):
-        running[c] = g[c]
-    for k in range(6):  # others = g * prefix product
-        other = others[k * channels:(k + 1) * channels]
-        sample = samples[k * channels:(k + 1) * channels]
-        for c in range(channels):
-            other[c] = running[c]
-            running[c] *= sample[c]
-    for c in range(channels):
-        running[c] = _ONE
-    for k in range(5, -1, -1):  # ... times the suffix product
-        other = others[k * channels:(k + 1) * channels]
-        sample = samples[k * channels:(k + 1) * channels]
-        for c in range(channels):
-            other[c] *= running[c]
-            running[c] *= sample[c]
+        r = g[c]
+        for k in range(6):  # others = g * prefix product
+            others[k * channels + c] = r
+            r *= samples[k * channels + c]
+        r = _ONE
+        for k in range(5, -1, -1):  # ... times the suffix product
+            others[k * channels + c] *= r
+            r *= samples[k * channels + c]
 
 
 @numba.njit(fastmath=True, cache=True)
 def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
-                       grad_out, grad_samples, grad_u, order, start, stop):
-    """dL/ds_k (into `grad_samples`) and dL/du of points order[start:stop]. The scratch rows
-    are flat (plane k at k * channels), and every loop over the channels runs over slices
-    (views of one row), which LLVM vectorises: indexed through the whole arrays the same loops
-    took twice as long (10k points, 2 threads: 4.9 -> 2.1-2.3 ms)."""
+                       grad_out, grad_samples, grad_u, start, stop):
+    """dL/ds_k (into `grad_samples`) and dL/du of the points start:stop (u, grad_out and grad_u
+    in the lookup's spatial order: read in the Gaussians' order, each point's upstream row was
+    a cache miss the long loop body could not hide, 10k points, 1 thread: 5.8 -> 3.2 ms). The
+    scratch rows are flat (plane k at k * channels), and every loop over the channels runs over
+    slices (views of one row), which LLVM vectorises: indexed through the whole arrays the same
+    loops took twice as long (10k points, 2 threads: 4.9 -> 2.1-2.3 ms)."""
     samples = np.empty(6 * channels, np.float32)
     sx = np.empty(6 * channels, np.float32)  # d sample / d pixel x
     sy = np.empty(6 * channels, np.float32)
     others = np.empty(6 * channels, np.float32)  # prod_{j != k} s_j
-    running = np.empty(channels, np.float32)
     slopes = np.empty((6, 2), np.float32)
-    for i in range(start, stop):
-        n = order[i]
+    for n in range(start, stop):
         for s in range(n_scales):
             _taps_with_slopes(u, n, s, tables, offsets, heights, widths, axis_a, axis_b,
                               channels, samples, sx, sy, slopes)
             _products_of_the_others(grad_out[n, s * channels:(s + 1) * channels], samples,
-                                    others, running, channels)
+                                    others, channels)
             for k in range(6):
                 o = k * channels
-                gk = grad_samples[s * 6 + k, i]
+                gk = grad_samples[s * 6 + k, n]
                 other = others[o:o + channels]
                 slope_a = sx[o:o + channels]
                 slope_b = sy[o:o + channels]
@@ -202,22 +225,21 @@ def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_sc
 
 @numba.njit(parallel=True, cache=True)
 def _point_grads(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
-                 grad_out, grad_samples, grad_u, order, chunks):
-    n = order.shape[0]
+                 grad_out, grad_samples, grad_u, chunks):
+    n = u.shape[0]
     for j in numba.prange(chunks):
         _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales,
-                           channels, grad_out, grad_samples, grad_u, order, j * n // chunks,
+                           channels, grad_out, grad_samples, grad_u, j * n // chunks,
                            (j + 1) * n // chunks)
 
 
 @numba.njit(fastmath=True, cache=True)
 def _scatter_plane(u, p, k, offsets, heights, widths, axis_a, axis_b, channels, grad_samples,
-                   grad_tables, order):
-    for i in range(order.shape[0]):
-        n = order[i]
+                   grad_tables):
+    for n in range(u.shape[0]):
         base, dx, dy, fx, fy, _, _ = _corners(u, n, p, k, offsets, heights, widths, axis_a,
                                               axis_b, channels)
-        gk = grad_samples[p, i]
+        gk = grad_samples[p, n]
         w00 = (_ONE - fx) * (_ONE - fy)
         w01 = fx * (_ONE - fy)
         w10 = (_ONE - fx) * fy
@@ -238,10 +260,10 @@ def _scatter_plane(u, p, k, offsets, heights, widths, axis_a, axis_b, channels, 
 
 @numba.njit(parallel=True, cache=True)
 def _plane_grads(u, offsets, heights, widths, axis_a, axis_b, channels, grad_samples,
-                 grad_tables, order):
+                 grad_tables):
     for p in numba.prange(offsets.shape[0] - 1):
         _scatter_plane(u, p, p % 6, offsets, heights, widths, axis_a, axis_b, channels,
-                       grad_samples, grad_tables, order)
+                       grad_samples, grad_tables)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -527,34 +549,44 @@ class HexPlaneLookup(torch.autograd.Function):
         if not np.isfinite(un).all():  # a diverged step (the trainer stops on its NaN loss):
             # the kernels index the tables with the coordinates, so no NaN or inf may reach them
             un = np.nan_to_num(un, nan=0.0, posinf=1.0, neginf=-1.0)
-        out = np.empty((un.shape[0], n_scales * channels), np.float32)
         order = _spatial_order(un)
-        _forward(un, flat, offsets, heights, widths, axis_a, axis_b, n_scales, channels, out,
-                 order, _chunks(len(un)))
-        ctx.saved = (un, flat, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
-                     [tuple(p.shape) for p in planes], order,
+        sorted_u = np.empty_like(un)  # the kernels work in the spatial order
+        _take_rows(un, order, sorted_u)
+        out = np.empty((un.shape[0], n_scales * channels), np.float32)
+        _forward(sorted_u, flat, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
+                 out, order, _chunks(len(un)))
+        ctx.saved = (sorted_u, flat, offsets, heights, widths, axis_a, axis_b, n_scales,
+                     channels, [tuple(p.shape) for p in planes], order,
                      [p.is_contiguous(memory_format=torch.channels_last) for p in planes])
         return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, grad_out):
-        (un, flat, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
+        (sorted_u, flat, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
          shapes, order, channel_last) = ctx.saved
         g = np.ascontiguousarray(grad_out.detach().numpy(), np.float32)
-        n = un.shape[0]
+        n = sorted_u.shape[0]
         # the points with a gradient only (a point no pixel of the view sees has none, and would
         # add zeros everywhere: about half of a MuJoCo scene's, docs/performance.md)
-        active = np.any(g != 0, axis=1)
+        live = np.empty(n, np.bool_)
+        _live_rows(g, live)
+        active = live[order]
         if not active.all():
-            order = order[active[order]]
-        # plane-major, in the points' `order`: each plane's scatter then reads it front to back
-        grad_samples = np.empty((n_scales * 6, len(order), channels), np.float32)
-        grad_u = np.zeros((n, 4), np.float32)
-        _point_grads(un, flat, offsets, heights, widths, axis_a, axis_b, n_scales, channels, g,
-                     grad_samples, grad_u, order, _chunks(len(order)))
+            kept = np.flatnonzero(active)
+            order, sorted_u = order[kept], sorted_u[kept]
+        m = len(order)
+        sorted_g = np.empty((m, g.shape[1]), np.float32)
+        _take_rows(g, order, sorted_g)
+        # plane-major, in the spatial order: each plane's scatter then reads it front to back
+        grad_samples = np.empty((n_scales * 6, m, channels), np.float32)
+        sorted_grad_u = np.zeros((m, 4), np.float32)
+        _point_grads(sorted_u, flat, offsets, heights, widths, axis_a, axis_b, n_scales,
+                     channels, sorted_g, grad_samples, sorted_grad_u, _chunks(m))
         grad_tables = np.zeros_like(flat)
-        _plane_grads(un, offsets, heights, widths, axis_a, axis_b, channels, grad_samples,
-                     grad_tables, order)
+        _plane_grads(sorted_u, offsets, heights, widths, axis_a, axis_b, channels,
+                     grad_samples, grad_tables)
+        grad_u = np.zeros((n, 4), np.float32)
+        _put_rows(sorted_grad_u, order, grad_u)
         plane_grads = []
         for p, (shape, last) in enumerate(zip(shapes, channel_last)):
             table = grad_tables[offsets[p]:offsets[p + 1]]
