@@ -13,7 +13,8 @@ import numpy as np
 import torch
 
 from nehad.field.hnn_kernels import (_chunks, _delta_backward, _hidden_backward, _hidden_layer,
-                                     _last_backward, _last_layer, _live_rows, _product)
+                                     _last_backward, _last_delta, _last_layer, _live_rows,
+                                     _product)
 
 #: Rows per block of the forward and the backward: a block's (2, rows, 64) float32 temporaries
 #: are 1 MB each and stay in the cache between a product and the pass that reads them. The
@@ -58,39 +59,42 @@ class _Nets(NamedTuple):
 
 
 class _Saved(NamedTuple):
-    """What the backward of one block of rows reads (module docstring's names, per layer)."""
+    """What the backward of one block of rows reads (module docstring's names, per layer). The
+    last layer's d_L, e_L and delta_L are not kept (None): the backward computes them again
+    from its z_L on the rows it runs on (`restored`), which reads a third of the memory the
+    three arrays took (the forward wrote them for every row, the backward read them back for
+    about half, long after they had left the cache)."""
 
     acts: list  # a_0 = h, a_1, ..., a_{L-1}
-    derivs: list  # d_k
-    curvs: list  # e_k
+    derivs: list  # d_k (d_L None until `restored`)
+    curvs: list  # e_k (e_L None until `restored`)
     us: list  # u_k, k < L (None for k = L)
-    deltas: list  # delta_k
+    deltas: list  # delta_k (delta_L None until `restored`)
+    z_last: torch.Tensor  # z_L without its bias (2, b, H)
 
 
-def _forward_block(nets: _Nets, h: torch.Tensor, g: Optional[torch.Tensor]) -> _Saved:
-    """g[i] = grad_h F_i(h) for a block of rows h (b, W), g (2, b, W) views of the output; g
-    None: not formed (`_Composed` reads delta_1 instead)."""
+def _forward_block(nets: _Nets, h: torch.Tensor, g: Optional[torch.Tensor]):
+    """(what the backward reads, delta_1) for a block of rows h (b, W); g[i] = grad_h F_i(h)
+    into g (2, b, W), views of the output, or g None: not formed (`_Composed` reads delta_1
+    instead)."""
     b = h.shape[0]
     chunks = _chunks(b)
     acts, derivs, curvs = [h], [], []
-    delta_last = None
-    for k in range(nets.depth):
-        x = h.expand(2, b, h.shape[1]) if k == 0 else acts[k]
-        z = torch.bmm(x, nets.weights[k].transpose(1, 2))
-        d, e = torch.empty_like(z), torch.empty_like(z)
-        if k < nets.depth - 1:
-            a = torch.empty_like(z)
-            _hidden_layer(nets.kind, _np(z), nets.biases[k], _np(a), _np(d), _np(e), nets.one,
-                          chunks)
-            acts.append(a)
-        else:
-            delta_last = torch.empty_like(z)
-            _last_layer(nets.kind, _np(z), nets.biases[k], nets.w_out, _np(d), _np(e),
-                        _np(delta_last), nets.one, chunks)
+    for k in range(nets.depth - 1):
+        z = torch.bmm(h.expand(2, b, h.shape[1]) if k == 0 else acts[k],
+                      nets.weights[k].transpose(1, 2))
+        a, d, e = torch.empty_like(z), torch.empty_like(z), torch.empty_like(z)
+        _hidden_layer(nets.kind, _np(z), nets.biases[k], _np(a), _np(d), _np(e), nets.one,
+                      chunks)
+        acts.append(a)
         derivs.append(d)
         curvs.append(e)
+    below = h.expand(2, b, h.shape[1]) if nets.depth == 1 else acts[-1]
+    z_last = torch.bmm(below, nets.weights[-1].transpose(1, 2))
     deltas = [None] * nets.depth
-    deltas[-1] = delta_last
+    deltas[-1] = torch.empty_like(z_last)
+    _last_delta(nets.kind, _np(z_last), nets.biases[-1], nets.w_out, _np(deltas[-1]), nets.one,
+                chunks)
     us = [None] * nets.depth
     for k in range(nets.depth - 2, -1, -1):
         us[k] = _per_net(deltas[k + 1], nets.weights[k + 1])
@@ -98,7 +102,20 @@ def _forward_block(nets: _Nets, h: torch.Tensor, g: Optional[torch.Tensor]) -> _
         _product(_np(derivs[k]), _np(us[k]), _np(deltas[k]), chunks)
     if g is not None:
         torch.bmm(deltas[0], nets.weights[0], out=g)
-    return _Saved(acts, derivs, curvs, us, deltas)
+    delta_1 = deltas[0]
+    deltas[-1] = None  # not kept: `restored`
+    return _Saved(acts, derivs + [None], curvs + [None], us, deltas, z_last), delta_1
+
+
+def restored(nets: _Nets, saved: _Saved) -> _Saved:
+    """`saved` with the last layer's d_L, e_L and delta_L computed again from z_L (the same
+    values the forward computed: the same kernel code on the same inputs)."""
+    z = saved.z_last
+    d, e, delta = torch.empty_like(z), torch.empty_like(z), torch.empty_like(z)
+    _last_layer(nets.kind, _np(z), nets.biases[-1], nets.w_out, _np(d), _np(e), _np(delta),
+                nets.one, _chunks(z.shape[1]))
+    return saved._replace(derivs=saved.derivs[:-1] + [d], curvs=saved.curvs[:-1] + [e],
+                          deltas=saved.deltas[:-1] + [delta])
 
 
 def _backward_block(nets: _Nets, saved: _Saved, grads, grad_h: torch.Tensor, d_weights: list,
@@ -109,7 +126,7 @@ def _backward_block(nets: _Nets, saved: _Saved, grads, grad_h: torch.Tensor, d_w
     d_w_out (2, H); grads (2, b, W) = (dL/dg1, dL/dg2) of the block. Or, given `d_delta` =
     dL/ddelta_1 (2, b, H) instead of grads (`_Composed`, where g is not formed), from there on:
     d_weights[0] then gets only the first layer's input side, dz^T h."""
-    acts, derivs, curvs, us, deltas = saved
+    acts, derivs, curvs, us, deltas, _ = saved
     h, depth = acts[0], nets.depth
     b, hidden = h.shape[0], nets.weights[0].shape[1]
     chunks = _chunks(b)
@@ -171,7 +188,8 @@ def _compact(saved: _Saved, rows: np.ndarray) -> _Saved:
         return [None if a is None else a.index_select(axis, index) for a in arrays]
 
     return _Saved(pick(saved.acts[:1], 0) + pick(saved.acts[1:], 1), pick(saved.derivs, 1),
-                  pick(saved.curvs, 1), pick(saved.us, 1), pick(saved.deltas, 1))
+                  pick(saved.curvs, 1), pick(saved.us, 1), pick(saved.deltas, 1),
+                  saved.z_last.index_select(1, index))
 
 
 def _backward_rows(nets: _Nets, block: _Saved, grads: torch.Tensor, quads, out_all: torch.Tensor,
@@ -185,6 +203,7 @@ def _backward_rows(nets: _Nets, block: _Saved, grads: torch.Tensor, quads, out_a
         if len(rows) == 0:
             return rows, None
         block, grads = _compact(block, rows), grads.index_select(1, torch.from_numpy(rows))
+    block = restored(nets, block)
     out = out_all if rows is None else torch.empty((len(rows), out_all.shape[1]),
                                                    dtype=out_all.dtype)
     _backward_block(nets, block, grads, out, d_weights, d_biases, d_w_out)

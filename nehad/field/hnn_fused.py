@@ -108,7 +108,7 @@ class FusedInputGradients(torch.autograd.Function):
                 continue
             if head is not None:
                 head.forward(xd[lo:hi], hd[lo:hi])
-            saved.append(_forward_block(nets, hd[lo:hi], g[:, lo:hi]))
+            saved.append(_forward_block(nets, hd[lo:hi], g[:, lo:hi])[0])
             if tail is not None:
                 tail.forward(g[:, lo:hi], hd[lo:hi], both[lo:hi])
                 continue

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from nehad.field.hnn_blocks import (_Nets, _Saved, _backward_block, _blocks, _compact,
-                                    _forward_block, _place, _rows_with_gradient)
+                                    _forward_block, _place, _rows_with_gradient, restored)
 
 
 class _Trunk(NamedTuple):
@@ -202,8 +202,7 @@ class _Composed(NamedTuple):
 
     def forward_block(self, f: torch.Tensor, both: torch.Tensor) -> _Saved:
         """both (b, J) = [out | force] of a block of rows f (b, F); what its backward reads."""
-        saved = _forward_block(self.nets, f, None)
-        d1 = saved.deltas[0]
+        saved, d1 = _forward_block(self.nets, f, None)
         torch.addmm(self.const, d1[0], self.q[0], out=both)
         both.addmm_(d1[1], self.q[1])
         if self.kw is not None:
@@ -233,6 +232,7 @@ class _Composed(NamedTuple):
                 return
             saved, grad = _compact(saved, rows), grad.index_select(0, torch.from_numpy(rows))
             f = saved.acts[0]
+        saved = restored(self.nets, saved)
         m = grad.shape[0]
         both = grad.expand(2, m, grad.shape[1])
         d_delta = torch.bmm(both, self.q.transpose(1, 2))

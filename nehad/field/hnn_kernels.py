@@ -82,6 +82,22 @@ def _last_layer(kind, z, bias, w_out, d, e, delta, one, chunks):
 
 
 @numba.njit(parallel=True, fastmath=KERNEL_FASTMATH, cache=True)
+def _last_delta(kind, z, bias, w_out, delta, one, chunks):
+    """delta = act'(z + bias) * w_out alone, for the last hidden layer in the forward (its d
+    and e are computed again from z for the backward's rows: `_last_layer`); the same values
+    as `_last_layer`'s delta."""
+    nets, n = z.shape[0], z.shape[1]
+    for c in numba.prange(chunks):
+        for i in range(nets):
+            b, w = bias[i], w_out[i]
+            for r in range(c * n // chunks, (c + 1) * n // chunks):
+                zr, gr = z[i, r], delta[i, r]
+                for j in range(zr.shape[0]):
+                    _, dv, _ = _activation(kind, zr[j] + b[j], one)
+                    gr[j] = dv * w[j]
+
+
+@numba.njit(parallel=True, fastmath=KERNEL_FASTMATH, cache=True)
 def _product(x, y, out, chunks):
     """out = x * y (delta_k = d_k * u_k)."""
     nets, n = x.shape[0], x.shape[1]
