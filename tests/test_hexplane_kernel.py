@@ -26,9 +26,16 @@ def _points(n=300, seed=1):
     return x
 
 
+@pytest.mark.parametrize("by_scale", [True, False])
 @pytest.mark.parametrize("layout", [torch.contiguous_format, torch.channels_last])
 @pytest.mark.parametrize("t", [-1.0, -0.31, 0.5, 1.0])
-def test_lookup_and_gradients_match_grid_sample(t, layout):
+def test_lookup_and_gradients_match_grid_sample(t, layout, by_scale, monkeypatch):
+    """Values and gradients (points and planes) against grid_sample, with the backward run per
+    scale and as the two passes over points and planes (`backward_by_scale`); a third of the
+    rows without an upstream gradient."""
+    from nehad.field import hexplane_kernel
+
+    monkeypatch.setattr(hexplane_kernel, "backward_by_scale", lambda n_scales: by_scale)
     hp = _planes()
     x = _points()
     tt = torch.tensor([[t]], dtype=torch.float64)
@@ -36,6 +43,7 @@ def test_lookup_and_gradients_match_grid_sample(t, layout):
     ref = hp(x_ref, tt)  # grid_sample in float64
     weight = torch.randn(ref.shape, generator=torch.Generator().manual_seed(2),
                          dtype=torch.float64)
+    weight[::3] = 0.0  # rows no pixel sees: left out of the backward
     (ref * weight).sum().backward()
     planes = [p for scale in hp.planes for p in scale]
     planes32 = [p.detach().float().contiguous(memory_format=layout).requires_grad_(True)
@@ -50,6 +58,28 @@ def test_lookup_and_gradients_match_grid_sample(t, layout):
         assert mine.grad.shape == p.shape
         assert mine.grad.is_contiguous(memory_format=layout)
         assert (mine.grad.double() - p.grad).abs().max() <= 1e-5 * p.grad.abs().max()
+
+
+def test_the_two_backward_schedules_give_the_same_bits(monkeypatch):
+    """Per scale or as two passes (`backward_by_scale`, chosen by the thread count): the same
+    float32 gradients to the last bit, so that training does not depend on the threads."""
+    from nehad.field import hexplane_kernel
+
+    planes = [p.detach().float().contiguous(memory_format=torch.channels_last)
+              for scale in _planes().planes for p in scale]
+    u = torch.cat([_points().float(), torch.full((300, 1), 0.3)], 1)
+    weight = torch.randn(300, 16, generator=torch.Generator().manual_seed(3))
+    weight[::4] = 0.0
+    grads = []
+    for by_scale in (True, False):
+        monkeypatch.setattr(hexplane_kernel, "backward_by_scale", lambda n_scales: by_scale)
+        leaves = [u.clone().requires_grad_(True)] + [p.clone().requires_grad_(True)
+                                                     for p in planes]
+        (hexplane_lookup(leaves[0], leaves[1:], PLANE_AXES) * weight).sum().backward()
+        grads.append([x.grad for x in leaves])
+    assert grads[0][0].abs().max() > 0
+    for a, b in zip(*grads):
+        assert torch.equal(a, b)
 
 
 def test_hexplane_dispatches_to_the_kernel_on_cpu_float32():

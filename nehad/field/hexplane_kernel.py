@@ -189,8 +189,8 @@ def _products_of_the_others(g, samples, others, channels):
 @numba.njit(fastmath=True, cache=True)
 def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
                        grad_out, grad_samples, grad_u, start, stop):
-    """dL/ds_k (into `grad_samples`) and dL/du of the points start:stop (u, grad_out and grad_u
-    in the lookup's spatial order: read in the Gaussians' order, each point's upstream row was
+    """dL/ds_k (into `grad_samples`) and dL/du per scale (grad_u (S, points, 4)) of the points
+    start:stop (u, grad_out and grad_u in the lookup's spatial order: read in the Gaussians' order, each point's upstream row was
     a cache miss the long loop body could not hide, 10k points, 1 thread: 5.8 -> 3.2 ms). The
     scratch rows are flat (plane k at k * channels), and every loop over the channels runs over
     slices (views of one row), which LLVM vectorises: indexed through the whole arrays the same
@@ -219,8 +219,8 @@ def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_sc
                     gk[c] = v
                     ax += v * slope_a[c]
                     ay += v * slope_b[c]
-                grad_u[n, axis_a[k]] += ax * slopes[k, 0]
-                grad_u[n, axis_b[k]] += ay * slopes[k, 1]
+                grad_u[s, n, axis_a[k]] += ax * slopes[k, 0]
+                grad_u[s, n, axis_b[k]] += ay * slopes[k, 1]
 
 
 @numba.njit(parallel=True, cache=True)
@@ -231,6 +231,65 @@ def _point_grads(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, 
         _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales,
                            channels, grad_out, grad_samples, grad_u, j * n // chunks,
                            (j + 1) * n // chunks)
+
+
+@numba.njit(fastmath=True, cache=True)
+def _scale_grads(u, tables, offsets, heights, widths, axis_a, axis_b, s, channels, grad_out,
+                 grad_u, grad_tables):
+    """Every point's dL/du share and the six planes' gradients of scale s in one pass (u and
+    grad_out in the lookup's spatial order): a point's dL/ds_k goes straight onto its cell's
+    four corners, so it is never written out and read back (`_grads_by_scale`)."""
+    samples = np.empty(6 * channels, np.float32)
+    sx = np.empty(6 * channels, np.float32)  # d sample / d pixel x
+    sy = np.empty(6 * channels, np.float32)
+    others = np.empty(6 * channels, np.float32)  # g prod_{j != k} s_j = dL/ds_k
+    slopes = np.empty((6, 2), np.float32)
+    for n in range(u.shape[0]):
+        _taps_with_slopes(u, n, s, tables, offsets, heights, widths, axis_a, axis_b, channels,
+                          samples, sx, sy, slopes)
+        _products_of_the_others(grad_out[n, s * channels:(s + 1) * channels], samples, others,
+                                channels)
+        for k in range(6):
+            o = k * channels
+            other = others[o:o + channels]
+            slope_a = sx[o:o + channels]
+            slope_b = sy[o:o + channels]
+            ax = _ZERO
+            ay = _ZERO
+            for c in range(channels):
+                v = other[c]
+                ax += v * slope_a[c]
+                ay += v * slope_b[c]
+            grad_u[n, axis_a[k]] += ax * slopes[k, 0]
+            grad_u[n, axis_b[k]] += ay * slopes[k, 1]
+            base, dx, dy, fx, fy, _, _ = _corners(u, n, s * 6 + k, k, offsets, heights, widths,
+                                                  axis_a, axis_b, channels)
+            w00 = (_ONE - fx) * (_ONE - fy)
+            w01 = fx * (_ONE - fy)
+            w10 = (_ONE - fx) * fy
+            w11 = fx * fy
+            g00 = grad_tables[base:base + channels]
+            for c in range(channels):
+                g00[c] += w00 * other[c]
+            g01 = grad_tables[base + dx:base + dx + channels]
+            for c in range(channels):
+                g01[c] += w01 * other[c]
+            g10 = grad_tables[base + dy:base + dy + channels]
+            for c in range(channels):
+                g10[c] += w10 * other[c]
+            g11 = grad_tables[base + dy + dx:base + dy + dx + channels]
+            for c in range(channels):
+                g11[c] += w11 * other[c]
+
+
+@numba.njit(parallel=True, cache=True)
+def _grads_by_scale(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
+                    grad_out, grad_u_scales, grad_tables):
+    """`_scale_grads` of each scale as one task: a scale's planes belong to it alone, so no two
+    tasks write the same memory (dL/du per scale, summed by the caller)."""
+    for s in numba.prange(n_scales):
+        _scale_grads(u, tables, offsets, heights, widths, axis_a, axis_b, s, channels, grad_out,
+                     grad_u_scales[s], grad_tables)
 
 
 @numba.njit(fastmath=True, cache=True)
@@ -510,6 +569,17 @@ def _chunks(n: int) -> int:
     return max(1, min(n, 64 * numba.get_num_threads()))
 
 
+def backward_by_scale(n_scales: int) -> bool:
+    """Whether the lookup's backward runs one task per scale (`_grads_by_scale`: each point's
+    dL/ds_k goes onto the planes as it is computed) rather than a pass over the points and one
+    over the planes (`_point_grads`, `_plane_grads`: dL/ds_k written out, (12, rows, 32) floats,
+    and read back). Per scale while there are no more threads than scales, the case of the
+    2-core machines this project trains on (docs/performance.md); with more threads the two
+    passes keep them all busy. Both give the same bits (dL/du is summed per scale in both, and
+    each plane's texels get their points' shares in the same order)."""
+    return numba.get_num_threads() <= n_scales
+
+
 def _shared_table(planes, offsets):
     """The planes' one flat (H, W, C)-per-plane table without a copy, when they are channel-last
     views of one buffer, one after the other (as HexPlane allocates them); else None (planes
@@ -577,14 +647,20 @@ class HexPlaneLookup(torch.autograd.Function):
         m = len(order)
         sorted_g = np.empty((m, g.shape[1]), np.float32)
         _take_rows(g, order, sorted_g)
-        # plane-major, in the spatial order: each plane's scatter then reads it front to back
-        grad_samples = np.empty((n_scales * 6, m, channels), np.float32)
-        sorted_grad_u = np.zeros((m, 4), np.float32)
-        _point_grads(sorted_u, flat, offsets, heights, widths, axis_a, axis_b, n_scales,
-                     channels, sorted_g, grad_samples, sorted_grad_u, _chunks(m))
         grad_tables = np.zeros_like(flat)
-        _plane_grads(sorted_u, offsets, heights, widths, axis_a, axis_b, channels,
-                     grad_samples, grad_tables)
+        # dL/du per scale, summed over the scales at the end: the same bits either way below
+        by_scale = np.zeros((n_scales, m, 4), np.float32)
+        if backward_by_scale(n_scales):
+            _grads_by_scale(sorted_u, flat, offsets, heights, widths, axis_a, axis_b, n_scales,
+                            channels, sorted_g, by_scale, grad_tables)
+        else:
+            # plane-major, in the spatial order: each plane's scatter then reads it front to back
+            grad_samples = np.empty((n_scales * 6, m, channels), np.float32)
+            _point_grads(sorted_u, flat, offsets, heights, widths, axis_a, axis_b, n_scales,
+                         channels, sorted_g, grad_samples, by_scale, _chunks(m))
+            _plane_grads(sorted_u, offsets, heights, widths, axis_a, axis_b, channels,
+                         grad_samples, grad_tables)
+        sorted_grad_u = by_scale.sum(axis=0)
         grad_u = np.zeros((n, 4), np.float32)
         _put_rows(sorted_grad_u, order, grad_u)
         plane_grads = []
