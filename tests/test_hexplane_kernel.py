@@ -62,7 +62,11 @@ def test_lookup_and_gradients_match_grid_sample(t, layout, by_scale, monkeypatch
 
 def test_the_two_backward_schedules_give_the_same_bits(monkeypatch):
     """Per scale or as two passes (`backward_by_scale`, chosen by the thread count): the same
-    float32 gradients to the last bit, so that training does not depend on the threads."""
+    float32 gradients to the last bit, so that training does not depend on the threads. As for
+    tests/test_fingerprint.py, bits compare only between kernels compiled alike: once, with
+    some of this module's kernels loaded from Numba's cache and the others just compiled (right
+    after an edit), this failed, and passed on every run after (a clean clone compiles them
+    all in the process)."""
     from nehad.field import hexplane_kernel
 
     planes = [p.detach().float().contiguous(memory_format=torch.channels_last)

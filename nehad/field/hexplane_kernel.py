@@ -75,6 +75,39 @@ def _bilinear(a, b, d, e, fx, fy):
     return top + fy * (d + fx * (e - d) - top)
 
 
+@numba.njit(inline="always")
+def _spread(grad_tables, base, dx, dy, fx, fy, gk, channels):
+    """A point's dL/ds_k (gk) onto its cell's four texels, each with its bilinear weight."""
+    w00 = (_ONE - fx) * (_ONE - fy)
+    w01 = fx * (_ONE - fy)
+    w10 = (_ONE - fx) * fy
+    w11 = fx * fy
+    g00 = grad_tables[base:base + channels]
+    for c in range(channels):
+        g00[c] += w00 * gk[c]
+    g01 = grad_tables[base + dx:base + dx + channels]
+    for c in range(channels):
+        g01[c] += w01 * gk[c]
+    g10 = grad_tables[base + dy:base + dy + channels]
+    for c in range(channels):
+        g10[c] += w10 * gk[c]
+    g11 = grad_tables[base + dy + dx:base + dy + dx + channels]
+    for c in range(channels):
+        g11[c] += w11 * gk[c]
+
+
+@numba.njit(inline="always")
+def _slope_sums(gk, slope_a, slope_b, channels):
+    """(sum_c gk_c slope_a_c, sum_c gk_c slope_b_c): dL/d pixel along the plane's two axes."""
+    ax = _ZERO
+    ay = _ZERO
+    for c in range(channels):
+        v = gk[c]
+        ax += v * slope_a[c]
+        ay += v * slope_b[c]
+    return ax, ay
+
+
 @numba.njit(fastmath=True, cache=True)
 def _forward_points(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
                     out, order, start, stop):
@@ -208,17 +241,9 @@ def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_sc
                                     others, channels)
             for k in range(6):
                 o = k * channels
-                gk = grad_samples[s * 6 + k, n]
                 other = others[o:o + channels]
-                slope_a = sx[o:o + channels]
-                slope_b = sy[o:o + channels]
-                ax = _ZERO
-                ay = _ZERO
-                for c in range(channels):
-                    v = other[c]
-                    gk[c] = v
-                    ax += v * slope_a[c]
-                    ay += v * slope_b[c]
+                grad_samples[s * 6 + k, n] = other
+                ax, ay = _slope_sums(other, sx[o:o + channels], sy[o:o + channels], channels)
                 grad_u[s, n, axis_a[k]] += ax * slopes[k, 0]
                 grad_u[s, n, axis_b[k]] += ay * slopes[k, 1]
 
@@ -252,34 +277,12 @@ def _scale_grads(u, tables, offsets, heights, widths, axis_a, axis_b, s, channel
         for k in range(6):
             o = k * channels
             other = others[o:o + channels]
-            slope_a = sx[o:o + channels]
-            slope_b = sy[o:o + channels]
-            ax = _ZERO
-            ay = _ZERO
-            for c in range(channels):
-                v = other[c]
-                ax += v * slope_a[c]
-                ay += v * slope_b[c]
+            ax, ay = _slope_sums(other, sx[o:o + channels], sy[o:o + channels], channels)
             grad_u[n, axis_a[k]] += ax * slopes[k, 0]
             grad_u[n, axis_b[k]] += ay * slopes[k, 1]
             base, dx, dy, fx, fy, _, _ = _corners(u, n, s * 6 + k, k, offsets, heights, widths,
                                                   axis_a, axis_b, channels)
-            w00 = (_ONE - fx) * (_ONE - fy)
-            w01 = fx * (_ONE - fy)
-            w10 = (_ONE - fx) * fy
-            w11 = fx * fy
-            g00 = grad_tables[base:base + channels]
-            for c in range(channels):
-                g00[c] += w00 * other[c]
-            g01 = grad_tables[base + dx:base + dx + channels]
-            for c in range(channels):
-                g01[c] += w01 * other[c]
-            g10 = grad_tables[base + dy:base + dy + channels]
-            for c in range(channels):
-                g10[c] += w10 * other[c]
-            g11 = grad_tables[base + dy + dx:base + dy + dx + channels]
-            for c in range(channels):
-                g11[c] += w11 * other[c]
+            _spread(grad_tables, base, dx, dy, fx, fy, other, channels)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -298,23 +301,7 @@ def _scatter_plane(u, p, k, offsets, heights, widths, axis_a, axis_b, channels, 
     for n in range(u.shape[0]):
         base, dx, dy, fx, fy, _, _ = _corners(u, n, p, k, offsets, heights, widths, axis_a,
                                               axis_b, channels)
-        gk = grad_samples[p, n]
-        w00 = (_ONE - fx) * (_ONE - fy)
-        w01 = fx * (_ONE - fy)
-        w10 = (_ONE - fx) * fy
-        w11 = fx * fy
-        g00 = grad_tables[base:base + channels]
-        for c in range(channels):
-            g00[c] += w00 * gk[c]
-        g01 = grad_tables[base + dx:base + dx + channels]
-        for c in range(channels):
-            g01[c] += w01 * gk[c]
-        g10 = grad_tables[base + dy:base + dy + channels]
-        for c in range(channels):
-            g10[c] += w10 * gk[c]
-        g11 = grad_tables[base + dy + dx:base + dy + dx + channels]
-        for c in range(channels):
-            g11[c] += w11 * gk[c]
+        _spread(grad_tables, base, dx, dy, fx, fy, grad_samples[p, n], channels)
 
 
 @numba.njit(parallel=True, cache=True)
