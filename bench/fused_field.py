@@ -10,10 +10,9 @@ softplus units per net, kinetic terms, 10 adapter outputs and the 3 of the force
 linear loss on the adapters' outputs and the force, zero on a (1 - --live) share of the rows
 (in a real step about half the Gaussians get no gradient from the view, docs/performance.md).
 With --against, `nehad/field/hnn_fused.py` of that checkout (and the modules it imports from
-nehad/field) is loaded beside this one's (the
-Function's call is the same in both; its last two outputs are the adapters' and the force),
-the two parities are checked and the two run in turns, alternating which goes first; it prints
-each one's median and the paired differences. docs/performance.md ("The kinetic terms folded
+nehad/field) is loaded beside this one's (the Function's call is the same in both; its last
+two outputs are the adapters' and the force), the two parities are checked and the two run in
+turns, alternating which goes first; it prints each one's median and the paired differences. docs/performance.md ("The kinetic terms folded
 into the heads") has figures.
 """
 

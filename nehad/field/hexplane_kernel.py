@@ -11,10 +11,13 @@ gradient tables (a plane in the contiguous layout is reordered both ways).
 
 Backward, with g = dL/df of one scale:
 
-- dL/ds_k,c = g_c prod_{j != k} s_j,c (written per plane, point and channel, the points in
-  the lookup's spatial order: `_point_grads`);
-- dL/dplane_k: each corner of each point's cell gets its bilinear weight times dL/ds_k
-  (`_plane_grads`: one plane per task, so no two tasks write the same memory);
+- dL/ds_k,c = g_c prod_{j != k} s_j,c (per point and channel, the points and their upstream
+  rows gathered into the lookup's spatial order);
+- dL/dplane_k: each corner of each point's cell gets its bilinear weight times dL/ds_k. With
+  no more threads than scales, each scale is one task that puts dL/ds_k onto its own planes
+  as it computes it (`_grads_by_scale`); else dL/ds_k is written out by a pass over the
+  points (`_point_grads`) and a pass with one plane per task adds it up (`_plane_grads`), so
+  that no two tasks write the same memory either way;
 - dL/du along the plane's two axes: sum_c dL/ds_k,c times the sample's slope in that axis
   (the difference of the neighbouring texels), times 0.5 (res - 1) for the [-1, 1] scaling.
 
@@ -112,13 +115,12 @@ def _slope_sums(gk, slope_a, slope_b, channels):
 def _forward_points(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
                     out, order, start, stop):
     """out's rows order[start:stop] (u in the lookup's spatial order: u[i] is point order[i];
-    out in the points' own order), one plane after the
-    other: each plane's texels are then read as one stream in the points' spatial order, which
-    the hardware prefetcher follows, where the twelve planes read point by point were twelve
-    streams at once (a step's lookup finds the planes out of the cache: 7000 points, 1 thread,
-    after the cache was flushed, 1.9-2.1 ms against 3.8-8.1; the same when the planes are
-    cached). The same products in the same order (the first plane's sample is assigned, not
-    multiplied into 1)."""
+    out in the points' own order), one plane after the other: each plane's texels are then
+    read as one stream in the points' spatial order, which the hardware prefetcher follows,
+    where the twelve planes read point by point were twelve streams at once (a step's lookup
+    finds the planes out of the cache: 7000 points, 1 thread, after the cache was flushed,
+    1.9-2.1 ms against 3.8-8.1; the same when the planes are cached). The same products in
+    the same order (the first plane's sample is assigned, not multiplied into 1)."""
     for s in range(n_scales):
         for k in range(6):
             for n in range(start, stop):
@@ -223,11 +225,12 @@ def _products_of_the_others(g, samples, others, channels):
 def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
                        grad_out, grad_samples, grad_u, start, stop):
     """dL/ds_k (into `grad_samples`) and dL/du per scale (grad_u (S, points, 4)) of the points
-    start:stop (u, grad_out and grad_u in the lookup's spatial order: read in the Gaussians' order, each point's upstream row was
-    a cache miss the long loop body could not hide, 10k points, 1 thread: 5.8 -> 3.2 ms). The
-    scratch rows are flat (plane k at k * channels), and every loop over the channels runs over
-    slices (views of one row), which LLVM vectorises: indexed through the whole arrays the same
-    loops took twice as long (10k points, 2 threads: 4.9 -> 2.1-2.3 ms)."""
+    start:stop, with u, grad_out and grad_u in the lookup's spatial order (read in the
+    Gaussians' order, each point's upstream row was a cache miss the long loop body could not
+    hide: 10k points, 1 thread, 5.8 -> 3.2 ms). The scratch rows are flat (plane k at
+    k * channels), and every loop over the channels runs over slices (views of one row), which
+    LLVM vectorises: indexed through the whole arrays the same loops took twice as long (10k
+    points, 2 threads: 4.9 -> 2.1-2.3 ms)."""
     samples = np.empty(6 * channels, np.float32)
     sx = np.empty(6 * channels, np.float32)  # d sample / d pixel x
     sy = np.empty(6 * channels, np.float32)

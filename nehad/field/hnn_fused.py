@@ -79,8 +79,9 @@ class FusedInputGradients(torch.autograd.Function):
     weight (`_Heads`): the result is then (v A^T + a, v_c A_mu'^T) alone, read from g1, g2
     (and h for the kinetic terms) without forming v.
 
-    Forward and backward run block by block (`nehad.field.hnn_blocks.BLOCK_ROWS` rows), so that the temporaries of a
-    block stay in the cache between the products and the element-wise passes."""
+    Forward and backward run block by block (`nehad.field.hnn_blocks.BLOCK_ROWS` rows), so that
+    the temporaries of a block stay in the cache between the products and the element-wise
+    passes."""
 
     @staticmethod
     def forward(ctx, x, kind, keep, field, quadratic, trunk, heads, *params):
@@ -141,8 +142,8 @@ class FusedInputGradients(torch.autograd.Function):
             upstream = [torch.zeros((n, width), dtype=dtype) if u is None else u.contiguous()
                         for u in upstream]
         grad_x = torch.empty(xd.shape, dtype=dtype)
-        dh_all = (torch.empty((max((hi - lo for lo, hi in _blocks(n)), default=0), width), dtype=dtype)
-                  if head else None)
+        block_rows = max((hi - lo for lo, hi in _blocks(n)), default=0)
+        dh_all = torch.empty((block_rows, width), dtype=dtype) if head else None
         d_quads = None if quads is None or tail is not None else torch.zeros_like(quads)
         d_weights = [torch.zeros_like(w) for w in nets.weights]
         d_biases = np.zeros((nets.depth, *nets.w_out.shape), dtype=nets.w_out.dtype)
