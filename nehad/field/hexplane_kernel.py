@@ -565,8 +565,8 @@ def backward_by_scale(n_scales: int) -> bool:
     over the planes (`_point_grads`, `_plane_grads`: dL/ds_k written out, (12, rows, 32) floats,
     and read back). Per scale while there are no more threads than scales, the case of the
     2-core machines this project trains on (docs/performance.md); with more threads the two
-    passes keep them all busy. Both give the same bits (dL/du is summed per scale in both, and
-    each plane's texels get their points' shares in the same order)."""
+    passes keep them all busy. Both compute the same sums in the same order (dL/du per scale,
+    each texel's shares in the points' order), so training does not depend on the threads."""
     return numba.get_num_threads() <= n_scales
 
 
@@ -638,7 +638,7 @@ class HexPlaneLookup(torch.autograd.Function):
         sorted_g = np.empty((m, g.shape[1]), np.float32)
         _take_rows(g, order, sorted_g)
         grad_tables = np.zeros_like(flat)
-        # dL/du per scale, summed over the scales at the end: the same bits either way below
+        # dL/du per scale, summed over the scales at the end: the same sums either way below
         by_scale = np.zeros((n_scales, m, 4), np.float32)
         if backward_by_scale(n_scales):
             _grads_by_scale(sorted_u, flat, offsets, heights, widths, axis_a, axis_b, n_scales,
