@@ -39,6 +39,8 @@ import numpy as np
 import torch
 from torch.autograd.function import once_differentiable
 
+from nehad.field.hnn_kernels import live_rows
+
 _ONE = np.float32(1.0)
 _ZERO = np.float32(0.0)
 _HALF = np.float32(0.5)
@@ -160,21 +162,6 @@ def _put_rows(src, rows, dst):
     """dst[rows[i]] = src[i] (a scatter back to the Gaussians' order)."""
     for i in numba.prange(rows.shape[0]):
         dst[rows[i]] = src[i]
-
-
-@numba.njit(parallel=True, cache=True)
-def _live_rows(g, live):
-    """live[n] = whether row n of g has an entry that is not zero (a NaN counts as one); a row
-    stops at its first such entry (numpy's `any` over a (g != 0) temporary took 0.5 ms for
-    16k rows of 64)."""
-    for n in numba.prange(g.shape[0]):
-        row = g[n]
-        found = False
-        for c in range(row.shape[0]):
-            if row[c] != 0:
-                found = True
-                break
-        live[n] = found
 
 
 @numba.njit(inline="always")
@@ -629,7 +616,7 @@ class HexPlaneLookup(torch.autograd.Function):
         # the points with a gradient only (a point no pixel of the view sees has none, and would
         # add zeros everywhere: about half of a MuJoCo scene's, docs/performance.md)
         live = np.empty(n, np.bool_)
-        _live_rows(g, live)
+        live_rows(g[None], live, _chunks(n))
         active = live[order]
         if not active.all():
             kept = np.flatnonzero(active)

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from nehad.field.hnn_kernels import (_chunks, _delta_backward, _hidden_backward, _hidden_layer,
-                                     _last_backward, _last_delta, _last_layer, _live_rows,
+                                     _last_backward, _last_delta, _last_layer, live_rows,
                                      _product)
 
 #: Rows per block of the forward and the backward: a block's (2, rows, 64) float32 temporaries
@@ -172,7 +172,7 @@ def _rows_with_gradient(grads: torch.Tensor):
     """The rows (int64 indices) of a block's (2, b, W) upstream gradients with a non-zero
     entry, or None when they are too many to be worth gathering (`COMPACT_BELOW`)."""
     live = np.empty(grads.shape[1], dtype=np.bool_)
-    _live_rows(_np(grads), live, _chunks(grads.shape[1]))
+    live_rows(_np(grads), live, _chunks(grads.shape[1]))
     if np.count_nonzero(live) >= COMPACT_BELOW * grads.shape[1]:
         return None
     return np.flatnonzero(live)

@@ -161,9 +161,11 @@ def _hidden_backward(p, da, d, dz, db_parts, chunks):
 
 
 @numba.njit(parallel=True, cache=True)
-def _live_rows(grads, live, chunks):
-    """live[r] = whether row r of a block's (2, b, W) upstream gradients has an entry that is
-    not zero (a NaN counts as one)."""
+def live_rows(grads, live, chunks):
+    """live[r] = whether row r of upstream gradients (k, b, W) (k arrays of b rows: the
+    decoder's two nets, or the lookup's one (1, N, F)) has an entry that is not zero (a NaN
+    counts as one). A row stops at its first such entry (numpy's `any` over a `g != 0`
+    temporary took 0.5 ms for 16k rows of 64)."""
     n = grads.shape[1]
     for c in numba.prange(chunks):
         for r in range(c * n // chunks, (c + 1) * n // chunks):
@@ -173,6 +175,9 @@ def _live_rows(grads, live, chunks):
                 for j in range(row.shape[0]):
                     if row[j] != 0:
                         found = True
+                        break
+                if found:
+                    break
             live[r] = found
 
 
