@@ -73,6 +73,12 @@ class _Saved(NamedTuple):
     z_last: torch.Tensor  # z_L without its bias (2, b, H)
 
 
+def _layer_input(acts: list, k: int) -> torch.Tensor:
+    """(2, b, in): what layer k of both nets reads, a_k (h shared by both nets for k = 0)."""
+    a = acts[k]
+    return a.expand(2, *a.shape) if k == 0 else a
+
+
 def _forward_block(nets: _Nets, h: torch.Tensor, g: Optional[torch.Tensor]):
     """(what the backward reads, delta_1) for a block of rows h (b, W); g[i] = grad_h F_i(h)
     into g (2, b, W), views of the output, or g None: not formed (`_Composed` reads delta_1
@@ -81,16 +87,14 @@ def _forward_block(nets: _Nets, h: torch.Tensor, g: Optional[torch.Tensor]):
     chunks = _chunks(b)
     acts, derivs, curvs = [h], [], []
     for k in range(nets.depth - 1):
-        z = torch.bmm(h.expand(2, b, h.shape[1]) if k == 0 else acts[k],
-                      nets.weights[k].transpose(1, 2))
+        z = torch.bmm(_layer_input(acts, k), nets.weights[k].transpose(1, 2))
         a, d, e = torch.empty_like(z), torch.empty_like(z), torch.empty_like(z)
         _hidden_layer(nets.kind, _np(z), nets.biases[k], _np(a), _np(d), _np(e), nets.one,
                       chunks)
         acts.append(a)
         derivs.append(d)
         curvs.append(e)
-    below = h.expand(2, b, h.shape[1]) if nets.depth == 1 else acts[-1]
-    z_last = torch.bmm(below, nets.weights[-1].transpose(1, 2))
+    z_last = torch.bmm(_layer_input(acts, nets.depth - 1), nets.weights[-1].transpose(1, 2))
     deltas = [None] * nets.depth
     deltas[-1] = torch.empty_like(z_last)
     _last_delta(nets.kind, _np(z_last), nets.biases[-1], nets.w_out, _np(deltas[-1]), nets.one,
@@ -149,8 +153,7 @@ def _backward_block(nets: _Nets, saved: _Saved, grads, grad_h: torch.Tensor, d_w
     d_w_out += dw_parts.sum(axis=0)
     for k in range(depth - 1, -1, -1):
         d_biases[k] += parts.sum(axis=0)
-        below = h.expand(2, b, h.shape[1]) if k == 0 else acts[k]
-        d_weights[k].baddbmm_(dz.transpose(1, 2), below)
+        d_weights[k].baddbmm_(dz.transpose(1, 2), _layer_input(acts, k))
         if k == 0:
             break
         da = _per_net(dz, nets.weights[k])
