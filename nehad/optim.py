@@ -40,23 +40,51 @@ def make_optimizer(model, o: OptimConfig, extent: float) -> torch.optim.Optimize
 class TrainingAdam(torch.optim.Adam):
     """torch's fused Adam, except that a group named "grid" whose parameters are dense views of
     one buffer, one after the other (the hex-plane's planes, `nehad.field.hexplane.HexPlane`:
-    channel-last (1, C, H, W) views of one flat array), is updated as ONE flat array: its
-    moments are kept as views of two flat arrays of the same layout, its gradients copied into a
-    third, and torch's fused Adam (`torch.optim.adam.adam`) runs once on the three and the
-    parameters' buffer. Per
-    plane, the kernel took 2.6-4.2 ms a step for the `cpu` preset's 2.4 M plane values, which
-    it reads through their channel-last strides; flat, 1.0 ms (docs/performance.md, "The planes'
-    Adam step as one array"). The arithmetic is the kernel's own, element by element, so the
-    result is the per-plane step's (tests/test_optim.py). Anything else (planes without one
-    buffer, some without a gradient, steps that differ between them, amsgrad, maximize, a grad
-    scaler) takes torch's per-parameter path. The state is per plane as before, so checkpoints
-    are read and written as torch's Adam does."""
+    channel-last (1, C, H, W) views of one flat array), is updated as ONE flat array. Its
+    moments are kept as views of two flat arrays of the same layout; its gradients are read as
+    one flat array where they are views of one buffer in that layout (as the planes'
+    regularisers hand them over, nehad.field.plane_regularisers) and copied into a third one
+    otherwise; torch's fused Adam (`torch.optim.adam.adam`) then runs once on the flat arrays.
+    Per plane, it took 2.6-4.2 ms a step for the `cpu` preset's 2.43 M plane values, which it
+    reads through their channel-last strides; flat, 0.8-1.4 ms (docs/performance.md, "The
+    planes' Adam step as one array"). The arithmetic is the kernel's own, element by element,
+    so the result is the per-plane step's (tests/test_optim.py). Anything else (planes without
+    one buffer, some without a gradient, steps that differ between them, amsgrad, maximize, a
+    grad scaler) takes torch's per-parameter path. The state is per plane as before, so
+    checkpoints are read and written as torch's Adam does."""
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        """torch's, except that the planes of a "grid" group that shares one buffer get zeroed
+        views of one flat gradient array of their layout as their `.grad`: autograd then adds
+        every gradient of theirs (the lookup's, the regularisers') into it in place, where with
+        no `.grad` it copied the first one into a fresh tensor, and `step` reads the array as it
+        is. A group whose array no gradient reached by `step` is handed to torch's step
+        without gradients (None), as after torch's zero_grad."""
+        super().zero_grad(set_to_none)
+        self._untouched = {}
+        for group in self.param_groups:
+            params = group["params"]
+            if group.get("name") != "grid" or not params or _flat_alias(params) is None:
+                continue
+            grad = self._arrays(params)["grad"]
+            grad.zero_()
+            for p, view in zip(params, _views(grad, params)):
+                p.grad = view
+            self._untouched[id(group)] = grad._version  # the views share its version counter
 
     def step(self, closure=None):
         loss = None
         if closure is not None:
             with torch.enable_grad():
                 loss = closure()
+        for group in self.param_groups:  # zeroed by zero_grad and never written: no gradient
+            version = getattr(self, "_untouched", {}).get(id(group))
+            params = group["params"]
+            if version is not None and params[0].grad is not None and \
+                    params[0].grad._version == version:
+                for p in params:
+                    p.grad = None
+        self._untouched = {}
         flat = [group for group in self.param_groups
                 if group.get("name") == "grid" and self._flat_step(group)]
         held = [(p, p.grad) for group in flat for p in group["params"]]
@@ -88,9 +116,11 @@ class TrainingAdam(torch.optim.Adam):
                           or any(float(s) != float(steps[0]) for s in steps)):
             return False
         moments = self._flat_moments(params, states)
-        grad = moments["grad"]
-        for p, view in zip(params, _views(grad, params)):
-            view.copy_(p.grad)
+        grad = _flat_alias([p.grad for p in params])
+        if grad is None or any(p.grad.stride() != p.stride() for p in params):
+            grad = moments["grad"]  # separate tensors (or another layout): copied, by index
+            for p, view in zip(params, _views(grad, params)):
+                view.copy_(p.grad)
         if fresh:  # a first step: torch's fused Adam starts its count at 0
             for s in states:
                 s["step"] = torch.zeros((), dtype=torch.float32)
@@ -102,21 +132,27 @@ class TrainingAdam(torch.optim.Adam):
                     lr=group["lr"], weight_decay=0.0, eps=group["eps"], maximize=False)
         return True
 
-    def _flat_moments(self, params, states) -> dict:
-        """{"exp_avg", "exp_avg_sq", "grad"}: flat arrays laid out as the parameters' buffer,
-        each plane's moments in `states` made views of the first two (their values copied in
-        where they were separate tensors: a fresh state is zeros, a loaded one its values)."""
+    def _arrays(self, params) -> dict:
+        """{"exp_avg", "exp_avg_sq", "grad"}: flat arrays of the group's size, kept between
+        steps (made anew, zeros, for another group of planes)."""
         cache = getattr(self, "_flat_cache", None)
         if cache is None:
             cache = self._flat_cache = {}
-        total = sum(p.numel() for p in params)
         key = tuple(id(p) for p in params)
         arrays = cache.get(key)
-        if arrays is None or arrays["grad"].numel() != total:
+        if arrays is None:
+            total = sum(p.numel() for p in params)
             arrays = {name: torch.zeros(total, dtype=params[0].dtype)
                       for name in ("exp_avg", "exp_avg_sq", "grad")}
             cache.clear()
             cache[key] = arrays
+        return arrays
+
+    def _flat_moments(self, params, states) -> dict:
+        """`_arrays(params)`, each plane's moments in `states` made views of the first two
+        (their values copied in where they were separate tensors: a fresh state is zeros, a
+        loaded one its values)."""
+        arrays = self._arrays(params)
         for name in ("exp_avg", "exp_avg_sq"):
             for p, state, view in zip(params, states, _views(arrays[name], params)):
                 held = state.get(name)

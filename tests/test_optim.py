@@ -88,3 +88,43 @@ def test_gradient_in_another_layout_is_read_by_index():
     for p in planes:
         assert not p.grad.is_contiguous(memory_format=torch.channels_last)
         torch.testing.assert_close(opt.state[p]["exp_avg"], 0.1 * p.grad, rtol=1e-6, atol=0)
+
+
+def test_training_loop_with_gradients_kept_in_one_array():
+    """A loop as the trainer runs it (zero_grad, the lookup and the regularisers, backward,
+    step), where TrainingAdam's zero_grad gives the planes views of one gradient array: the
+    planes, moments and step counts equal torch's fused Adam's bit for bit, and the steps where
+    the planes get no gradient (the static stage) leave them and their counts as torch does."""
+    from nehad.field.hexplane import PLANE_AXES, TIME_PLANES
+    from nehad.field.hexplane_kernel import hexplane_lookup
+    from nehad.field.plane_regularisers import plane_regularisers
+
+    def run(optimizer_type):
+        planes = _planes(0)
+        other = torch.nn.Parameter(torch.ones(3))
+        opt = optimizer_type([{"name": "grid", "params": planes, "lr": 1e-2},
+                              {"name": "other", "params": [other], "lr": 1e-2}],
+                             eps=1e-15, fused=True)
+        timed = [k in TIME_PLANES for _ in range(2) for k in range(len(PLANE_AXES))]
+        gen = torch.Generator().manual_seed(9)
+        for step in range(6):
+            opt.zero_grad(set_to_none=True)
+            loss = (other * other).sum()
+            if step not in (0, 3):  # steps 0 and 3: no plane gradient
+                u = torch.rand((50, 4), generator=gen) * 2 - 1
+                f = hexplane_lookup(u, planes, PLANE_AXES)
+                loss = loss + (f * torch.randn(f.shape, generator=gen)).sum()
+                loss = loss + sum(w * r for w, r in zip((0.3, 0.7, 1.9),
+                                                        plane_regularisers(planes, timed)))
+            loss.backward()
+            opt.step()
+        return planes, opt
+
+    got, opt = run(TrainingAdam)
+    want, ref = run(torch.optim.Adam)
+    assert got[0].grad.untyped_storage().data_ptr() == got[1].grad.untyped_storage().data_ptr()
+    for a, b in zip(got, want):
+        assert torch.equal(a.detach(), b.detach())
+        for name in ("exp_avg", "exp_avg_sq", "step"):
+            assert torch.equal(opt.state[a][name], ref.state[b][name]), name
+    assert float(opt.state[got[0]]["step"]) == 4.0

@@ -167,9 +167,8 @@ class DeformationField(nn.Module):
 
     def regularization_terms(self) -> dict[str, torch.Tensor]:
         """Hex-plane regularisers of 4DGS (docs/design.md section 5), unweighted."""
-        smoothness, l1 = self.hexplane.time_terms()
-        return {"plane_smoothness": self.hexplane.plane_smoothness(self.cfg.spatial_regularizer),
-                "time_smoothness": smoothness, "time_l1": l1}
+        space, time, l1 = self.hexplane.regularisers(self.cfg.spatial_regularizer)
+        return {"plane_smoothness": space, "time_smoothness": time, "time_l1": l1}
 
     def regularization_loss(self) -> torch.Tensor:
         """Weighted sum of `regularization_terms()` with the cfg.reg_*_weight values."""

@@ -262,6 +262,19 @@ class HexPlane(nn.Module):
             fn = plane_tv  # the same function in one Numba pass
         return sum(fn(scale[k]) for scale in self.planes for k in SPACE_PLANES)
 
+    def regularisers(self, kind: str = "tv") -> tuple:
+        """(`plane_smoothness(kind)`, *`time_terms()`). With the Numba kernels and "tv", one
+        pass per plane inside one autograd Function whose gradients are views of one array
+        laid out as the planes' buffer (nehad.field.plane_regularisers): the same values and
+        gradients, which the optimizer then reads without a copy."""
+        if kind == "tv" and self._numba_ok():
+            from nehad.field.plane_regularisers import plane_regularisers
+
+            return plane_regularisers([p for scale in self.planes for p in scale],
+                                      [k in TIME_PLANES for _ in self.planes
+                                       for k in range(len(PLANE_AXES))])
+        return (self.plane_smoothness(kind), *self.time_terms())
+
     def time_terms(self) -> tuple[torch.Tensor, torch.Tensor]:
         """(`time_smoothness()`, `time_l1()`); with the Numba kernels both in one pass per
         plane (nehad.field.hexplane_kernel.time_regularisers)."""
