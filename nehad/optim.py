@@ -70,7 +70,8 @@ class TrainingAdam(torch.optim.Adam):
             grad.zero_()
             for p, view in zip(params, _views(grad, params)):
                 p.grad = view
-            self._untouched[id(group)] = grad._version  # the views share its version counter
+            # the views share the array's version counter: unchanged at `step`, none was written
+            self._untouched[id(group)] = (grad, grad._version)
 
     def step(self, closure=None):
         loss = None
@@ -78,11 +79,11 @@ class TrainingAdam(torch.optim.Adam):
             with torch.enable_grad():
                 loss = closure()
         for group in self.param_groups:  # zeroed by zero_grad and never written: no gradient
-            version = getattr(self, "_untouched", {}).get(id(group))
-            params = group["params"]
-            if version is not None and params[0].grad is not None and \
-                    params[0].grad._version == version:
-                for p in params:
+            grad, version = getattr(self, "_untouched", {}).get(id(group), (None, None))
+            held = group["params"][0].grad if grad is not None else None
+            if (held is not None and held.data_ptr() == grad.data_ptr()
+                    and grad._version == version):
+                for p in group["params"]:
                     p.grad = None
         self._untouched = {}
         flat = [group for group in self.param_groups
@@ -167,8 +168,8 @@ class TrainingAdam(torch.optim.Adam):
 
 
 def _flat_alias(params):
-    """A flat (numel,) view of the buffer that `params` are dense views of, one after the other
-    in their order and with equal strides up to their sizes; None otherwise."""
+    """A flat (numel,) view of the buffer that `params` are dense views of (each filling its
+    numel places in any axis order), one after the other in their order; None otherwise."""
     first = params[0]
     if first.device.type != "cpu" or not first.dtype.is_floating_point:
         return None

@@ -128,3 +128,26 @@ def test_training_loop_with_gradients_kept_in_one_array():
         for name in ("exp_avg", "exp_avg_sq", "step"):
             assert torch.equal(opt.state[a][name], ref.state[b][name]), name
     assert float(opt.state[got[0]]["step"]) == 4.0
+
+
+def test_gradients_replaced_after_zero_grad_are_used():
+    """A caller that drops the planes' gradients after TrainingAdam.zero_grad (a module's
+    zero_grad(set_to_none=True)) and runs a backward: its fresh gradients are stepped, as torch
+    steps them, not taken for the untouched zeroed array."""
+    def run(optimizer_type):
+        planes = _planes(0)
+        opt = optimizer_type([{"name": "grid", "params": planes, "lr": 1e-2}], eps=1e-15,
+                             fused=True)
+        for k in range(3):
+            opt.zero_grad(set_to_none=True)
+            for p in planes:
+                p.grad = None
+            _set_grads(planes, k)
+            opt.step()
+        return planes, opt
+
+    got, opt = run(TrainingAdam)
+    want, _ = run(torch.optim.Adam)
+    for a, b in zip(got, want):
+        assert torch.equal(a.detach(), b.detach())
+    assert float(opt.state[got[0]]["step"]) == 3.0
