@@ -42,9 +42,9 @@ class TrainingAdam(torch.optim.Adam):
     one buffer, one after the other (the hex-plane's planes, `nehad.field.hexplane.HexPlane`:
     channel-last (1, C, H, W) views of one flat array), is updated as ONE flat array. Its
     moments are kept as views of two flat arrays of the same layout; its gradients are read as
-    one flat array where they are views of one buffer in that layout (as the planes'
-    regularisers hand them over, nehad.field.plane_regularisers) and copied into a third one
-    otherwise; torch's fused Adam (`torch.optim.adam.adam`) then runs once on the flat arrays.
+    one flat array where they are views of one buffer in that layout (as `zero_grad` installs
+    them) and copied into a third one otherwise; torch's fused Adam (`torch.optim.adam.adam`)
+    then runs once on the flat arrays.
     Per plane, it took 2.6-4.2 ms a step for the `cpu` preset's 2.43 M plane values, which it
     reads through their channel-last strides; flat, 0.8-1.4 ms (docs/performance.md, "The
     planes' Adam step as one array"). The arithmetic is the kernel's own, element by element,

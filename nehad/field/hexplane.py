@@ -264,9 +264,8 @@ class HexPlane(nn.Module):
 
     def regularisers(self, kind: str = "tv") -> tuple:
         """(`plane_smoothness(kind)`, *`time_terms()`). With the Numba kernels and "tv", one
-        pass per plane inside one autograd Function whose gradients are views of one array
-        laid out as the planes' buffer (nehad.field.plane_regularisers): the same values and
-        gradients, which the optimizer then reads without a copy."""
+        pass per plane inside one autograd Function over all the planes
+        (nehad.field.plane_regularisers): the same values and gradients."""
         if kind == "tv" and self._numba_ok():
             from nehad.field.plane_regularisers import plane_regularisers
 

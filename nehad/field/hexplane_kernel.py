@@ -401,18 +401,36 @@ def _rows_of(plane: torch.Tensor):
     return flat, c * h, h, w, 1, lambda a: torch.from_numpy(a.reshape(1, c, h, w))
 
 
+def tv_pass(plane: torch.Tensor, grad: np.ndarray):
+    """(the K-Planes total variation of a (1, C, H, W) float32 plane, a function viewing a flat
+    array of the plane's layout as a tensor shaped like it), the gradient written into `grad`
+    (plane.numel() floats in the plane's layout, `_rows_of`): `PlaneTV`'s one Numba pass."""
+    _, c, h, w = plane.shape
+    flat, rows, height, width, lag, as_plane = _rows_of(plane)
+    value = _plane_tv(flat, rows, height, width, lag, c * (h - 1) * w, c * h * (w - 1), grad,
+                      np.empty((rows, 2), np.float64))
+    return value, as_plane
+
+
+def time_pass(plane: torch.Tensor, grad_second: np.ndarray, grad_l1: np.ndarray):
+    """(mean squared second difference along t, mean |1 - p|, the viewing function of
+    `tv_pass`) of a (1, C, T, W) float32 space-time plane, their gradients written into
+    `grad_second` and `grad_l1` (the plane's layout): `TimeRegularisers`' one Numba pass."""
+    _, c, h, w = plane.shape
+    flat, rows, height, width, _, as_plane = _rows_of(plane)
+    second, l1 = _time_regularisers(flat, rows, height, width, c * max(h - 2, 0) * w, c * h * w,
+                                    grad_second, grad_l1, np.empty((rows, 2), np.float64))
+    return second, l1, as_plane
+
+
 class PlaneTV(torch.autograd.Function):
     """K-Planes total variation 2 (mean dH^2 + mean dW^2) of a (1, C, H, W) float32 plane
     (nehad.field.hexplane._tv) and its gradient in one Numba pass (module docstring)."""
 
     @staticmethod
     def forward(ctx, plane):
-        _, c, h, w = plane.shape
-        flat, rows, height, width, lag, as_plane = _rows_of(plane)
-        grad = np.empty_like(flat)
-        sums = np.empty((rows, 2), np.float64)
-        value = _plane_tv(flat, rows, height, width, lag, c * (h - 1) * w, c * h * (w - 1),
-                          grad, sums)
+        grad = np.empty(plane.numel(), np.float32)
+        value, as_plane = tv_pass(plane, grad)
         ctx.grad = as_plane(grad)
         return plane.new_tensor(value)
 
@@ -485,12 +503,8 @@ class TimeRegularisers(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, plane):
-        _, c, h, w = plane.shape
-        flat, rows, height, width, _, as_plane = _rows_of(plane)
-        grads = np.empty((2, flat.shape[0]), np.float32)
-        sums = np.empty((rows, 2), np.float64)
-        second, l1 = _time_regularisers(flat, rows, height, width, c * max(h - 2, 0) * w,
-                                        c * h * w, grads[0], grads[1], sums)
+        grads = np.empty((2, plane.numel()), np.float32)
+        second, l1, as_plane = time_pass(plane, grads[0], grads[1])
         ctx.grads = (as_plane(grads[0]), as_plane(grads[1]))
         return plane.new_tensor(second), plane.new_tensor(l1)
 
