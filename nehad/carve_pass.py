@@ -75,7 +75,7 @@ class ResidualCarving:
 
     def step_post_update(self, model, optimizer, state: DensifyState, *, deforms: bool,
                          layer: int, it: int, step: int, window: TimeWindow, views,
-                         degree: int, timing: DensifySchedule) -> dict:
+                         degree: int, timing: DensifySchedule, anchors=None) -> dict:
         """One pass when due (see `due`): the views nearest to one time (the canonical time in
         the static stage; in the deforming stage the frame time nearest to the next point of a
         van der Corput sequence over the window, so that passes cover the time range evenly),
@@ -84,7 +84,8 @@ class ResidualCarving:
             return {}
         rng = np.random.default_rng([self.seed, step, 7])
         if self.cfg.mode == "tracks":
-            return self._track_pass(model, optimizer, state, deforms, window, views, degree)
+            return self._track_pass(model, optimizer, state, deforms, window, views, degree,
+                                    anchors)
         t_c, nearest = self._pass_views(deforms, self._pass_index(it, timing), window, views)
         pts, cols, widths, n_bad = self._find_points(model, deforms, nearest, views, degree, rng)
         most = self._most_new()
@@ -130,7 +131,7 @@ class ResidualCarving:
             rng=rng)
 
     def _track_pass(self, model, optimizer, state: DensifyState, deforms: bool,
-                    window: TimeWindow, views, degree: int) -> dict:
+                    window: TimeWindow, views, degree: int, anchors=None) -> dict:
         """`carve.mode=tracks` (nehad.tracks): every view of the window rendered at its own
         time; the tracks of its unexplained blobs become chains of Gaussians, one every frame
         spacing along each track, living around their own time and moving with the track,
@@ -152,6 +153,9 @@ class ResidualCarving:
         seeds = [seeds_along(tr, cams, spacing, 0.0, 1.0, c.track_width) for tr in tracks]
         if not seeds:
             return out
+        if anchors is not None and anchors.on:
+            out.update(self._anchor(model.gaussians, optimizer, state, tracks, seeds, spacing,
+                                    anchors, views))
         pts, vel, t_eq, cols, widths, shapes = (np.concatenate(x) for x in zip(*seeds))
         have = self._drawn_already(pts, vel, t_eq, cols, widths, times[pool], clouds)
         out["carve_drawn"] = int(have.sum())
@@ -163,6 +167,28 @@ class ResidualCarving:
             out.update(self._add(model.gaussians, optimizer, state, pts, cols, widths, t_eq,
                                  deforms, views, velocities=vel, shapes=shapes))
         return out
+
+    def _anchor(self, g, optimizer, state, tracks, seeds, spacing, anchors, views) -> dict:
+        """`carve.anchor_weight`: each long track anchored (nehad.track_anchors), and
+        `anchor_members` Gaussians that live at every time added at each anchor of the
+        earlier passes (whose paths the field has been learning since)."""
+        from nehad.tracks import cluster_seeds
+
+        ready = anchors.ready()
+        found = 0
+        for track, seed in zip(tracks, seeds):
+            size = float(seed[4][0])  # the seeds' scale: track_width object radii
+            found += anchors.add(track, spacing, size / self.cfg.track_width) is not None
+        if len(ready):
+            n = len(ready)
+            sizes = self.cfg.track_width * ready[:, 6]
+            pts, _, _, cols, widths, shapes = cluster_seeds(
+                ready[:, :3], np.zeros((n, 3)), np.full(n, anchors.canonical_time),
+                ready[:, 3:6], sizes, sizes[:, None, None] * np.eye(3)[None],
+                self.cfg.anchor_members)
+            self._add(g, optimizer, state, pts, cols, widths, anchors.canonical_time, False,
+                      views, shapes=shapes)
+        return {"anchored": found, "anchor_gaussians": len(ready) * self.cfg.anchor_members}
 
     def _drawn_already(self, pts, vel, t_eq, cols, widths, view_times, clouds) -> np.ndarray:
         """Which seeds stand for an object the model already draws at their time, judged on

@@ -184,6 +184,11 @@ class CarveConfig:
     check_fill: bool = False  # before the check, each chain member no training view sees (at
     # a held-out time) takes the colour, opacity and shape of its chain's trained members
     # around its time (nehad.chain_check.fill_untrained); its place and motion stay the track's
+    anchor_weight: float = 0.0  # "tracks": > 0 teaches the field each long track's path from a
+    # point at its canonical-time place and adds Gaussians there (nehad.track_anchors); 0 off
+    anchor_samples: int = 512  # (anchor, time) pairs of that loss a step
+    anchor_min_blobs: int = 12  # tracks with fewer blobs are not anchored
+    anchor_members: int = 7  # Gaussians added at each anchor (1 or 7: nehad.tracks.cluster_seeds)
     start: float = 0.0  # with every > 0: no pass before this fraction of a stage's iterations
     # (the model should first draw what it can, or its own errors make blobs)
     life: float = 1.0  # a carved Gaussian lives around its time: its opacity is scaled by
@@ -459,6 +464,8 @@ class Config:
             raise ConfigError(f"carve.max_tracks: must be an integer >= 1, got {c.max_tracks!r}")
         if c.track_members not in (1, 7) or isinstance(c.track_members, bool):
             raise ConfigError(f"carve.track_members: must be 1 or 7, got {c.track_members!r}")
+        if c.anchor_members not in (1, 7) or isinstance(c.anchor_members, bool):
+            raise ConfigError(f"carve.anchor_members: must be 1 or 7, got {c.anchor_members!r}")
         if not all(isinstance(f, (int, float)) and 0.0 < f < 1.0 for f in c.at):
             raise ConfigError(f"carve.at: fractions of a stage in (0, 1), got {list(c.at)}")
         if not c.check_lives or not all(isinstance(f, (int, float)) and f >= 1.0
@@ -494,7 +501,8 @@ class Config:
         ("loss.isometry_weight", 0.0, None), ("loss.isometry_neighbours", 1, None),
         ("loss.isometry_refresh", 1, None), ("loss.acceleration_weight", 0.0, None),
         ("loss.acceleration_samples", 1, None), ("loss.scale_rate_weight", 0.0, None),
-        ("loss.scale_rate_samples", 1, None),
+        ("loss.scale_rate_samples", 1, None), ("carve.anchor_weight", 0.0, None),
+        ("carve.anchor_samples", 1, None), ("carve.anchor_min_blobs", 1, None),
         ("train.sh_degree_interval", 0, None), ("train.init_random_points", 1, None),
         ("train.init_max_points", 0, None), ("train.fit_box_padding", 0.0, None),
         ("train.checkpoint_interval", 1, None), ("train.log_interval", 1, None),

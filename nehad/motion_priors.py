@@ -10,18 +10,24 @@ from typing import NamedTuple
 from nehad.acceleration import AccelerationPrior
 from nehad.isometry import IsometryPrior
 from nehad.scale_rate import ScaleRatePrior
+from nehad.track_anchors import TrackAnchors
 
 
 class MotionPriors(NamedTuple):
     isometry: IsometryPrior
     acceleration: AccelerationPrior
     scale_rate: ScaleRatePrior
+    anchors: TrackAnchors  # the tracks' paths taught to the field (carve.anchor_weight)
 
     @classmethod
-    def of(cls, loss_cfg, seed: int, times) -> "MotionPriors":
-        """The priors a `LossConfig` asks for, over the training views' `times`."""
+    def of(cls, loss_cfg, seed: int, times, carve_cfg=None,
+           canonical_time: float = 0.5) -> "MotionPriors":
+        """The priors a `LossConfig` asks for, over the training views' `times`, and the
+        track anchors a `CarveConfig` asks for (none without one)."""
+        anchors = (TrackAnchors() if carve_cfg is None
+                   else TrackAnchors.of(carve_cfg, seed, canonical_time))
         return cls(IsometryPrior.of(loss_cfg), AccelerationPrior.of(loss_cfg, seed, times),
-                   ScaleRatePrior.of(loss_cfg, seed, times))
+                   ScaleRatePrior.of(loss_cfg, seed, times), anchors)
 
     def gaussians_at(self, model, t: float, step: int, deform: bool):
         """(model.gaussians_at(t, deform)'s tuple, the field's output for the slow-size prior's
@@ -38,7 +44,7 @@ class MotionPriors(NamedTuple):
         deformed means at t, `sampled` what `gaussians_at` returned for the samples."""
         return (self.isometry.loss(model.gaussians, deformed_means, step)
                 + self.acceleration.loss(model, deformed_means, t, step)
-                + self.scale_rate.loss(model, step, sampled, t))
+                + self.scale_rate.loss(model, step, sampled, t) + self.anchors.loss(model, step))
 
 
 __all__ = ["MotionPriors"]

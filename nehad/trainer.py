@@ -4,9 +4,8 @@ streaming layers) and two strategies beside it, 3DGS densification (`nehad.densi
 carving (`nehad.carve_pass`); Adam with per-parameter learning rates; 0.8 L1 + 0.2 D-SSIM, the
 hex-plane regularisers and the priors on the motion; SH degree schedule; atomic checkpoints.
 
-Determinism: the views of step s are drawn from a generator seeded by (seed, s) and the split
-noise of step s likewise, so a run resumed from a checkpoint takes the same steps as one that
-never stopped.
+Determinism: the views and the split noise of step s are drawn from generators seeded by
+(seed, s), so a run resumed from a checkpoint takes the same steps as one that never stopped.
 """
 
 from __future__ import annotations
@@ -90,7 +89,8 @@ class Trainer:
         self.optimizer = make_optimizer(self.model, cfg.optim, self.extent)
         self.strategy = DensifyStrategy(cfg.densify, self.extent)
         self.densify_state = DensifyState.zeros(0)
-        self.priors = MotionPriors.of(cfg.loss, cfg.train.seed, self.train_views.times)
+        self.priors = MotionPriors.of(cfg.loss, cfg.train.seed, self.train_views.times, cfg.carve,
+                                      cfg.train.canonical_time)
         self.carving = ResidualCarving(cfg.carve, cfg.train.seed, cfg.train.canonical_time,
                                        cfg.densify.max_gaussians, self.aabb.copy(), self.background,
                                        free_offset_of(cfg.field, float(field.extent)))
@@ -98,6 +98,7 @@ class Trainer:
             self.optimizer.load_state_dict(state["optimizer"])
             self.densify_state = DensifyState.from_state_dict(state["strategy"])
             self.step = int(state["step"])
+            self.priors.anchors.load_state_dict(state.get("anchors"))
         self.schedule.attach(self, state)
         self._enter_stage(self.schedule.phase(min(self.step, max(self.total_steps - 1, 0))))
 
@@ -243,7 +244,8 @@ class Trainer:
             self.model, self.optimizer, self.densify_state, deforms=phase.deforms,
             layer=phase.layer, it=phase.it + 1, step=step, window=window,
             views=self.schedule.views(self, phase.layer),
-            degree=self.active_sh_degree(step), timing=self.densify_timing))
+            degree=self.active_sh_degree(step), timing=self.densify_timing,
+            anchors=self.priors.anchors))
         if len(self.model.gaussians) == 0 and not getattr(self, "_warned_empty", False):
             self._warned_empty = True  # the stress suite's thin rod: docs/results.md
             self.warn(f"warning: step {step + 1}: every Gaussian was pruned; the model now draws "
@@ -255,7 +257,7 @@ class Trainer:
         return {"step": self.step, "gaussians": self.model.gaussians.state_dict(),
                 "field": self.model.field.state_dict(), "optimizer": self.optimizer.state_dict(),
                 "strategy": self.densify_state.state_dict(), "config": to_dict(self.cfg),
-                **self.schedule.state_dict()}
+                "anchors": self.priors.anchors.state_dict(), **self.schedule.state_dict()}
 
     def model_state(self) -> dict:
         """RUN/model.pt (read back as `nehad.model.load_run`'s model and RunInfo)."""
