@@ -174,11 +174,16 @@ class ResidualCarving:
         earlier passes (whose paths the field has been learning since)."""
         from nehad.tracks import cluster_seeds
 
-        ready = anchors.ready()
+        times = np.asarray(views.times, np.float64)
+        ready = anchors.ready((float(times.min()), float(times.max())), spacing,
+                              self.cfg.anchor_cover)
         found = 0
         for track, seed in zip(tracks, seeds):
             size = float(seed[4][0])  # the seeds' scale: track_width object radii
             found += anchors.add(track, spacing, size / self.cfg.track_width) is not None
+        out = {}
+        if len(ready) and self.cfg.anchor_replace:
+            out["anchor_replaced"] = self._unchain(g, optimizer, state, ready, anchors, spacing)
         if len(ready):
             n = len(ready)
             sizes = self.cfg.track_width * ready[:, 6]
@@ -188,7 +193,28 @@ class ResidualCarving:
                 self.cfg.anchor_members)
             self._add(g, optimizer, state, pts, cols, widths, anchors.canonical_time, False,
                       views, shapes=shapes)
-        return {"anchored": found, "anchor_gaussians": len(ready) * self.cfg.anchor_members}
+        return {"anchored": found, "anchor_gaussians": len(ready) * self.cfg.anchor_members,
+                **out}
+
+    @staticmethod
+    def _unchain(g, optimizer, state, ready, anchors, spacing: float) -> int:
+        """`carve.anchor_replace`: the chain Gaussians (finite life) on the paths of the
+        anchors `ready` are removed; how many."""
+        mortal = g.life_rate.detach().reshape(-1).numpy() != 0
+        if not mortal.any():
+            return 0
+        means = g.means.detach().numpy().astype(np.float64)
+        t_eq = g.t_eq.detach().reshape(-1).numpy().astype(np.float64)
+        gone = np.zeros(len(means), bool)
+        for row in ready:
+            gone |= anchors.near_path(row[:3], float(row[6]), means, t_eq, spacing)
+        gone &= mortal
+        if gone.any():
+            keep = torch.as_tensor(~gone)
+            keep_gaussians(g, optimizer, keep)
+            if state.grad_accum.shape[0] == len(keep):
+                state.keep(keep, 0)
+        return int(gone.sum())
 
     def _drawn_already(self, pts, vel, t_eq, cols, widths, view_times, clouds) -> np.ndarray:
         """Which seeds stand for an object the model already draws at their time, judged on

@@ -189,6 +189,13 @@ class CarveConfig:
     anchor_samples: int = 512  # (anchor, time) pairs of that loss a step
     anchor_min_blobs: int = 12  # tracks with fewer blobs are not anchored
     anchor_members: int = 7  # Gaussians added at each anchor (1 or 7: nehad.tracks.cluster_seeds)
+    anchor_volume: float = 0.0  # the anchor loss's points uniform in a ball of this many object radii
+    # about the anchor, each carried by the same offset (0: the anchor alone)
+    anchor_cover: float = 0.0  # an anchor's Gaussians wait until its path (its track and the tracks
+    # that continue it) covers this share of the training times' range
+    anchor_release: bool = False  # an anchor's rows leave the loss once its Gaussians are added
+    anchor_replace: bool = False  # with anchor_weight > 0: when an anchor's Gaussians are added,
+    # the chain Gaussians on its track's path are removed, so the field's draw the object
     start: float = 0.0  # with every > 0: no pass before this fraction of a stage's iterations
     # (the model should first draw what it can, or its own errors make blobs)
     life: float = 1.0  # a carved Gaussian lives around its time: its opacity is scaled by
@@ -502,7 +509,7 @@ class Config:
         ("loss.isometry_refresh", 1, None), ("loss.acceleration_weight", 0.0, None),
         ("loss.acceleration_samples", 1, None), ("loss.scale_rate_weight", 0.0, None),
         ("loss.scale_rate_samples", 1, None), ("carve.anchor_weight", 0.0, None),
-        ("carve.anchor_samples", 1, None), ("carve.anchor_min_blobs", 1, None),
+        ("carve.anchor_samples", 1, None), ("carve.anchor_cover", 0.0, 1.0), ("carve.anchor_min_blobs", 1, None),
         ("train.sh_degree_interval", 0, None), ("train.init_random_points", 1, None),
         ("train.init_max_points", 0, None), ("train.fit_box_padding", 0.0, None),
         ("train.checkpoint_interval", 1, None), ("train.log_interval", 1, None),
