@@ -182,9 +182,10 @@ class ResidualCarving:
             size = float(seed[4][0])  # the seeds' scale: track_width object radii
             found += anchors.add(track, spacing, size / self.cfg.track_width) is not None
         out = {}
-        if len(ready) and self.cfg.anchor_replace:
-            out["anchor_replaced"] = self._unchain(g, optimizer, state, ready, anchors, spacing)
         if len(ready):
+            if self.cfg.anchor_replace:
+                out["anchor_replaced"] = self._unchain(g, optimizer, state, ready, anchors,
+                                                       spacing)
             n = len(ready)
             sizes = self.cfg.track_width * ready[:, 6]
             pts, _, _, cols, widths, shapes = cluster_seeds(

@@ -103,8 +103,7 @@ class TrackAnchors:
             both = (taus >= known[0] - 2 * spacing) & (taus <= known[-1] + 2 * spacing)
             if not both.any():
                 continue
-            at = np.clip(taus[both], known[0], known[-1])
-            path = np.stack([np.interp(at, known, where[:, k]) for k in range(3)], axis=1)
+            path = _along(np.clip(taus[both], known[0], known[-1]), known, where)
             if np.median(np.linalg.norm(pts[both] - path, axis=1)) <= 2.0 * size:
                 return mu
         return None
@@ -126,8 +125,10 @@ class TrackAnchors:
         """How much of the time range the path anchored at `mu` covers: its distinct row
         times, one `spacing` each (with `spacing` 0, its span)."""
         taus, _ = self.path_of(mu)
-        if spacing <= 0.0 or not len(taus):
-            return float(taus[-1] - taus[0]) if len(taus) else 0.0
+        if not len(taus):
+            return 0.0
+        if spacing <= 0.0:
+            return float(taus[-1] - taus[0])
         return float(len(np.unique(np.round(taus / spacing)))) * spacing
 
     def path_of(self, mu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -145,8 +146,7 @@ class TrackAnchors:
         if not len(taus):
             return np.zeros(len(means), bool)
         inside = (times >= taus[0] - spacing) & (times <= taus[-1] + spacing)
-        at = np.stack([np.interp(times, taus, pts[:, k]) for k in range(3)], axis=1)
-        return inside & (np.linalg.norm(means - at, axis=1) <= 2.0 * radius)
+        return inside & (np.linalg.norm(means - _along(times, taus, pts), axis=1) <= 2.0 * radius)
 
     def loss(self, model, step: int):
         """L_anchor of `step` (0.0 without anchors)."""
@@ -197,6 +197,12 @@ class TrackAnchors:
         if "released" in state:
             self.released = state["released"].numpy().reshape(-1, 3)
         self.waiting = state["waiting"].numpy().reshape(-1, 7)
+
+
+def _along(at: np.ndarray, taus: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """(n, 3): the path through `pts` (m, 3) at its times `taus` (increasing), interpolated
+    linearly at the times `at` (held at its ends outside them)."""
+    return np.stack([np.interp(at, taus, pts[:, k]) for k in range(3)], axis=1)
 
 
 __all__ = ["TrackAnchors"]
