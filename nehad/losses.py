@@ -3,6 +3,9 @@
 
 from __future__ import annotations
 
+from typing import Optional
+
+import numpy as np
 import torch
 
 from nehad.blur import gaussian_blur, gaussian_taps
@@ -59,6 +62,37 @@ def ssim(img: torch.Tensor, ref: torch.Tensor, window: int = 11) -> torch.Tensor
     num = (2 * mu_x * mu_y + _SSIM_C1) * (2 * sxy + _SSIM_C2)
     den = (mu_x * mu_x + mu_y * mu_y + _SSIM_C1) * (sxx + syy + _SSIM_C2)
     return (num / den).mean()
+
+
+def annealed_blur_px(blur: float, until: float, progress: float, width: int) -> float:
+    """Sigma in pixels of the blur that `view_loss` puts on both images (docs/training.md,
+    "Blurred early steps"): `blur` x the image width at the deforming stage's first step,
+    falling linearly to 0 when `progress` (the share of the stage done) reaches `until`."""
+    if blur <= 0 or until <= 0 or progress >= until:
+        return 0.0
+    return blur * width * (1.0 - progress / until)
+
+
+def blurred(img: torch.Tensor, sigma_px: float) -> torch.Tensor:
+    """An (H, W, C) image blurred by a Gaussian of `sigma_px` pixels (taps out to 3 sigma, zero
+    padding), differentiable: the blur is its own adjoint (`_GaussianBlur`)."""
+    radius = max(1, int(np.ceil(3.0 * sigma_px)))
+    taps = gaussian_taps(2 * radius + 1, sigma_px)
+    stack = img.permute(2, 0, 1).contiguous()
+    if stack.device.type != "cpu" or stack.dtype != torch.float32:
+        raise ValueError("blurred: the training blur runs on float32 CPU images")
+    return _GaussianBlur.apply(stack, taps).permute(1, 2, 0).contiguous()
+
+
+def view_loss(img: torch.Tensor, ref: torch.Tensor, loss_cfg, progress: Optional[float]):
+    """A training view's image loss: `photometric_loss` of the render against its target, both
+    first blurred by `annealed_blur_px` while the deforming stage is young (`progress`, its
+    share done; None in the static stage, which is never blurred)."""
+    sigma = 0.0 if progress is None else annealed_blur_px(
+        loss_cfg.blur, loss_cfg.blur_until, progress, img.shape[1])
+    if sigma >= 0.3:  # under a third of a pixel the 3-tap kernel is nearly the identity
+        img, ref = blurred(img, sigma), blurred(ref, sigma)
+    return photometric_loss(img, ref, loss_cfg.ssim_weight, loss_cfg.kernel)
 
 
 def photometric_loss(img: torch.Tensor, ref: torch.Tensor, ssim_weight: float = 0.2,

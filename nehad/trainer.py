@@ -25,7 +25,7 @@ from nehad.curriculum import eligible_frames, resolution_factor
 from nehad.data.loader import load_dataset
 from nehad.densify import DensifyState, DensifyStrategy, ViewStats
 from nehad.field.deformation import DeformationField
-from nehad.losses import photometric_loss, psnr
+from nehad.losses import psnr, view_loss
 from nehad.lod import schedule_for
 from nehad.model import NeHaDModel, RunError, model_from_state
 from nehad.optim import make_optimizer, set_learning_rates
@@ -202,8 +202,8 @@ class Trainer:
                 background = tuple(float(v) for v in rng.random(3))
                 target = recomposite(target, alpha, self.load_background, background)
             res = render_torch(*params, cam, background=background, sh_degree=degree)
-            total = total + photometric_loss(res.rgb, target, cfg.loss.ssim_weight,
-                                             cfg.loss.kernel) / len(picks)
+            progress = phase.it / max(phase.length, 1) if phase.deforms else None
+            total = total + view_loss(res.rgb, target, cfg.loss, progress) / len(picks)
             if phase.deforms:  # the priors on the motion (nehad.motion_priors)
                 prior = self.priors.loss(self.model, params[0], views.times[k], step, sampled)
                 total = total + prior / len(picks)
