@@ -62,6 +62,56 @@ def displacement(points, groups, t: float) -> np.ndarray:
     return d
 
 
+class DisplacementFit:
+    """The preset's deformation field fitted by regression to known displacements of fixed
+    points (N, 3) float32: each step the mean squared displacement error at one time plus the
+    field's regularisers, Adam with the preset's learning rates for the planes and the decoder
+    and their decays over `steps` (`nehad.optim.exp_lr`). With `standardize` the trunk is
+    standardised over the points first, as the trainer does at the start of the deforming stage
+    (`DeformationField.standardize_trunk`). The box is [-1.5, 1.5]^3, the extent 3."""
+
+    def __init__(self, preset: str, sets: list, points: np.ndarray, steps: int,
+                 standardize: bool = True):
+        import torch
+
+        from nehad.config import build_config
+        from nehad.field.deformation import DeformationField
+
+        cfg = build_config(preset, None, sets)
+        self.field = DeformationField(cfg.field, [[-1.5] * 3, [1.5] * 3], extent=3.0)
+        self.means = torch.from_numpy(points)
+        n = len(points)
+        self.log_scales = torch.full((n, 3), -3.0)
+        self.quats = torch.zeros(n, 4)
+        self.quats[:, 0] = 1.0
+        if standardize:
+            with torch.no_grad():
+                self.field.standardize_trunk(self.means, 0.5)
+        opt = cfg.optim
+        decoder_final = opt.decoder_lr if opt.decoder_lr_final is None else opt.decoder_lr_final
+        self.lrs = [(opt.grid_lr_init, opt.grid_lr_final), (opt.decoder_lr, decoder_final)]
+        groups = self.field.param_groups()
+        self.adam = torch.optim.Adam([{"params": groups["grid"]}, {"params": groups["decoder"]}],
+                                     eps=1e-15)
+        self.steps = steps
+
+    def displacement(self, t: float):
+        """The field's displacement of every point at time t, (N, 3)."""
+        return self.field(self.means, self.log_scales, self.quats, t).means - self.means
+
+    def step(self, step: int, t: float, target) -> None:
+        """One Adam step (0-based `step` of `steps`) on the displacements at time t."""
+        from nehad.optim import exp_lr
+
+        for group, (lo, hi) in zip(self.adam.param_groups, self.lrs):
+            group["lr"] = exp_lr(step, self.steps, lo, hi)
+        loss = (((self.displacement(t) - target) ** 2).sum(1).mean()
+                + self.field.regularization_loss())
+        self.adam.zero_grad()
+        loss.backward()
+        self.adam.step()
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--preset", default="quick")
@@ -73,29 +123,11 @@ def main() -> None:
 
     import torch
 
-    from nehad.config import build_config
-    from nehad.field.deformation import DeformationField
-    from nehad.optim import exp_lr
-
     torch.set_num_threads(1)
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
-    cfg = build_config(args.preset, None, args.set)
-    field = DeformationField(cfg.field, [[-1.5] * 3, [1.5] * 3], extent=3.0)
     points, groups = groups_of(rng)
-    means = torch.from_numpy(points)
-    n = len(points)
-    log_scales = torch.full((n, 3), -3.0)
-    quats = torch.zeros(n, 4)
-    quats[:, 0] = 1.0
-    if not args.no_standardize:
-        with torch.no_grad():
-            field.standardize_trunk(means, 0.5)
-    opt = cfg.optim
-    decoder_final = opt.decoder_lr if opt.decoder_lr_final is None else opt.decoder_lr_final
-    lrs = [(opt.grid_lr_init, opt.grid_lr_final), (opt.decoder_lr, decoder_final)]
-    pg = field.param_groups()
-    adam = torch.optim.Adam([{"params": pg["grid"]}, {"params": pg["decoder"]}], eps=1e-15)
+    fit = DisplacementFit(args.preset, args.set, points, args.steps, not args.no_standardize)
     times = np.linspace(0.0, 1.0, 21)
     probe = np.linspace(0.0125, 0.9875, 40)
     targets = {float(t): torch.from_numpy(displacement(points, groups, float(t)))
@@ -104,21 +136,14 @@ def main() -> None:
           "of the squared displacement error, scene units^2")
     start = time.perf_counter()
     for step in range(args.steps):
-        for group, (lo, hi) in zip(adam.param_groups, lrs):
-            group["lr"] = exp_lr(step, args.steps, lo, hi)
         t = float(rng.choice(times))
-        moved = field(means, log_scales, quats, t).means - means
-        loss = ((moved - targets[t]) ** 2).sum(1).mean() + field.regularization_loss()
-        adam.zero_grad()
-        loss.backward()
-        adam.step()
+        fit.step(step, t, targets[t])
         if (step + 1) % max(1, args.steps // 5) == 0:
             errors = {g: [] for g in groups}
             with torch.no_grad():
                 for tp in probe:
                     tp = float(tp)
-                    err = ((field(means, log_scales, quats, tp).means - means - targets[tp]) ** 2
-                           ).sum(1)
+                    err = ((fit.displacement(tp) - targets[tp]) ** 2).sum(1)
                     for g, sl in groups.items():
                         errors[g].append(float(err[sl].mean()))
             cells = []

@@ -9,7 +9,7 @@ by regression to their true displacements at the suite's TRAINING times only (bl
 timestamps: 14 train, 3 test, 3 val; `nehad.data.synth_stress.stress_plan`): each step one
 training time, the mean squared displacement error of every point plus the field's
 regularisers, Adam with the preset's learning rates and decays, the trunk standardised first
-(as `bench/decoder_fit.py` does). It then prints, per object, the position error at the
+(`bench/decoder_fit.py`'s `DisplacementFit`). It then prints, per object, the position error at the
 training times and at the TEST times (which lie 1-3 frame steps after a block's last training
 time, in a gap no training view sees), in units of the object's thinnest width: its mean over
 points and times, and the mean over times of the worst point.
@@ -24,7 +24,9 @@ regression"). One thread; 4-9 minutes at the default 4000 steps.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -62,16 +64,14 @@ def main() -> None:
 
     import torch
 
-    from nehad.config import build_config
     from nehad.data.synth_stress import stress_objects, stress_plan
-    from nehad.field.deformation import DeformationField
-    from nehad.optim import exp_lr
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from decoder_fit import DisplacementFit
 
     torch.set_num_threads(1)
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
-    cfg = build_config(args.preset, None, args.set)
-    field = DeformationField(cfg.field, [[-1.5] * 3, [1.5] * 3], extent=3.0)
     labelled = [o for o in stress_objects(args.scene, 0.5) if o.labelled]
     local = {o.name: object_points(o, rng, args.points) for o in labelled}
     floor = rng.uniform(-1.4, 1.4, (300, 3))
@@ -82,39 +82,21 @@ def main() -> None:
         return np.concatenate([world(objs[o.name], local[o.name]) for o in labelled] + [floor])
 
     canonical = positions(0.5).astype(np.float32)
-    means = torch.from_numpy(canonical)
-    n = len(canonical)
-    log_scales = torch.full((n, 3), -3.0)
-    quats = torch.zeros(n, 4)
-    quats[:, 0] = 1.0
+    fit = DisplacementFit(args.preset, args.set, canonical, args.steps)
     plan = stress_plan(120)
     train = [t for _, t, _ in plan["train"]]
     test = [t for _, t, _ in plan["test"]]
     target = {t: torch.from_numpy((positions(t) - canonical).astype(np.float32))
               for t in train + test}
-    with torch.no_grad():
-        field.standardize_trunk(means, 0.5)
-    opt = cfg.optim
-    decoder_final = opt.decoder_lr if opt.decoder_lr_final is None else opt.decoder_lr_final
-    lrs = [(opt.grid_lr_init, opt.grid_lr_final), (opt.decoder_lr, decoder_final)]
-    groups = field.param_groups()
-    adam = torch.optim.Adam([{"params": groups["grid"]}, {"params": groups["decoder"]}],
-                            eps=1e-15)
     start = time.perf_counter()
     for step in range(args.steps):
-        for group, (lo, hi) in zip(adam.param_groups, lrs):
-            group["lr"] = exp_lr(step, args.steps, lo, hi)
         t = float(rng.choice(train))
-        moved = field(means, log_scales, quats, t).means - means
-        loss = ((moved - target[t]) ** 2).sum(1).mean() + field.regularization_loss()
-        adam.zero_grad()
-        loss.backward()
-        adam.step()
+        fit.step(step, t, target[t])
 
     def errors(times):
         with torch.no_grad():
-            return torch.stack([(field(means, log_scales, quats, t).means - means - target[t])
-                                .norm(dim=1) for t in times]).numpy()  # (times, points)
+            return torch.stack([(fit.displacement(t) - target[t]).norm(dim=1)
+                                for t in times]).numpy()  # (times, points)
 
     at_train, at_test = errors(train), errors(test)
     print(f"{args.scene}, preset {args.preset} {' '.join(args.set)}, {args.steps} steps, seed "
