@@ -227,17 +227,17 @@ class LossConfig:
     scale_rate_weight: float = 0.0  # > 0: each Gaussian's size changes little from one
     # training frame step to the next, in the deforming stage (nehad.scale_rate,
     # docs/training.md "Gaussians that blink")
+    scale_rate_samples: int = 1024  # Gaussians drawn each step for it
+    scale_rate_times: str = "uniform"  # the pair of times compared: c drawn uniformly over the
+    # training times and c + h, two field rows per sample ("uniform"), or the step's view's time
+    # and one frame step before or after it, the view's own rows reused, one more row per sample
+    # ("view")
     blur: float = 0.0  # > 0: in the deforming stage's first steps the render and its target
     # are both blurred before the loss, by a Gaussian of this share of the image width at the
     # stage's first step, shrinking linearly to none at `blur_until` of the stage, so that a
     # part that moves more than its own width between two training frames still pulls the
     # Gaussians of the frame before (docs/training.md, "Blurred early steps"; 0 = off)
     blur_until: float = 0.5  # share of the deforming stage at which the blur reaches 0
-    scale_rate_samples: int = 1024  # Gaussians drawn each step for it
-    scale_rate_times: str = "uniform"  # the pair of times compared: c drawn uniformly over the
-    # training times and c + h, two field rows per sample ("uniform"), or the step's view's time
-    # and one frame step before or after it, the view's own rows reused, one more row per sample
-    # ("view")
 
 
 #: How `train.hold_mode` sets the held space-time rows (nehad.curriculum.hold_time_planes).
@@ -515,7 +515,8 @@ class Config:
         ("loss.isometry_refresh", 1, None), ("loss.acceleration_weight", 0.0, None),
         ("loss.acceleration_samples", 1, None), ("loss.scale_rate_weight", 0.0, None),
         ("loss.scale_rate_samples", 1, None),
-        ("loss.blur", 0.0, 0.25), ("loss.blur_until", 0.0, 1.0), ("carve.anchor_weight", 0.0, None),
+        ("loss.blur", 0.0, 0.25), ("loss.blur_until", 0.0, 1.0),
+        ("carve.anchor_weight", 0.0, None),
         ("carve.anchor_samples", 1, None), ("carve.anchor_cover", 0.0, 1.0),
         ("carve.anchor_min_blobs", 1, None),
         ("train.sh_degree_interval", 0, None), ("train.init_random_points", 1, None),
