@@ -201,7 +201,7 @@ class ResidualCarving:
     def _unchain(g, optimizer, state, ready, anchors, spacing: float) -> int:
         """`carve.anchor_replace`: the chain Gaussians (finite life) on the paths of the
         anchors `ready` are removed; how many."""
-        mortal = g.life_rate.detach().reshape(-1).numpy() != 0
+        mortal = g.mortal().numpy()
         if not mortal.any():
             return 0
         means = g.means.detach().numpy().astype(np.float64)
@@ -250,7 +250,7 @@ class ResidualCarving:
         from nehad.tracks import chains_of
 
         g = model.gaussians
-        mortal = np.nonzero(g.life_rate.detach().reshape(-1).numpy() != 0)[0]
+        mortal = np.nonzero(g.mortal().numpy())[0]
         if not len(mortal) or views is None or not len(views.times):
             return {}
         with torch.no_grad():
@@ -426,7 +426,7 @@ def pin_mortal(g) -> None:
     (nehad.tracks). Their colour, opacity and shape are still learnt (with the shape held too,
     the 100x100 occluder's sphere scored 1.2 dB less: docs/results.md); with Adam's moments at
     zero from the start, a parameter whose gradient is always zero does not move."""
-    mortal = g.life_rate.detach().reshape(-1) != 0
+    mortal = g.mortal()
     if not bool(mortal.any()):
         return
     for name in ("means", "velocity", "t_eq", "life_rate", "mu_eq"):

@@ -280,7 +280,7 @@ class DensifyStrategy:
         capped = torch.minimum(params.opacity_logits.detach(),
                                torch.logit(torch.tensor(0.01)))
         capped[:frozen] = params.opacity_logits.detach()[:frozen]
-        short = params.life_rate.detach().reshape(-1) != 0
+        short = params.mortal()
         capped[short] = params.opacity_logits.detach()[short]
         _replace_parameter(params, optimizer, "opacity_logits", capped,
                            lambda v: torch.zeros_like(v))

@@ -84,9 +84,14 @@ class GaussianParameters(nn.Module):
                  if name not in state}
         return {**state, **extra} if extra else state
 
+    def mortal(self) -> torch.Tensor:
+        """(N,) bool: the Gaussians with a finite life (k != 0), the tracks' chains and the
+        carved ones."""
+        return self.life_rate.detach().reshape(-1) != 0
+
     def has_life(self) -> bool:
         """Whether any Gaussian has a finite life (k != 0)."""
-        return bool((self.life_rate.detach() != 0).any())
+        return bool(self.mortal().any())
 
     def reset_equilibrium(self, t_eq: float = 0.5) -> None:
         """docs/design.md section 4.7: mu_eq starts as mu and t_eq at the canonical time (train.canonical_time,
@@ -164,7 +169,7 @@ class GaussianParameters(nn.Module):
         the Gaussians with a finite life and 0 for the others."""
         if self.drift_window > 0:
             return self.velocity
-        return self.velocity * (self.life_rate.detach() != 0).to(self.velocity.dtype)
+        return self.velocity * self.mortal()[:, None].to(self.velocity.dtype)
 
     def to_cloud(self) -> GaussianCloud:
         with torch.no_grad():

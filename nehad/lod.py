@@ -217,7 +217,7 @@ class LayeredSchedule:
         f = self.frozen
         gen = torch.Generator().manual_seed(int(self.cfg.train.seed) * 1_000_003 + 7919 * layer)
         parents = torch.zeros(len(g), dtype=torch.bool)
-        parents[:f] = g.life_rate.detach()[:f].reshape(-1) == 0
+        parents[:f] = ~g.mortal()[:f]
         new = spawn_children(g, parents, 1, gen)
         new["log_scales"] = new["log_scales"] - math.log(2.0)
         p = float(self.cfg.lod.spawn_opacity)

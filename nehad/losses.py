@@ -29,10 +29,11 @@ class _GaussianBlur(torch.autograd.Function):
         return torch.from_numpy(out).to(grad.device, grad.dtype), None
 
 
-def _blur(stack: torch.Tensor, window: int) -> torch.Tensor:
-    """Gaussian blur (sigma 1.5, zero padding) of a (B, C, H, W) tensor."""
+def _blur(stack: torch.Tensor, window: int, sigma: float = 1.5) -> torch.Tensor:
+    """Gaussian blur (`window` taps, sigma 1.5 for SSIM, zero padding) of a (B, C, H, W)
+    tensor."""
     b, c, h, w = stack.shape
-    taps = gaussian_taps(window, 1.5)
+    taps = gaussian_taps(window, sigma)
     if stack.device.type != "cpu" or stack.dtype != torch.float32:
         import torch.nn.functional as F
 
@@ -75,13 +76,10 @@ def annealed_blur_px(blur: float, until: float, progress: float, width: int) -> 
 
 def blurred(img: torch.Tensor, sigma_px: float) -> torch.Tensor:
     """An (H, W, C) image blurred by a Gaussian of `sigma_px` pixels (taps out to 3 sigma, zero
-    padding), differentiable: the blur is its own adjoint (`_GaussianBlur`)."""
+    padding), differentiable (`_blur`, the SSIM window's blur with wider taps)."""
     radius = max(1, int(np.ceil(3.0 * sigma_px)))
-    taps = gaussian_taps(2 * radius + 1, sigma_px)
-    stack = img.permute(2, 0, 1).contiguous()
-    if stack.device.type != "cpu" or stack.dtype != torch.float32:
-        raise ValueError("blurred: the training blur runs on float32 CPU images")
-    return _GaussianBlur.apply(stack, taps).permute(1, 2, 0).contiguous()
+    stack = img.permute(2, 0, 1)[None].contiguous()
+    return _blur(stack, 2 * radius + 1, sigma_px)[0].permute(1, 2, 0).contiguous()
 
 
 def view_loss(img: torch.Tensor, ref: torch.Tensor, loss_cfg, progress: Optional[float]):
