@@ -127,16 +127,19 @@ class DensifyConfig:
 @dataclass
 class CarveConfig:
     """Residual carving (nehad.carve, docs/training.md): Gaussians are added where the model
-    does not draw what the views show. The recipe: two passes of the deforming stage that
-    follow each unexplained blob through the views in time order and seed a chain of Gaussians
-    along its 3D path (`mode=tracks`; what the static stage never sees, such as an object
+    does not draw what the views show. The recipe: one pass of the deforming stage that
+    follows each unexplained blob through the views in time order and seeds a chain of
+    Gaussians along its 3D path (`mode=tracks`; what the static stage never sees, such as an object
     behind an occluder around the canonical time, is otherwise never created)."""
 
     every: int = 0  # iterations between passes (inside each stage's densification window);
     # 0: the passes run at the fractions `at` instead
-    at: tuple[float, ...] = (0.275, 0.55)  # with every = 0: the fractions of a stage's
+    at: tuple[float, ...] = (0.55,)  # with every = 0: the fractions of a stage's
     # iterations at which a pass runs (each moved past the part of an opacity-reset period
-    # where opacities grow back: nehad.carve_pass.pass_iterations); (): no carving
+    # where opacities grow back: nehad.carve_pass.pass_iterations); (): no carving. One pass,
+    # late, since 2026-11-29 (0.275 and 0.55 before): by then the field draws what it will,
+    # so the unexplained blobs are the missing objects whole and their tracks land on them
+    # (docs/training.md, "One tracks pass, late")
     views: int = 6  # "vote"/"rays": training views nearest in time to the pass's time
     mode: str = "tracks"  # "tracks": chains of Gaussians along the 3D paths of the unexplained
     # blobs through all the window's views (nehad.tracks); "vote": a point where the views
