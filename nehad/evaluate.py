@@ -163,6 +163,17 @@ def _object_score(pixels: int, sse: float, bsse: float, min_pixels: int) -> dict
     return {"pixels": pixels, "psnr": p, "blank_psnr": b, "gain": p - b}
 
 
+def frame_objects(record: dict, names: dict) -> dict:
+    """{object name: score} of one frame's object record (`_frame_object_record`): each object
+    with a pixel at the eval resolution, scored on its pixels in that frame alone (metrics.json's
+    per_frame entries; a quarter pools its frames, `summarize_objects`, and scores only from
+    OBJECT_MIN_PIXELS pixels, where a frame's score of a few pixels is only informative). It
+    shows which frames of a quarter lose an object: for example the first after a run of
+    training times, or the ones further into a held-out gap."""
+    return {names.get(i, f"id {i}"): _object_score(*record["errors"][i], 1)
+            for i in sorted(record["errors"])}
+
+
 def summarize_objects(records: list[dict], names: dict, time_range, bins: int = TIME_BINS,
                       min_pixels: int = OBJECT_MIN_PIXELS) -> list[dict]:
     """Per-object scores from per-frame records {"time", "ids": [ids present in the full-size
@@ -296,6 +307,8 @@ def evaluate_run(run_dir, split: str = "test", data_dir=None, lpips: bool = True
     }
     if masks is not None:
         result.update(_objects_result(object_records, masks[0], time_range, split))
+        for record, objects in zip(per_frame, object_records):
+            record["objects"] = frame_objects(objects, masks[0])
     _atomic_json(out_dir / "metrics.json", result)
     return result
 

@@ -250,6 +250,24 @@ def test_missing_object_is_flagged(tmp_path, monkeypatch):
     assert out["worst_object_bin"]["range"] == [0.0, 0.25]
     warning = "warning: box_blue missing in t 0.00-0.25 (+0.0 dB over blank on its pixels)"
     assert out["object_warnings"] == [warning]
+    # per frame: frame 0's red square covers whole 2x2 blocks (16 pixels of truth (1, 0, 0));
+    # the render adds 0.01 to G and B (R clips at 1): mean squared error 2e-4 / 3 against the
+    # white blank's 2 / 3, a gain of exactly 10 log10(1e4) = 40 dB
+    frame0 = out["per_frame"][0]["objects"]
+    assert frame0["box_red"]["pixels"] == 16
+    assert frame0["box_red"]["gain"] == pytest.approx(40.0, abs=1e-3)
+    for rec in out["per_frame"]:  # the blue box undrawn before 0.25, drawn after
+        gain = rec["objects"]["box_blue"]["gain"]
+        assert gain == pytest.approx(0.0, abs=1e-6) if rec["time"] < 0.25 else gain > 15
+    for tb in blue["time_bins"] + red["time_bins"]:  # the frames' errors pool to the quarter's
+        name = "box_blue" if tb in blue["time_bins"] else "box_red"
+        lo, hi = tb["range"]
+        recs = [r["objects"][name] for r in out["per_frame"]
+                if lo <= r["time"] < hi or (hi == 1.0 and r["time"] == 1.0)]
+        pixels = sum(o["pixels"] for o in recs)
+        sse = sum(o["pixels"] * 10 ** (-o["psnr"] / 10) for o in recs)
+        assert pixels == tb["pixels"]
+        assert 10 * math.log10(pixels / sse) == pytest.approx(tb["psnr"], abs=1e-6)
     floor = out["unlabelled"]  # the grey strip: one 8-pixel row per frame at 2x
     assert floor["name"] == "unlabelled foreground"
     assert [tb["pixels"] for tb in floor["time_bins"]] == [16, 16, 16, 16]
