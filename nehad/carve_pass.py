@@ -370,11 +370,12 @@ class ResidualCarving:
 
 
 def check_run_chains(carving: ResidualCarving, model, cfg, data_dir, run, step: int,
-                     load_background, train_times, degree: int) -> dict:
+                     load_background, train_views, degree: int) -> dict:
     """`carve.check_split` after a run's last step: the tracks chains of `model` checked on
-    that split of the data (`ResidualCarving.check_chains`), written to RUN/tracks_check.json
-    (RUN/metrics.jsonl keeps one record per logged step); {} when the run is not in tracks
-    mode, has no chain, or the data has no such split."""
+    that split of the data (`ResidualCarving.check_chains`), then, with `carve.carry_steps` >
+    0 and no streaming layers, the carried objects (`nehad.carry_stage`), judged on the same
+    split; written to RUN/tracks_check.json (RUN/metrics.jsonl keeps one record per logged
+    step); {} when the run is not in tracks mode, has no chain, or the data has no such split."""
     import json
 
     from nehad.data.loader import load_dataset
@@ -389,8 +390,15 @@ def check_run_chains(carving: ResidualCarving, model, cfg, data_dir, run, step: 
                              downscale=cfg.data.downscale, frame_stride=cfg.data.frame_stride)
     except (ValueError, OSError, KeyError):
         return {}  # no such split: nothing to check against
-    did = carving.check_chains(model, views_of(scene, split), degree, frame_spacing(train_times),
-                               train_times)
+    train_times = train_views.times
+    held_out = views_of(scene, split)
+    did = carving.check_chains(model, held_out, degree, frame_spacing(train_times), train_times)
+    if did and cfg.carve.carry_steps > 0 and cfg.lod.levels <= 1:
+        from nehad.carry_stage import carry_stage
+
+        did.update(carry_stage(model, train_views, held_out, cfg.carve, degree,
+                               carving.background, frame_spacing(train_times),
+                               (min(train_times), max(train_times)), cfg.train.seed))
     if did:
         record = {"step": step, "split": split, **did}
         atomic_write_bytes(Path(run) / "tracks_check.json", json.dumps(record).encode())

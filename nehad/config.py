@@ -187,6 +187,13 @@ class CarveConfig:
     check_fill: bool = False  # before the check, each chain member no training view sees (at
     # a held-out time) takes the colour, opacity and shape of its chain's trained members
     # around its time (nehad.chain_check.fill_untrained); its place and motion stay the track's
+    carry_steps: int = 1500  # "tracks", after the check: > 0 finds what the model draws only with
+    # its chains as tracks again and fits each as one appearance carried along its track, this
+    # many steps (nehad.carry, nehad.carry_stage); kept where the check split's views prefer it
+    carry_members: int = 24  # Gaussians of one carried object (written out at every frame spacing)
+    carry_min_blobs: int = 12  # tracks with fewer blobs are not carried
+    carry_knots: int = 1  # frame spacings between a carried object's written-out copies (each
+    # lives as many spacings)
     anchor_weight: float = 0.0  # "tracks": > 0 teaches the field each long track's path from a
     # point at its canonical-time place and adds Gaussians there (nehad.track_anchors); 0 off
     anchor_samples: int = 512  # (anchor, time) pairs of that loss a step
@@ -521,7 +528,9 @@ class Config:
         ("loss.blur", 0.0, 0.25), ("loss.blur_until", 0.0, 1.0),
         ("carve.anchor_weight", 0.0, None),
         ("carve.anchor_samples", 1, None), ("carve.anchor_cover", 0.0, 1.0),
-        ("carve.anchor_min_blobs", 1, None),
+        ("carve.anchor_min_blobs", 1, None), ("carve.carry_steps", 0, None),
+        ("carve.carry_members", 1, None), ("carve.carry_min_blobs", 1, None),
+        ("carve.carry_knots", 1, None),
         ("train.sh_degree_interval", 0, None), ("train.init_random_points", 1, None),
         ("train.init_max_points", 0, None), ("train.fit_box_padding", 0.0, None),
         ("train.checkpoint_interval", 1, None), ("train.log_interval", 1, None),

@@ -293,7 +293,7 @@ class Trainer:
                                 cfg.train.keep_checkpoints)
         bar.close()
         checked = check_run_chains(self.carving, self.model, self.cfg, self.data_dir, self.run,
-                                   self.step, self.load_background, self.train_views.times,
+                                   self.step, self.load_background, self.train_views,
                                    self.active_sh_degree(max(self.step - 1, 0)))
         atomic_torch_save(self.model_state(), self.run / "model.pt")
         return {"steps": self.step, "gaussians": len(self.model.gaussians),

@@ -1,0 +1,151 @@
+"""The carried-objects stage after a run's last step (`carve.carry_steps`; `nehad.carry` says what
+a carried object is and why): find what the model draws only with its chains, fit each such object
+as one appearance along its track, and write it in where the held-out views prefer it."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import torch
+
+from nehad.carry import fit_objects, materialise, objects_from_tracks
+
+#: A written-out member the field cannot take within this many object radii of its fitted place
+#: is left out (`nehad.carry.materialise`).
+MISS_RADII = 0.1
+
+#: Chain Gaussians this close to a carried object's path at their own time, in object radii, are
+#: what the object replaces.
+NEAR_RADII = 2.0
+
+
+def undrawn_tracks(model, views, degree: int, background, carve_cfg, hidden_rows):
+    """The tracks (`nehad.tracks.fit_tracks`) of what the training `views` show and the model
+    does not draw with its `hidden_rows` (the chains) transparent, those of at least
+    `carve.carry_min_blobs` blobs."""
+    from nehad.model import cloud_at
+    from nehad.runtime.raster import render
+    from nehad.tracks import TrackSettings, find_blobs, fit_tracks
+
+    g = model.gaussians
+    rows = torch.as_tensor(np.asarray(hidden_rows, np.int64))
+    with torch.no_grad():
+        kept = g.opacity_logits[rows].clone()
+        g.opacity_logits[rows] = -30.0
+    try:
+        cams, targets, alphas, drawn = [], [], [], []
+        for k, t in enumerate(views.times):
+            cams.append(views.cameras[k])
+            drawn.append(render(cloud_at(model, float(t), degree), views.cameras[k],
+                                background).rgb)
+            targets.append(views.images[k].numpy())
+            a = views.alphas[k]
+            alphas.append(None if a is None else a.numpy()[:, :, 0])
+    finally:
+        with torch.no_grad():
+            g.opacity_logits[rows] = kept
+    blobs = find_blobs(cams, np.asarray(views.times, np.float64), targets, alphas, drawn,
+                       residual=carve_cfg.residual)
+    tracks = fit_tracks(cams, blobs, TrackSettings(max_tracks=carve_cfg.max_tracks))
+    return [t for t in tracks if len(t.blobs) >= carve_cfg.carry_min_blobs], cams
+
+
+def near_rows(obj, means_at_own_time: np.ndarray, t_eq: np.ndarray, rows: np.ndarray,
+              sigma: float) -> np.ndarray:
+    """The `rows` (chain Gaussians; their places at their own times and their times given)
+    within NEAR_RADII object radii of the object's path at their time, inside its span."""
+    lo, hi = obj.span(sigma)
+    t = t_eq[rows]
+    inside = (t >= lo) & (t <= hi)
+    path = np.stack([np.interp(t, obj.times, obj.points[:, j]) for j in range(3)], axis=1)
+    close = np.linalg.norm(means_at_own_time[rows] - path, axis=1) <= NEAR_RADII * obj.radius
+    return rows[inside & close]
+
+
+def carry_stage(model, train_views, val_views, carve_cfg, degree: int, background,
+                spacing: float, time_range, seed: int = 0) -> dict:
+    """Find, fit and judge the carried objects of a trained model (module docstring); the
+    accepted ones are appended to its Gaussians and the chain Gaussians about their paths made
+    transparent. Returns what it did (tracks found, objects kept, Gaussians added)."""
+    from nehad.densify import append_gaussians, keep_gaussians
+
+    g = model.gaussians
+    mortal = np.nonzero(g.mortal().numpy())[0]
+    if val_views is None or not len(val_views.times) or spacing <= 0:
+        return {}
+    rng = np.random.default_rng(seed)
+    tracks, cams = undrawn_tracks(model, train_views, degree, background, carve_cfg, mortal)
+    if not tracks:
+        return {"carry_tracks": 0}
+    knot = spacing * carve_cfg.carry_knots
+    objects = objects_from_tracks(tracks, cams, knot, time_range, carve_cfg.carry_members, rng)
+    sigma = carve_cfg.life * knot
+    log = fit_objects(objects, model, train_views, degree, background, sigma,
+                      carve_cfg.carry_steps, mortal, rng)
+    with torch.no_grad():
+        t_eq = g.t_eq.detach().reshape(-1).numpy().astype(np.float64)
+        own = np.zeros((len(g), 3))
+        for t in np.unique(t_eq[mortal]):
+            rows = mortal[t_eq[mortal] == t]
+            own[rows] = model.means_at(float(t), torch.as_tensor(rows)).numpy()
+    judge = _Judge(model, val_views, degree, background)
+    kept, added, miss, unplaced = 0, 0, 0.0, 0
+    no_optimizer = SimpleNamespace(param_groups=[], state={})
+    for obj in objects:
+        new, off = materialise(obj, model.field, g, sigma)
+        placed = off <= MISS_RADII * obj.radius
+        new = {name: value[placed] for name, value in new.items()}
+        unplaced += int((~placed).sum())
+        miss = max(miss, float(off[placed].max()) / obj.radius if bool(placed.any()) else 0.0)
+        start = len(g)
+        append_gaussians(g, no_optimizer, new)
+        rows = np.arange(start, len(g))
+        replaced = near_rows(obj, own, t_eq, mortal, sigma)
+        views = judge.views_in(obj.span(sigma))
+        before = judge.error(views, hide=rows)
+        after = judge.error(views, hide=replaced)
+        if after < before or not views:  # no held-out view in its span: kept, as a chain is
+            with torch.no_grad():
+                g.opacity_logits[torch.as_tensor(replaced)] = -30.0
+            kept, added = kept + 1, added + len(rows)
+        else:
+            keep = torch.ones(len(g), dtype=torch.bool)
+            keep[start:] = False
+            keep_gaussians(g, no_optimizer, keep)
+    return {"carry_tracks": len(tracks), "carry_kept": kept, "carry_gaussians": added,
+            "carry_placement_radii": round(miss, 4), "carry_unplaced": unplaced,
+            "carry_fit_l1": [round(v, 6) for v in log]}
+
+
+class _Judge:
+    """Summed squared error of held-out views with some rows made transparent."""
+
+    def __init__(self, model, views, degree, background):
+        self.model, self.views, self.degree, self.background = model, views, degree, background
+
+    def views_in(self, span) -> list:
+        return [k for k, t in enumerate(self.views.times) if span[0] <= t <= span[1]]
+
+    def error(self, views, hide) -> float:
+        from nehad.model import cloud_at
+        from nehad.runtime.raster import render
+
+        g = self.model.gaussians
+        rows = torch.as_tensor(np.asarray(hide, np.int64))
+        with torch.no_grad():
+            kept = g.opacity_logits[rows].clone()
+            g.opacity_logits[rows] = -30.0
+        try:
+            total = 0.0
+            for k in views:
+                cloud = cloud_at(self.model, float(self.views.times[k]), self.degree)
+                rgb = render(cloud, self.views.cameras[k], self.background).rgb
+                total += float(np.square(rgb - self.views.images[k].numpy()).sum())
+            return total
+        finally:
+            with torch.no_grad():
+                g.opacity_logits[rows] = kept
+
+
+__all__ = ["carry_stage", "near_rows", "undrawn_tracks"]
