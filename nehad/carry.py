@@ -138,7 +138,9 @@ def fit_objects(objects, model, views, degree: int, background, sigma: float, st
     opt = torch.optim.Adam(groups, eps=1e-15)
     hidden = torch.as_tensor(np.asarray(hidden_rows, np.int64))
     clouds, log, tenth = {}, [], []
-    for step in range(steps):
+    from tqdm import tqdm
+
+    for _ in tqdm(range(steps), desc="carried objects", leave=False, disable=None):
         k = picks[int(rng.integers(len(picks)))]
         t = float(views.times[k])
         if k not in clouds:
