@@ -76,7 +76,9 @@ def objects_from_tracks(tracks, cameras, spacing: float, time_range, members: in
                         rng: np.random.Generator) -> list[CarriedObject]:
     """A CarriedObject per track: knots every `spacing` over the track's span and half a
     `max_gap` past its ends (`nehad.tracks.seeds_along`, within `time_range` widened by as
-    much), `members` Gaussians in a ball of the object's radius, round, half its radius wide,
+    much), on the track's smooth path (`Track.smooth_at`: across a held-out gap the stress
+    occluder's sphere is then a median 0.06 radii from its true centre at the test times, 0.16
+    along the chord), `members` Gaussians in a ball of the object's radius, round, half its radius wide,
     of the track's colour, opacity 0.9."""
     from nehad.gaussians import rgb_to_sh_dc
     from nehad.tracks import TrackSettings, seeds_along
@@ -85,7 +87,8 @@ def objects_from_tracks(tracks, cameras, spacing: float, time_range, members: in
     lo, hi = float(time_range[0]) - reach, float(time_range[1]) + reach
     out = []
     for track in tracks:
-        pts, vel, taus, cols, widths, _ = seeds_along(track, cameras, spacing, lo, hi, 1.0)
+        _, _, taus, cols, widths, _ = seeds_along(track, cameras, spacing, lo, hi, 1.0)
+        pts, vel = track.smooth_at(taus)
         radius = float(widths[0])
         ball = rng.normal(size=(members, 3))
         ball *= (rng.random(members) ** (1 / 3) / np.linalg.norm(ball, axis=1))[:, None]

@@ -360,3 +360,26 @@ def test_every_object_gets_a_track_up_to_the_cap():
     # not the stretches' lengths)
     capped = fit_tracks(cams, blobs, dataclasses.replace(TrackSettings(), max_tracks=4))
     assert len(capped) == 4 and {len(tr.blobs) for tr in capped} <= set(lengths)
+
+
+def test_smooth_path_keeps_the_curve_across_a_gap():
+    """Track.smooth_at between two samples of a circle 0.4 rad apart, with their exact
+    velocities: within 1/50 of the chord's sagitta at the middle, its velocity tangent and of
+    the circle's speed; outside the span and at the samples it is Track.at."""
+    from nehad.tracks import Track
+
+    def circle(t):
+        return np.array([math.cos(t), math.sin(t), 0.0]), np.array([-math.sin(t), math.cos(t), 0.0])
+
+    times = np.array([0.0, 0.1, 0.5, 0.6])  # a gap of 0.4 between the middle two
+    pts, vel = zip(*(circle(t) for t in times))
+    tr = Track([], times, np.array(pts), np.array(vel))
+    p, v = tr.smooth_at(np.array([0.3]))
+    want, want_v = circle(0.3)
+    sagitta = 1.0 - math.cos(0.2)
+    assert np.linalg.norm(tr.at(np.array([0.3]))[0][0] - want) > 0.9 * sagitta  # the chord
+    assert np.linalg.norm(p[0] - want) < sagitta / 50
+    assert np.linalg.norm(v[0] - want_v) < 0.01
+    for t in (-0.05, 0.0, 0.1, 0.6, 0.7):  # the samples and outside: as `at`
+        a, b = tr.at(np.array([t])), tr.smooth_at(np.array([t]))
+        assert np.allclose(a[0], b[0], atol=1e-12) and np.allclose(a[1], b[1], atol=1e-12)
