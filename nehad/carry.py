@@ -78,8 +78,9 @@ def objects_from_tracks(tracks, cameras, spacing: float, time_range, members: in
     `max_gap` past its ends (`nehad.tracks.seeds_along`, within `time_range` widened by as
     much), on the track's smooth path (`Track.smooth_at`: across a held-out gap the stress
     occluder's sphere is then a median 0.06 radii from its true centre at the test times, 0.16
-    along the chord), `members` Gaussians in a ball of the object's radius, round, half its radius wide,
-    of the track's colour, opacity 0.9."""
+    along the chord); `members` Gaussians uniform in a ball of 0.7 object radii (the blobs'
+    median radius at their depth), round, half a radius wide, of the track's colour, opacity
+    0.9."""
     from nehad.gaussians import rgb_to_sh_dc
     from nehad.tracks import TrackSettings, seeds_along
 
@@ -105,9 +106,12 @@ def objects_from_tracks(tracks, cameras, spacing: float, time_range, members: in
     return out
 
 
-#: Adam's learning rates of the shared parameters (3DGS's, the offsets as its means in a unit scene).
-LEARNING_RATES = {"offsets": 1.6e-4 * 10, "log_scales": 5e-3, "quats": 1e-3,
-                  "opacity_logits": 5e-2, "sh_dc": 2.5e-3}
+#: Adam's learning rates of the shared parameters: 3DGS's for the shapes, opacities and colours;
+#: the offsets' in object radii a step (OFFSET_RATE x the object's radius), so that an object
+#: of any size, in a scene of any unit, is fitted alike (0.014: 1.6e-3 for the stress
+#: occluder's sphere, radius 0.115 as its blobs give it).
+LEARNING_RATES = {"log_scales": 5e-3, "quats": 1e-3, "opacity_logits": 5e-2, "sh_dc": 2.5e-3}
+OFFSET_RATE = 0.014
 
 
 def _with_objects(cloud, objects, t: float, sigma: float):
@@ -138,6 +142,7 @@ def fit_objects(objects, model, views, degree: int, background, sigma: float, st
         return []
     groups = [{"params": [getattr(o, name) for o in objects], "lr": lr}
               for name, lr in LEARNING_RATES.items()]
+    groups += [{"params": [o.offsets], "lr": OFFSET_RATE * o.radius} for o in objects]
     opt = torch.optim.Adam(groups, eps=1e-15)
     hidden = torch.as_tensor(np.asarray(hidden_rows, np.int64))
     clouds, log, tenth = {}, [], []
