@@ -44,10 +44,6 @@ class CarriedObject:
     opacity_logits: torch.Tensor  # (K, 1)
     sh_dc: torch.Tensor  # (K, 1, 3)
 
-    def parameters(self) -> dict:
-        return {"offsets": self.offsets, "log_scales": self.log_scales, "quats": self.quats,
-                "opacity_logits": self.opacity_logits, "sh_dc": self.sh_dc}
-
     def span(self, sigma: float) -> tuple[float, float]:
         return (float(self.times[0]) - REACH_SIGMAS * sigma,
                 float(self.times[-1]) + REACH_SIGMAS * sigma)

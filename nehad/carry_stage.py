@@ -4,6 +4,7 @@ as one appearance along its track, and write it in where the held-out views pref
 
 from __future__ import annotations
 
+import contextlib
 from types import SimpleNamespace
 
 import numpy as np
@@ -20,33 +21,32 @@ MISS_RADII = 0.1
 NEAR_RADII = 2.0
 
 
-def undrawn_tracks(model, views, degree: int, background, carve_cfg, hidden_rows):
-    """The tracks (`nehad.tracks.fit_tracks`) of what the training `views` show and the model
-    does not draw with its `hidden_rows` (the chains) transparent, those of at least
-    `carve.carry_min_blobs` blobs."""
-    from nehad.model import cloud_at
-    from nehad.runtime.raster import render
-    from nehad.tracks import TrackSettings, find_blobs, fit_tracks
-
-    g = model.gaussians
-    rows = torch.as_tensor(np.asarray(hidden_rows, np.int64))
+@contextlib.contextmanager
+def _transparent(g, rows):
+    """The Gaussians `rows` of `g` transparent inside the block, their opacities restored after."""
+    rows = torch.as_tensor(np.asarray(rows, np.int64))
     with torch.no_grad():
         kept = g.opacity_logits[rows].clone()
         g.opacity_logits[rows] = -30.0
     try:
-        cams, targets, alphas, drawn = [], [], [], []
-        for k, t in enumerate(views.times):
-            cams.append(views.cameras[k])
-            drawn.append(render(cloud_at(model, float(t), degree), views.cameras[k],
-                                background).rgb)
-            targets.append(views.images[k].numpy())
-            a = views.alphas[k]
-            alphas.append(None if a is None else a.numpy()[:, :, 0])
+        yield
     finally:
         with torch.no_grad():
             g.opacity_logits[rows] = kept
-    blobs = find_blobs(cams, np.asarray(views.times, np.float64), targets, alphas, drawn,
-                       residual=carve_cfg.residual)
+
+
+def undrawn_tracks(model, views, degree: int, background, carve_cfg, hidden_rows):
+    """The tracks (`nehad.tracks.fit_tracks`) of what the training `views` show and the model
+    does not draw with its `hidden_rows` (the chains) transparent, those of at least
+    `carve.carry_min_blobs` blobs."""
+    from nehad.tracks import TrackSettings, find_blobs, fit_tracks
+    from nehad.views import render_views
+
+    with _transparent(model.gaussians, hidden_rows):
+        cams, targets, alphas, drawn = render_views(model, True, range(len(views.times)), views,
+                                                    degree, background)
+    blobs = find_blobs(cams, np.asarray(views.times, np.float64), targets, alphas,
+                       [d.rgb for d in drawn], residual=carve_cfg.residual)
     tracks = fit_tracks(cams, blobs, TrackSettings(max_tracks=carve_cfg.max_tracks))
     return [t for t in tracks if len(t.blobs) >= carve_cfg.carry_min_blobs], cams
 
@@ -131,21 +131,13 @@ class _Judge:
         from nehad.model import cloud_at
         from nehad.runtime.raster import render
 
-        g = self.model.gaussians
-        rows = torch.as_tensor(np.asarray(hide, np.int64))
-        with torch.no_grad():
-            kept = g.opacity_logits[rows].clone()
-            g.opacity_logits[rows] = -30.0
-        try:
-            total = 0.0
+        total = 0.0
+        with _transparent(self.model.gaussians, hide):
             for k in views:
                 cloud = cloud_at(self.model, float(self.views.times[k]), self.degree)
                 rgb = render(cloud, self.views.cameras[k], self.background).rgb
                 total += float(np.square(rgb - self.views.images[k].numpy()).sum())
-            return total
-        finally:
-            with torch.no_grad():
-                g.opacity_logits[rows] = kept
+        return total
 
 
 __all__ = ["carry_stage", "near_rows", "undrawn_tracks"]

@@ -18,6 +18,7 @@ from nehad.chain_check import DROPPED, HALO, chain_lives, fill_untrained, traine
 from nehad.config import CarveConfig
 from nehad.curriculum import TimeWindow, eligible_frames
 from nehad.densify import DensifySchedule, DensifyState, append_gaussians, keep_gaussians
+from nehad.views import render_views
 
 
 def van_der_corput(i: int) -> float:
@@ -118,7 +119,8 @@ class ResidualCarving:
 
         c = self.cfg
         times = np.asarray(views.times, np.float64)
-        cams, targets, alphas, drawn = self._render_views(model, deforms, nearest, views, degree)
+        cams, targets, alphas, drawn = render_views(model, deforms, nearest, views, degree,
+                                                    self.background)
         if c.mode == "rays":
             return seed_rays(cams, targets, alphas, [d.rgb for d in drawn], self.box,
                              residual=c.residual, stride=c.stride,
@@ -143,8 +145,8 @@ class ResidualCarving:
         pool = eligible_frames(views.times, window)
         times = np.asarray(views.times, np.float64)
         clouds = []
-        cams, targets, alphas, drawn = self._render_views(model, deforms, pool, views, degree,
-                                                          clouds)
+        cams, targets, alphas, drawn = render_views(model, deforms, pool, views, degree,
+                                                    self.background, clouds)
         blobs = find_blobs(cams, times[pool], targets, alphas, [d.rgb for d in drawn],
                            residual=c.residual)
         tracks = fit_tracks(cams, blobs, TrackSettings(max_tracks=c.max_tracks))
@@ -318,27 +320,6 @@ class ResidualCarving:
                 g.quats[index] = q / q.norm(dim=1, keepdim=True).clamp_min(1e-12)
                 count += int((~trained[rows]).sum())
         return count
-
-    def _render_views(self, model, deforms: bool, indices, views, degree: int, clouds=None):
-        """(cameras, targets, alphas or None, renders) of the views `indices`, each rendered
-        at its own time (the canonical Gaussians in a static stage); the Gaussians each was
-        drawn from are appended to `clouds` when given."""
-        from nehad.model import cloud_at
-        from nehad.runtime.raster import render
-
-        times = np.asarray(views.times, np.float64)
-        canonical = None if deforms else cloud_at(model, None, degree)
-        cams, targets, alphas, drawn = [], [], [], []
-        for k in indices:
-            cloud = canonical if canonical is not None else cloud_at(model, times[k], degree)
-            cams.append(views.cameras[k])
-            drawn.append(render(cloud, views.cameras[k], self.background))
-            if clouds is not None:
-                clouds.append(cloud)
-            targets.append(views.images[k].numpy())
-            a = views.alphas[k]
-            alphas.append(None if a is None else a.numpy()[:, :, 0])
-        return cams, targets, alphas, drawn
 
     def _most_new(self) -> int:
         """Gaussians one pass may add: `max_new`, and never more than the cap."""

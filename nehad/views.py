@@ -58,4 +58,27 @@ def resolve_background(configured, scene_has_alpha: bool) -> tuple[float, float,
     return (1.0, 1.0, 1.0) if scene_has_alpha else (0.0, 0.0, 0.0)
 
 
-__all__ = ["Views", "downscale_views", "recomposite", "resolve_background", "views_of"]
+def render_views(model, deforms: bool, indices, views, degree: int, background, clouds=None):
+    """(cameras, targets, alphas or None, renders) of the views `indices`, each rendered at its
+    own time (the canonical Gaussians in a static stage) over `background`; the Gaussians each
+    was drawn from are appended to `clouds` when given."""
+    from nehad.model import cloud_at
+    from nehad.runtime.raster import render
+
+    times = np.asarray(views.times, np.float64)
+    canonical = None if deforms else cloud_at(model, None, degree)
+    cams, targets, alphas, drawn = [], [], [], []
+    for k in indices:
+        cloud = canonical if canonical is not None else cloud_at(model, times[k], degree)
+        cams.append(views.cameras[k])
+        drawn.append(render(cloud, views.cameras[k], background))
+        if clouds is not None:
+            clouds.append(cloud)
+        targets.append(views.images[k].numpy())
+        a = views.alphas[k]
+        alphas.append(None if a is None else a.numpy()[:, :, 0])
+    return cams, targets, alphas, drawn
+
+
+__all__ = ["Views", "downscale_views", "recomposite", "render_views", "resolve_background",
+           "views_of"]
