@@ -43,6 +43,8 @@ class CarriedObject:
     quats: torch.Tensor  # (K, 4)
     opacity_logits: torch.Tensor  # (K, 1)
     sh_dc: torch.Tensor  # (K, 1, 3)
+    seen: tuple[float, float] | None = None  # the times its track saw it (first, last blob);
+    # the knots past them are extrapolated (None: every knot seen)
 
     def span(self, sigma: float) -> tuple[float, float]:
         return (float(self.times[0]) - REACH_SIGMAS * sigma,
@@ -98,7 +100,8 @@ def objects_from_tracks(tracks, cameras, spacing: float, time_range, members: in
             leaf(torch.full((members, 3), float(np.log(0.5 * radius)))),
             leaf(torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(members, 1)),
             leaf(torch.full((members, 1), float(np.log(0.9 / 0.1)))),
-            leaf(rgb_to_sh_dc(colour).reshape(1, 1, 3).repeat(members, 1, 1))))
+            leaf(rgb_to_sh_dc(colour).reshape(1, 1, 3).repeat(members, 1, 1)),
+            (float(track.times[0]), float(track.times[-1]))))
     return out
 
 

@@ -5,6 +5,7 @@ as one appearance along its track, and write it in where the held-out views pref
 from __future__ import annotations
 
 import contextlib
+from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
@@ -90,32 +91,76 @@ def carry_stage(model, train_views, val_views, carve_cfg, degree: int, backgroun
             rows = mortal[t_eq[mortal] == t]
             own[rows] = model.means_at(float(t), torch.as_tensor(rows)).numpy()
     judge = _Judge(model, val_views, degree, background)
-    kept, added, miss, unplaced = 0, 0, 0.0, 0
+    kept, added, miss, unplaced, trimmed = 0, 0, 0.0, 0, 0
     no_optimizer = SimpleNamespace(param_groups=[], state={})
     for obj in objects:
         new, off = materialise(obj, model.field, g, sigma)
         placed = off <= MISS_RADII * obj.radius
         new = {name: value[placed] for name, value in new.items()}
+        knot_of = np.repeat(np.arange(len(obj.times)), obj.offsets.shape[0])[placed.numpy()]
         unplaced += int((~placed).sum())
         miss = max(miss, float(off[placed].max()) / obj.radius if bool(placed.any()) else 0.0)
         start = len(g)
         append_gaussians(g, no_optimizer, new)
         rows = np.arange(start, len(g))
-        replaced = near_rows(obj, own, t_eq, mortal, sigma)
-        views = judge.views_in(obj.span(sigma))
-        before = judge.error(views, hide=rows)
-        after = judge.error(views, hide=replaced)
-        if after < before or not views:  # no held-out view in its span: kept, as a chain is
-            with torch.no_grad():
-                g.opacity_logits[torch.as_tensor(replaced)] = -30.0
-            kept, added = kept + 1, added + len(rows)
-        else:
-            keep = torch.ones(len(g), dtype=torch.bool)
+        def replaced(a, b, o=obj):  # the chain rows knots a..b replace
+            return near_rows(_knots(o, a, b), own, t_eq, mortal, sigma)
+
+        knots = _kept_knots(obj, judge, rows, knot_of, replaced, sigma)
+        keep = torch.ones(len(g), dtype=torch.bool)
+        if knots is None:
             keep[start:] = False
-            keep_gaussians(g, no_optimizer, keep)
+        else:
+            lo, hi = knots
+            keep[torch.as_tensor(rows[(knot_of < lo) | (knot_of > hi)])] = False
+            with torch.no_grad():
+                g.opacity_logits[torch.as_tensor(replaced(lo, hi))] = -30.0
+            kept, added = kept + 1, added + int(keep[start:].sum())
+            trimmed += len(obj.times) - (hi - lo + 1)
+        keep_gaussians(g, no_optimizer, keep)
     return {"carry_tracks": len(tracks), "carry_kept": kept, "carry_gaussians": added,
+            "carry_knots_trimmed": trimmed,
             "carry_placement_radii": round(miss, 4), "carry_unplaced": unplaced,
             "carry_fit_l1": [round(v, 6) for v in log]}
+
+
+def _knots(obj, lo: int, hi: int):
+    """The object with its knots lo..hi only (its path and span there)."""
+    return replace(obj, times=obj.times[lo:hi + 1], points=obj.points[lo:hi + 1],
+                   velocities=obj.velocities[lo:hi + 1])
+
+
+def _kept_knots(obj, judge, rows, knot_of, replaced, sigma: float):
+    """The knots (lo, hi) of a written-out object to keep, or None. First those of the span its
+    track saw: kept where the held-out views inside that span get closer to their targets with
+    them (and the chains they replace, `replaced(lo, hi)`, hidden), or where no held-out view
+    falls there, as a chain is. Then knot by knot outwards, each kept while the held-out views
+    within one spacing of it (where its life window is over 0.6) get no further from their
+    targets: a path extrapolated past its track's ends runs on where the object is gone (the
+    stress fast ball after its landing, hidden under the floor)."""
+    seen = obj.seen or (obj.times[0], obj.times[-1])
+    inside = np.nonzero((obj.times >= seen[0] - 1e-9) & (obj.times <= seen[1] + 1e-9))[0]
+    if not len(inside):
+        inside = [int(np.abs(obj.times - 0.5 * (seen[0] + seen[1])).argmin())]
+    lo, hi = int(inside[0]), int(inside[-1])
+
+    def error(views, a, b):  # the views' error with knots a..b kept
+        out = rows[(knot_of < a) | (knot_of > b)]
+        return judge.error(views, hide=np.concatenate([out, replaced(a, b)]))
+
+    views = judge.views_in(seen)
+    if views and not error(views, lo, hi) < judge.error(views, hide=rows):
+        return None
+    reach = sigma * (1.0 + 1e-6)
+    for step in (-1, 1):
+        while 0 <= (nxt := (lo if step < 0 else hi) + step) < len(obj.times):
+            t = float(obj.times[nxt])
+            views = judge.views_in((t - reach, t + reach))
+            a, b = (nxt, hi) if step < 0 else (lo, nxt)
+            if views and error(views, a, b) > error(views, lo, hi):
+                break
+            lo, hi = a, b
+    return lo, hi
 
 
 class _Judge:

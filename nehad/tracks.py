@@ -125,6 +125,8 @@ class Track:
     times: np.ndarray = field(default_factory=lambda: np.zeros(0))
     points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     velocities: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    end_accelerations: np.ndarray | None = None  # (2, 3): the first and the last sample's
+    # (their quadratic fits'), which `smooth_at` runs on with past the ends; None: none
 
     def at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(points (T, 3), velocities (T, 3)) at times t: linearly interpolated between the
@@ -139,7 +141,9 @@ class Track:
     def smooth_at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """As `at`, but between two samples a cubic through both samples' points with both
         their velocities (Hermite) instead of the chord: across a held-out stretch of several
-        frames a turning path keeps its curve (nehad.carry; the chains keep `at`)."""
+        frames a turning path keeps its curve (nehad.carry; the chains keep `at`). Past the
+        ends, with `end_accelerations`, along the end sample's acceleration as well as its
+        velocity: a ball thrown along a parabola lands where it does, not on the tangent."""
         t = np.asarray(t, np.float64)
         pts, vel = self.at(t)
         T, P, V = self.times, self.points, self.velocities
@@ -154,6 +158,10 @@ class Track:
                  + (-2 * s**3 + 3 * s**2) * p1 + (s**3 - s**2) * v1)
         slope = ((6 * s**2 - 6 * s) * p0 + (3 * s**2 - 4 * s + 1) * v0
                  + (-6 * s**2 + 6 * s) * p1 + (3 * s**2 - 2 * s) * v1) / np.maximum(h, 1e-12)
+        if self.end_accelerations is not None:  # past the ends: their accelerations too
+            acc = self.end_accelerations[(t > T[-1]).astype(np.int64)]
+            dt = np.where(inside, 0.0, t - np.where(t < T[0], T[0], T[-1]))[:, None]
+            pts, vel = pts + 0.5 * acc * dt**2, vel + acc * dt
         return (np.where(inside[:, None], cubic, pts), np.where(inside[:, None], slope, vel))
 
     def colour(self) -> np.ndarray:
@@ -287,7 +295,7 @@ def _samples(cameras, track: Track, s: TrackSettings) -> Track:
     `fit_blobs` + 1 blobs nearest in time, a straight line where they leave it undetermined:
     a straight line over an arc cuts its corner); blobs that land outside their gate are
     dropped."""
-    times, points, vels, kept = [], [], [], []
+    times, points, vels, accs, kept = [], [], [], [], []
     blobs = track.blobs
     for b in blobs:
         near = sorted(blobs, key=lambda o: abs(o.time - b.time))[:s.fit_blobs + 1]
@@ -299,9 +307,11 @@ def _samples(cameras, track: Track, s: TrackSettings) -> Track:
         times.append(b.time)
         points.append(coef[0])
         vels.append(coef[1])
+        accs.append(2.0 * coef[2] if len(coef) > 2 else np.zeros(3))
         kept.append(b)
+    ends = np.stack([accs[0], accs[-1]]) if kept else None
     return Track(kept, np.array(times), np.array(points).reshape(-1, 3),
-                 np.array(vels).reshape(-1, 3))
+                 np.array(vels).reshape(-1, 3), ends)
 
 
 def _join(cameras, tracks: list, s: TrackSettings) -> list:

@@ -154,3 +154,46 @@ def test_fit_on_the_views_draws_the_object():
     after = error()
     assert log[-1] < 0.5 * log[0]
     assert after < 0.15 * before, (before, after)  # 381 -> 32 when written
+
+
+class _CountingJudge:
+    """A stand-in for the held-out views: each view's error counts the knots within one spacing
+    of its time that are drawn where the object is absent, or hidden where it is present."""
+
+    def __init__(self, view_times, knot_times, present, per_knot):
+        self.times, self.knots = view_times, knot_times
+        self.present, self.per_knot = present, per_knot
+
+    def views_in(self, span):
+        return [k for k, t in enumerate(self.times) if span[0] <= t <= span[1]]
+
+    def error(self, views, hide):
+        hidden = np.bincount(np.asarray(hide, np.int64) // self.per_knot,
+                             minlength=len(self.knots)) == self.per_knot
+        total = 0
+        for k in views:
+            near = np.abs(self.knots - self.times[k]) <= 0.0100001
+            total += int(np.sum(near & (hidden == self.present)))
+        return total
+
+
+def test_an_objects_ends_are_kept_only_as_far_as_the_held_out_views_agree():
+    """Knots every 0.01 over 0-0.19, its track seeing it over 0.05-0.12, the object there over
+    0.05-0.15 (it runs on past its last blob, then is gone). With held-out views at 0.035 (none
+    there), 0.08 (there) and 0.165 (gone): the knots kept are 0.05-0.15, those of the seen span
+    and the three after it that no view contradicts, not 0.04 or 0.16. With the object nowhere,
+    the view inside its seen span rejects it whole; with no view, every knot is kept."""
+    from nehad.carry_stage import _kept_knots
+
+    knots = np.round(np.arange(20) * 0.01, 6)
+    obj = _object(knots, np.zeros((20, 3)), np.zeros((20, 3)), np.zeros((2, 3)))
+    obj.seen = (0.05, 0.12)
+    rows, knot_of = np.arange(40), np.repeat(np.arange(20), 2)
+    none = lambda a, b: np.zeros(0, np.int64)  # noqa: E731
+    present = (knots >= 0.05 - 1e-9) & (knots <= 0.15 + 1e-9)
+    judge = _CountingJudge([0.035, 0.08, 0.165], knots, present, 2)
+    assert _kept_knots(obj, judge, rows, knot_of, none, 0.01) == (5, 15)
+    judge = _CountingJudge([0.035, 0.08, 0.165], knots, np.zeros(20, bool), 2)
+    assert _kept_knots(obj, judge, rows, knot_of, none, 0.01) is None
+    judge = _CountingJudge([], knots, present, 2)
+    assert _kept_knots(obj, judge, rows, knot_of, none, 0.01) == (0, 19)
