@@ -170,11 +170,12 @@ def fit_objects(objects, model, views, degree: int, background, sigma: float, st
 
 
 def materialise(obj: CarriedObject, field, like, sigma: float,
-                iterations: int = 10) -> tuple[dict, torch.Tensor]:
+                iterations: int = 30) -> tuple[dict, torch.Tensor]:
     """The object's members as canonical Gaussian parameters (GaussianParameters.NAMES): K per
     knot, living `sigma` around the knot's time and moving with its velocity, each placed so
     that the deformation field takes it to the fitted place, scale and rotation at its own time
-    (a few fixed-point steps: the field's output at a place depends on the place); `like`: the
+    (fixed-point steps: the field's output at a place depends on the place; it is a
+    contraction about a moving object, so they converge slowly); `like`: the
     model's GaussianParameters (the shapes of their tensors). Returns (the parameters, (n K,)
     the distance left between each member's place and the fitted one: where the field folds
     space, a place may have no canonical point that it takes there)."""

@@ -91,7 +91,7 @@ def carry_stage(model, train_views, val_views, carve_cfg, degree: int, backgroun
             rows = mortal[t_eq[mortal] == t]
             own[rows] = model.means_at(float(t), torch.as_tensor(rows)).numpy()
     judge = _Judge(model, val_views, degree, background)
-    kept, added, miss, unplaced, trimmed = 0, 0, 0.0, 0, 0
+    kept, added, miss, unplaced, trimmed, beside = 0, 0, 0.0, 0, 0, 0
     no_optimizer = SimpleNamespace(param_groups=[], state={})
     for obj in objects:
         new, off = materialise(obj, model.field, g, sigma)
@@ -111,15 +111,16 @@ def carry_stage(model, train_views, val_views, carve_cfg, degree: int, backgroun
         if knots is None:
             keep[start:] = False
         else:
-            lo, hi = knots
+            lo, hi, swap = knots
             keep[torch.as_tensor(rows[(knot_of < lo) | (knot_of > hi)])] = False
-            with torch.no_grad():
-                g.opacity_logits[torch.as_tensor(replaced(lo, hi))] = -30.0
-            kept, added = kept + 1, added + int(keep[start:].sum())
+            if swap:
+                with torch.no_grad():
+                    g.opacity_logits[torch.as_tensor(replaced(lo, hi))] = -30.0
+            kept, added, beside = kept + 1, added + int(keep[start:].sum()), beside + (not swap)
             trimmed += len(obj.times) - (hi - lo + 1)
         keep_gaussians(g, no_optimizer, keep)
     return {"carry_tracks": len(tracks), "carry_kept": kept, "carry_gaussians": added,
-            "carry_knots_trimmed": trimmed,
+            "carry_knots_trimmed": trimmed, "carry_kept_beside_chains": beside,
             "carry_placement_radii": round(miss, 4), "carry_unplaced": unplaced,
             "carry_fit_l1": [round(v, 6) for v in log]}
 
@@ -131,36 +132,42 @@ def _knots(obj, lo: int, hi: int):
 
 
 def _kept_knots(obj, judge, rows, knot_of, replaced, sigma: float):
-    """The knots (lo, hi) of a written-out object to keep, or None. First those of the span its
-    track saw: kept where the held-out views inside that span get closer to their targets with
-    them (and the chains they replace, `replaced(lo, hi)`, hidden), or where no held-out view
-    falls there, as a chain is. Then knot by knot outwards, each kept while the held-out views
-    within one spacing of it (where its life window is over 0.6) get no further from their
-    targets: a path extrapolated past its track's ends runs on where the object is gone (the
-    stress fast ball after its landing, hidden under the floor)."""
+    """The knots (lo, hi) of a written-out object to keep and whether the chains about them
+    are hidden (`swap`), or None. First those of the span its track saw: kept where the
+    held-out views inside that span get closer to their targets with them, either in place of
+    the chains they replace (`replaced(lo, hi)` hidden) or beside them, whichever is closer
+    (where the field cannot place many of an object's copies, the chains still draw part of
+    it: `nehad demo`'s bouncing ball); kept where no held-out view falls there, as a chain is.
+    Then knot by knot outwards, each kept while the held-out views within one spacing of it
+    (where its life window is over 0.6) get no further from their targets: a path
+    extrapolated past its track's ends runs on where the object is gone (the stress fast ball
+    after its landing, hidden under the floor)."""
     seen = obj.seen or (obj.times[0], obj.times[-1])
     inside = np.nonzero((obj.times >= seen[0] - 1e-9) & (obj.times <= seen[1] + 1e-9))[0]
     if not len(inside):
         inside = [int(np.abs(obj.times - 0.5 * (seen[0] + seen[1])).argmin())]
     lo, hi = int(inside[0]), int(inside[-1])
 
-    def error(views, a, b):  # the views' error with knots a..b kept
+    def error(views, a, b, swap):  # the views' error with knots a..b kept
         out = rows[(knot_of < a) | (knot_of > b)]
-        return judge.error(views, hide=np.concatenate([out, replaced(a, b)]))
+        return judge.error(views, hide=np.concatenate([out, replaced(a, b)]) if swap else out)
 
-    views = judge.views_in(seen)
-    if views and not error(views, lo, hi) < judge.error(views, hide=rows):
-        return None
+    views, swap = judge.views_in(seen), True
+    if views:
+        swapped, beside = error(views, lo, hi, True), error(views, lo, hi, False)
+        if not min(swapped, beside) < judge.error(views, hide=rows):
+            return None
+        swap = swapped <= beside
     reach = sigma * (1.0 + 1e-6)
     for step in (-1, 1):
         while 0 <= (nxt := (lo if step < 0 else hi) + step) < len(obj.times):
             t = float(obj.times[nxt])
             views = judge.views_in((t - reach, t + reach))
             a, b = (nxt, hi) if step < 0 else (lo, nxt)
-            if views and error(views, a, b) > error(views, lo, hi):
+            if views and error(views, a, b, swap) > error(views, lo, hi, swap):
                 break
             lo, hi = a, b
-    return lo, hi
+    return lo, hi, swap
 
 
 class _Judge:

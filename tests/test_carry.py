@@ -182,7 +182,8 @@ def test_an_objects_ends_are_kept_only_as_far_as_the_held_out_views_agree():
     0.05-0.15 (it runs on past its last blob, then is gone). With held-out views at 0.035 (none
     there), 0.08 (there) and 0.165 (gone): the knots kept are 0.05-0.15, those of the seen span
     and the three after it that no view contradicts, not 0.04 or 0.16. With the object nowhere,
-    the view inside its seen span rejects it whole; with no view, every knot is kept."""
+    the view inside its seen span rejects it whole; with no view, every knot is kept; where
+    hiding the chains it would replace costs more than it gains, it is kept beside them."""
     from nehad.carry_stage import _kept_knots
 
     knots = np.round(np.arange(20) * 0.01, 6)
@@ -192,8 +193,20 @@ def test_an_objects_ends_are_kept_only_as_far_as_the_held_out_views_agree():
     none = lambda a, b: np.zeros(0, np.int64)  # noqa: E731
     present = (knots >= 0.05 - 1e-9) & (knots <= 0.15 + 1e-9)
     judge = _CountingJudge([0.035, 0.08, 0.165], knots, present, 2)
-    assert _kept_knots(obj, judge, rows, knot_of, none, 0.01) == (5, 15)
+    assert _kept_knots(obj, judge, rows, knot_of, none, 0.01) == (5, 15, True)
     judge = _CountingJudge([0.035, 0.08, 0.165], knots, np.zeros(20, bool), 2)
     assert _kept_knots(obj, judge, rows, knot_of, none, 0.01) is None
     judge = _CountingJudge([], knots, present, 2)
-    assert _kept_knots(obj, judge, rows, knot_of, none, 0.01) == (0, 19)
+    assert _kept_knots(obj, judge, rows, knot_of, none, 0.01) == (0, 19, True)
+    # chains (rows 40-41) that still draw what the object's copies miss: kept beside them
+    judge = _ChainsStillNeeded([0.035, 0.08, 0.165], knots, present, 2)
+    chains = lambda a, b: np.array([40, 41])  # noqa: E731
+    assert _kept_knots(obj, judge, rows, knot_of, chains, 0.01) == (5, 15, False)
+
+
+class _ChainsStillNeeded(_CountingJudge):
+    """As _CountingJudge, and each view 5 worse with the chain rows 40-41 hidden."""
+
+    def error(self, views, hide):
+        hide = np.asarray(hide, np.int64)
+        return super().error(views, hide[hide < 40]) + 5 * len(views) * bool((hide >= 40).any())
