@@ -102,6 +102,7 @@ def carry_stage(model, train_views, val_views, carve_cfg, degree: int, backgroun
         miss = max(miss, float(off[placed].max()) / obj.radius if bool(placed.any()) else 0.0)
         start = len(g)
         append_gaussians(g, no_optimizer, new)
+        judge.forget()
         rows = np.arange(start, len(g))
         def replaced(a, b, o=obj):  # the chain rows knots a..b replace
             return near_rows(_knots(o, a, b), own, t_eq, mortal, sigma)
@@ -171,24 +172,34 @@ def _kept_knots(obj, judge, rows, knot_of, replaced, sigma: float):
 
 
 class _Judge:
-    """Summed squared error of held-out views with some rows made transparent."""
+    """Summed squared error of held-out views with some rows made transparent. Each view's
+    Gaussians at its time are evaluated once (the deformation field) and kept until `forget`
+    (the model's rows changed); a judgement zeroes the hidden rows' opacities in a copy."""
 
     def __init__(self, model, views, degree, background):
         self.model, self.views, self.degree, self.background = model, views, degree, background
+        self.clouds = {}
 
     def views_in(self, span) -> list:
         return [k for k, t in enumerate(self.views.times) if span[0] <= t <= span[1]]
+
+    def forget(self) -> None:
+        self.clouds = {}
 
     def error(self, views, hide) -> float:
         from nehad.model import cloud_at
         from nehad.runtime.raster import render
 
-        total = 0.0
-        with _transparent(self.model.gaussians, hide):
-            for k in views:
-                cloud = cloud_at(self.model, float(self.views.times[k]), self.degree)
-                rgb = render(cloud, self.views.cameras[k], self.background).rgb
-                total += float(np.square(rgb - self.views.images[k].numpy()).sum())
+        total, hide = 0.0, np.asarray(hide, np.int64)
+        for k in views:
+            if k not in self.clouds:
+                self.clouds[k] = cloud_at(self.model, float(self.views.times[k]), self.degree)
+            cloud = self.clouds[k]
+            alpha = cloud.opacities.copy()
+            alpha[hide] = 0.0
+            rgb = render(replace(cloud, opacities=alpha), self.views.cameras[k],
+                         self.background).rgb
+            total += float(np.square(rgb - self.views.images[k].numpy()).sum())
         return total
 
 
