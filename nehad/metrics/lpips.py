@@ -275,6 +275,26 @@ def lpips_per_image(img, ref, net: str = "vgg", normalize: bool = True) -> torch
         return model(a, b, normalize=normalize).reshape(-1)
 
 
+def lpips_against(ref, imgs, net: str = "vgg", normalize: bool = True) -> list[float]:
+    """LPIPS distance of each image of `imgs` (K of them, (H, W, 3) each) to the one reference
+    `ref`, as `lpips(img, ref)` gives it, with the reference's features computed once: one
+    network pass over K + 1 images where K pairs take 2K (`nehad eval` scores each render and
+    the blank image against the same target)."""
+    x = torch.cat([_to_nchw(i) for i in imgs] + [_to_nchw(ref)], 0)
+    if len({tuple(t.shape) for t in x}) != 1 or x.shape[1] != 3:
+        raise ValueError(f"LPIPS needs RGB images of one size, got {tuple(x.shape)}")
+    model, k = get_model(net), x.shape[0] - 1
+    if normalize:
+        x = 2 * x - 1
+    with torch.inference_mode():
+        x = (x - model.shift) / model.scale
+        total = torch.zeros(k)
+        for feat, lin in zip(model.tapped(x), model.lins):
+            f = feat / (torch.sqrt(torch.sum(feat ** 2, dim=1, keepdim=True)) + 1e-10)
+            total += lin((f[:k] - f[k:]) ** 2).mean((1, 2, 3))
+    return [float(v) for v in total]
+
+
 def lpips(img, ref, net: str = "vgg", normalize: bool = True) -> float:
     """LPIPS v0.1 distance of [0, 1] RGB images, (H, W, 3) or (N, H, W, 3) (mean over a batch).
 
