@@ -285,6 +285,13 @@ def _exact_blob(view: int, t: float, cam, centre) -> Blob:
     return Blob(view, t, uv, 50, np.array([0.9, 0.5, 0.1]), o, (x - o) / np.linalg.norm(x - o))
 
 
+def _rig_view(i: int, stride: int) -> Camera:
+    """View i of a 200x200 walk through the stress rig, `stride` cameras on at each view."""
+    f = 0.5 * 200 / math.tan(math.radians(25.0))
+    rig = rig_cameras()
+    return Camera.from_camera_to_world(rig[(stride * i) % len(rig)], 200, 200, f, f)
+
+
 def test_a_track_is_followed_round_a_bend_across_held_out_times():
     """The stress suite's occluded loop (x = cos, y = 1.45 sin, z bobbing) at 120 timestamps,
     the rig's cameras in turn: no view in 0.445-0.5 or 0.615-0.67 (held out), and in 0.5-0.615
@@ -301,12 +308,10 @@ def test_a_track_is_followed_round_a_bend_across_held_out_times():
         a = 2.0 * math.pi * t
         return np.array([math.cos(a), 1.45 * math.sin(a), 0.4 + 0.25 * math.sin(2.0 * a)])
 
-    rig = rig_cameras()
-    f = 0.5 * 200 / math.tan(math.radians(25.0))
     times = [k / 120 for k in range(24, 100)]
     cams, blobs = [], []
     for i, t in enumerate(times):
-        cams.append(Camera.from_camera_to_world(rig[(7 * i) % len(rig)], 200, 200, f, f))
+        cams.append(_rig_view(i, 7))
         held = 0.445 < t < 0.5 or 0.615 < t < 0.67
         hidden = 0.5 <= t <= 0.615 and i % 2 == 1
         if not held and not hidden:
@@ -396,13 +401,9 @@ def test_a_thrown_balls_path_runs_on_with_its_acceleration():
         u = (t - 0.33) / 0.15
         return np.array([-1.5 + 3.0 * u, 0.3, -0.3 + 6.4 * u * (1.0 - u)])
 
-    rig = rig_cameras()
-    f = 0.5 * 200 / math.tan(math.radians(25.0))
     times = [k / 119 for k in range(41, 54)]
-    cams, blobs = [], []
-    for i, t in enumerate(times):
-        cams.append(Camera.from_camera_to_world(rig[(5 * i) % len(rig)], 200, 200, f, f))
-        blobs.append(_exact_blob(i, t, cams[-1], centre))
+    cams = [_rig_view(i, 5) for i in range(len(times))]
+    blobs = [_exact_blob(i, t, cam, centre) for i, (t, cam) in enumerate(zip(times, cams))]
     tracks = fit_tracks(cams, blobs)
     assert [len(tr.blobs) for tr in tracks] == [13]
     tr = tracks[0]
