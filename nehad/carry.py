@@ -15,8 +15,9 @@ frame spacing along the track, each living one spacing (`sigma`) and moving with
 velocity there, the chains' own format, so that the exported file and the runtime do not change.
 Written out (`materialise`), each member's canonical place, scale and rotation are chosen so that
 the deformation field, which moves every Gaussian, puts it where the fit had it at its own time.
-An object replaces the chain Gaussians about its path only where the held-out views are closer to
-their targets with it (`carry_stage`)."""
+An object is written in, in place of the chain Gaussians about its path or beside them, only
+where the held-out views are closer to their targets with it; its extrapolated ends are judged
+apart (`carry_stage`)."""
 
 from __future__ import annotations
 
