@@ -13,9 +13,10 @@ from nehad.metrics.lpips import (INSTALL_HINT, LPIPS, LpipsWeightsMissing, find_
 
 lpips_distance = lpips.lpips
 
-__all__ = ["image_metrics", "lpips_scores", "psnr", "ssim", "ms_ssim", "ms_ssim_per_image", "d_ssim", "lpips",
-           "lpips_distance", "lpips_per_image", "LPIPS", "find_weights", "get_model",
-           "weights_available", "LpipsWeightsMissing", "INSTALL_HINT", "as_image_tensor"]
+__all__ = ["image_metrics", "lpips_scores", "psnr", "ssim", "ms_ssim", "ms_ssim_per_image",
+           "d_ssim", "lpips", "lpips_distance", "lpips_per_image", "LPIPS", "find_weights",
+           "get_model", "weights_available", "LpipsWeightsMissing", "INSTALL_HINT",
+           "as_image_tensor"]
 
 
 LPIPS_MIN_SIZE = 32
