@@ -129,17 +129,21 @@ class LPIPS(nn.Module):
     def forward(self, in0: torch.Tensor, in1: torch.Tensor, retPerLayer: bool = False,  # noqa: N803
                 normalize: bool = False):
         """Same signature and result as the official `lpips.LPIPS.forward` (spatial=False)."""
+        res = self.layer_distances(torch.cat([in0, in1], 0), in0.shape[0], normalize)
+        val = sum(res)
+        return (val, res) if retPerLayer else val
+
+    def layer_distances(self, x: torch.Tensor, n: int, normalize: bool) -> list[torch.Tensor]:
+        """Per tap, (N, 1, 1, 1) distances of the images x[:n] to x[n:] (as many, or one that
+        all of them are compared with), in one pass of the backbone over x."""
         if normalize:
-            in0, in1 = 2 * in0 - 1, 2 * in1 - 1
-        n = in0.shape[0]
-        x = (torch.cat([in0, in1], 0) - self.shift.to(in0.dtype)) / self.scale.to(in0.dtype)
+            x = 2 * x - 1
+        x = (x - self.shift.to(x.dtype)) / self.scale.to(x.dtype)
         res = []
         for feat, lin in zip(self.tapped(x), self.lins):
             f = feat / (torch.sqrt(torch.sum(feat ** 2, dim=1, keepdim=True)) + 1e-10)
-            d = (f[:n] - f[n:]) ** 2
-            res.append(lin(d).mean((2, 3), keepdim=True))
-        val = sum(res)
-        return (val, res) if retPerLayer else val
+            res.append(lin((f[:n] - f[n:]) ** 2).mean((2, 3), keepdim=True))
+        return res
 
 
 # ---------------------------------------------------------------------------------------------
@@ -283,16 +287,9 @@ def lpips_against(ref, imgs, net: str = "vgg", normalize: bool = True) -> list[f
     x = torch.cat([_to_nchw(i) for i in imgs] + [_to_nchw(ref)], 0)
     if len({tuple(t.shape) for t in x}) != 1 or x.shape[1] != 3:
         raise ValueError(f"LPIPS needs RGB images of one size, got {tuple(x.shape)}")
-    model, k = get_model(net), x.shape[0] - 1
-    if normalize:
-        x = 2 * x - 1
     with torch.inference_mode():
-        x = (x - model.shift) / model.scale
-        total = torch.zeros(k)
-        for feat, lin in zip(model.tapped(x), model.lins):
-            f = feat / (torch.sqrt(torch.sum(feat ** 2, dim=1, keepdim=True)) + 1e-10)
-            total += lin((f[:k] - f[k:]) ** 2).mean((1, 2, 3))
-    return [float(v) for v in total]
+        total = sum(get_model(net).layer_distances(x, x.shape[0] - 1, normalize))
+    return [float(v) for v in total.reshape(-1)]
 
 
 def lpips(img, ref, net: str = "vgg", normalize: bool = True) -> float:
