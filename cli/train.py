@@ -89,10 +89,11 @@ def train(data, run, preset, config_file, overrides, resume, lod_levels, quiet):
                    f"transparent, {summary.get('chain_gaussians_longer', 0)} Gaussians given "
                    f"a longer life, {summary['halo_gaussians_shrunk']} grown Gaussians shrunk "
                    f"(checked on the {trainer.cfg.carve.check_split} views)")
-    if summary.get("carry_tracks"):  # carve.carry_steps (docs/training.md)
-        click.echo(f"  carried objects: {summary.get('carry_kept', 0)} of "
-                   f"{summary['carry_tracks']} kept, {summary.get('carry_gaussians', 0)} "
-                   f"Gaussians written along their tracks")
+    found = summary.get("carry_tracks", 0) + summary.get("carry_spinning", 0)
+    if found:  # carve.carry_steps, carve.carry_spin (docs/training.md)
+        click.echo(f"  carried objects: {summary.get('carry_kept', 0)} of {found} kept "
+                   f"({summary.get('carry_spinning', 0)} spinning), "
+                   f"{summary.get('carry_gaussians', 0)} Gaussians written along their tracks")
     if trainer.layer_sizes:
         click.echo(f"  layers (Gaussians): {', '.join(str(n) for n in trainer.layer_sizes)}")
 

@@ -46,6 +46,45 @@ class CarriedObject:
     sh_dc: torch.Tensor  # (K, 1, 3)
     seen: tuple[float, float] | None = None  # the times its track saw it (first, last blob);
     # the knots past them are extrapolated (None: every knot seen)
+    omega: torch.Tensor | None = None  # (3,) its spin (`nehad.spin`), rad per unit of time
+    # about the path's point, refined by the fit; the offsets and rotations are the body's at
+    # `spin_time` (None: no spin)
+    spin_time: float = 0.0
+    shift: torch.Tensor | None = None  # (3,) a correction of its whole path, fitted (the point
+    # a spinning object turns about is its blobs' centroid, which its shading moves)
+
+    def turns(self, times: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """The body's rotation at `times` (the knots' times) since `spin_time`, as (m, 3, 3)
+        matrices and (m, 4) unit quaternions (w, x, y, z), differentiable in `omega`; the
+        identity without a spin."""
+        from nehad.splat.projection import quat_to_rotmat
+
+        m = len(times)
+        if self.omega is None:
+            quat = torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(m, 1)
+            return torch.eye(3).repeat(m, 1, 1), quat
+        dt = torch.as_tensor(np.asarray(times, np.float64) - self.spin_time, dtype=torch.float32)
+        vec = dt[:, None] * self.omega[None]
+        angle = torch.sqrt((vec * vec).sum(1, keepdim=True) + 1e-20)
+        quat = torch.cat([torch.cos(0.5 * angle), torch.sin(0.5 * angle) * vec / angle], 1)
+        return quat_to_rotmat(quat), quat
+
+    def placed(self, knots: np.ndarray):
+        """Per knot of `knots` (indices) its K members' (offsets from the path's point, turned,
+        (m, K, 3); velocities from the spin (m, K, 3); quaternions turned (m, K, 4)): the body
+        as it is at each knot's time, each member moving with the spin's velocity there
+        (w x its offset from the point turned about); the path's `shift` included."""
+        from nehad.field.rigidity import quat_multiply
+
+        mats, quats = self.turns(self.times[knots])
+        turned_offs = torch.einsum("mij,kj->mki", mats, self.offsets)
+        swirl = (torch.zeros_like(turned_offs) if self.omega is None else
+                 torch.cross(self.omega.expand_as(turned_offs), turned_offs, dim=-1))
+        offs = turned_offs if self.shift is None else turned_offs + self.shift
+        unit = self.quats / self.quats.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        turned = quat_multiply(quats[:, None, :].expand(-1, unit.shape[0], -1),
+                               unit[None].expand(len(knots), -1, -1))
+        return offs, swirl, turned
 
     def span(self, sigma: float) -> tuple[float, float]:
         return (float(self.times[0]) - REACH_SIGMAS * sigma,
@@ -63,46 +102,68 @@ class CarriedObject:
                                   dtype=torch.float32)
         window = torch.as_tensor(np.exp(-0.5 * (dt / sigma) ** 2), dtype=torch.float32)
         k = self.offsets.shape[0]
-        means = (centres[:, None, :] + self.offsets[None]).reshape(-1, 3)
-        quats = self.quats / self.quats.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        offs, swirl, quats = self.placed(near)
+        step = torch.as_tensor(dt, dtype=torch.float32)[:, None, None]
+        means = (centres[:, None, :] + offs + swirl * step).reshape(-1, 3)
         opac = (torch.sigmoid(self.opacity_logits).reshape(1, k) * window[:, None]).reshape(-1)
         rep = len(near)
-        return (means, torch.exp(self.log_scales).repeat(rep, 1), quats.repeat(rep, 1), opac,
+        return (means, torch.exp(self.log_scales).repeat(rep, 1), quats.reshape(-1, 4), opac,
                 self.sh_dc.repeat(rep, 1, 1))
 
 
 def objects_from_tracks(tracks, cameras, spacing: float, time_range, members: int,
-                        rng: np.random.Generator) -> list[CarriedObject]:
+                        rng: np.random.Generator, spins=None) -> list[CarriedObject]:
     """A CarriedObject per track: knots every `spacing` over the track's span and half a
     `max_gap` past its ends (`nehad.tracks.seeds_along`, within `time_range` widened by as
     much), on the track's smooth path (`Track.smooth_at`: across a held-out gap the stress
     occluder's sphere is then a median 0.06 radii from its true centre at the test times, 0.16
     along the chord); `members` Gaussians uniform in a ball of 0.7 object radii (the blobs'
     median radius at their depth), round, half a radius wide, of the track's colour, opacity
-    0.9."""
+    0.9. With `spins` (a `nehad.spin.Spin` per track), each object turns with its track's spin
+    and its members start spread as its body is (a normal of the body's spread at the spin's
+    time) and as wide as its thinnest spread, its radius the larger of its blobs' and the body's (sqrt(3) times its longest
+    standard deviation: a uniform rod's half length)."""
     from nehad.gaussians import rgb_to_sh_dc
     from nehad.tracks import TrackSettings, seeds_along
 
     reach = 0.5 * TrackSettings().max_gap
     lo, hi = float(time_range[0]) - reach, float(time_range[1]) + reach
     out = []
-    for track in tracks:
+    for i, track in enumerate(tracks):
         _, _, taus, cols, widths, _ = seeds_along(track, cameras, spacing, lo, hi, 1.0)
-        pts, vel = track.smooth_at(taus)
+        spin = spins[i] if spins is not None else None
+        if spin is None:
+            pts, vel = track.smooth_at(taus)
+        else:
+            from nehad.spin_tracks import smooth_path
+
+            pts, vel = smooth_path(track, taus)
         radius = float(widths[0])
         ball = rng.normal(size=(members, 3))
-        ball *= (rng.random(members) ** (1 / 3) / np.linalg.norm(ball, axis=1))[:, None]
+        width = 0.5 * radius
+        if spin is None:
+            ball *= (0.7 * radius * rng.random(members) ** (1 / 3)
+                     / np.linalg.norm(ball, axis=1))[:, None]
+        else:
+            values, axes = np.linalg.eigh(spin.spread)
+            values = np.clip(values, (0.05 * radius) ** 2, None)
+            ball = ball @ (axes * np.sqrt(values)).T
+            width = min(width, float(np.sqrt(values[0])))  # as thin as the body
         colour = torch.as_tensor(np.clip(cols[0], 0.0, 1.0), dtype=torch.float32)
         leaf = lambda x: x.detach().clone().requires_grad_(True)  # noqa: E731
         out.append(CarriedObject(
             np.asarray(taus, np.float64), np.asarray(pts, np.float64),
-            np.asarray(vel, np.float64), radius,
-            leaf(torch.as_tensor(0.7 * radius * ball, dtype=torch.float32)),
-            leaf(torch.full((members, 3), float(np.log(0.5 * radius)))),
+            np.asarray(vel, np.float64),
+            radius if spin is None else max(radius, float(np.sqrt(3 * values[-1]))),
+            leaf(torch.as_tensor(ball, dtype=torch.float32)),
+            leaf(torch.full((members, 3), float(np.log(width)))),
             leaf(torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(members, 1)),
             leaf(torch.full((members, 1), float(np.log(0.9 / 0.1)))),
             leaf(rgb_to_sh_dc(colour).reshape(1, 1, 3).repeat(members, 1, 1)),
-            (float(track.times[0]), float(track.times[-1]))))
+            (float(track.times[0]), float(track.times[-1])),
+            None if spin is None else leaf(torch.as_tensor(spin.omega, dtype=torch.float32)),
+            0.0 if spin is None else spin.centre_time,
+            None if spin is None else leaf(torch.zeros(3))))
     return out
 
 
@@ -112,6 +173,14 @@ def objects_from_tracks(tracks, cameras, spacing: float, time_range, members: in
 #: occluder's sphere, radius 0.115 as its blobs give it).
 LEARNING_RATES = {"log_scales": 5e-3, "quats": 1e-3, "opacity_logits": 5e-2, "sh_dc": 2.5e-3}
 OFFSET_RATE = 0.014
+#: The places' learning rates (offsets, shift, spin) fall this much over the fit, geometrically
+#: (3DGS lowers its means' 100-fold): at a constant rate the stress thin rod's members kept
+#: jittering by a sixth of its thickness, and it scored +6.8 dB over blank on its training
+#: views against +10.5 with the fall (docs/training.md, "Objects that spin").
+PLACE_DECAY = 0.1
+#: A spin's rate, in radians a step over its object's span (a rate off by dw turns the body
+#: dw x span/2 from its place at the span's ends).
+SPIN_RATE = 0.004
 
 
 def _with_objects(cloud, objects, t: float, sigma: float):
@@ -143,12 +212,20 @@ def fit_objects(objects, model, views, degree: int, background, sigma: float, st
     groups = [{"params": [getattr(o, name) for o in objects], "lr": lr}
               for name, lr in LEARNING_RATES.items()]
     groups += [{"params": [o.offsets], "lr": OFFSET_RATE * o.radius} for o in objects]
+    groups += [{"params": [o.shift], "lr": OFFSET_RATE * o.radius} for o in objects
+               if o.shift is not None]
+    groups += [{"params": [o.omega], "lr": SPIN_RATE / max(hi - lo, 1e-3)}
+               for o, (lo, hi) in zip(objects, spans) if o.omega is not None]
     opt = torch.optim.Adam(groups, eps=1e-15)
     hidden = torch.as_tensor(np.asarray(hidden_rows, np.int64))
     clouds, log, tenth = {}, [], []
     from tqdm import tqdm
 
+    decay = PLACE_DECAY ** (1.0 / steps)
+    moving_groups = opt.param_groups[len(LEARNING_RATES):]
     for _ in tqdm(range(steps), desc="carried objects", leave=False, disable=None):
+        for group in moving_groups:
+            group["lr"] *= decay
         k = picks[int(rng.integers(len(picks)))]
         t = float(views.times[k])
         if k not in clouds:
@@ -171,34 +248,27 @@ def fit_objects(objects, model, views, degree: int, background, sigma: float, st
 
 
 def materialise(obj: CarriedObject, field, like, sigma: float,
-                iterations: int = 30) -> tuple[dict, torch.Tensor]:
+                seeds: torch.Tensor | None = None) -> tuple[dict, torch.Tensor]:
     """The object's members as canonical Gaussian parameters (GaussianParameters.NAMES): K per
     knot, living `sigma` around the knot's time and moving with its velocity, each placed so
     that the deformation field takes it to the fitted place, scale and rotation at its own time
-    (fixed-point steps: the field's output at a place depends on the place; it is a
-    contraction about a moving object, so they converge slowly); `like`: the
-    model's GaussianParameters (the shapes of their tensors). Returns (the parameters, (n K,)
-    the distance left between each member's place and the fitted one: where the field folds
-    space, a place may have no canonical point that it takes there)."""
-    from nehad.field.rigidity import quat_multiply
+    (`nehad.placement.solve_places`, with `seeds` (n K, 3) as other starting places), its
+    velocity less the field's own motion of it there; `like`: the model's GaussianParameters
+    (the shapes of their tensors). Returns (the parameters, (n K,) the distance left between
+    each member's place and the fitted one: where the field folds space, a place may have no
+    canonical point that it takes there)."""
+    from nehad.placement import field_velocity, solve_places
 
     k, n = obj.offsets.shape[0], len(obj.times)
     with torch.no_grad():
-        want_mu = (torch.as_tensor(obj.points, dtype=torch.float32)[:, None]
-                   + obj.offsets[None]).reshape(-1, 3)
-        want_ls = obj.log_scales.repeat(n, 1)
-        want_q = (obj.quats / obj.quats.norm(dim=1, keepdim=True)).repeat(n, 1)
+        offs, swirl, turned = obj.placed(np.arange(n))
+        want_mu = (torch.as_tensor(obj.points, dtype=torch.float32)[:, None] + offs).reshape(-1, 3)
         t_eq = torch.as_tensor(np.repeat(obj.times, k), dtype=torch.float32).reshape(-1, 1)
-        mu, ls, q = want_mu.clone(), want_ls.clone(), want_q.clone()
-        for i in range(iterations):  # after the first, half steps: no oscillation
-            out = field(mu, ls, q, t_eq, mu, t_eq)
-            mu += (1.0 if i == 0 else 0.5) * (want_mu - out.means)
-            ls += want_ls - out.log_scales
-            got = out.quats / out.quats.norm(dim=1, keepdim=True)
-            turn = quat_multiply(_conj(q), got)  # q (x) turn = got
-            q = quat_multiply(want_q, _conj(turn))
-        miss = (field(mu, ls, q, t_eq, mu, t_eq).means - want_mu).norm(dim=1)
-        velocity = torch.as_tensor(np.repeat(obj.velocities, k, axis=0), dtype=torch.float32)
+        reach = torch.full((n * k,), 0.2 * obj.radius)
+        mu, ls, q, miss = solve_places(field, want_mu, obj.log_scales.repeat(n, 1),
+                                       turned.reshape(-1, 4), t_eq, seeds, reach)
+        velocity = ((torch.as_tensor(obj.velocities, dtype=torch.float32)[:, None]
+                     + swirl).reshape(-1, 3) - field_velocity(field, mu, ls, q, t_eq, sigma))
         shape = lambda name: (n * k,) + tuple(getattr(like, name).shape[1:])  # noqa: E731
         return {"means": mu, "log_scales": ls, "quats": q,
                 "opacity_logits": obj.opacity_logits.detach().repeat(n, 1).reshape(
@@ -210,8 +280,24 @@ def materialise(obj: CarriedObject, field, like, sigma: float,
                 "life_rate": torch.full(shape("life_rate"), 1.0 / sigma)}, miss
 
 
-def _conj(q: torch.Tensor) -> torch.Tensor:
-    return q * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
+def nearest_seeds(obj: CarriedObject, model, rows: np.ndarray) -> torch.Tensor | None:
+    """(n K, 3): for each member of each knot, the canonical mean of the Gaussian of `rows`
+    that the model draws nearest the member's fitted place at the knot's time (`materialise`'s
+    other starting places); None without rows."""
+    if not len(rows):
+        return None
+    k = obj.offsets.shape[0]
+    index = torch.as_tensor(np.asarray(rows, np.int64))
+    offs = obj.placed(np.arange(len(obj.times)))[0]
+    out = torch.empty((len(obj.times) * k, 3))
+    with torch.no_grad():
+        canonical = model.gaussians.means[index]
+        for i, t in enumerate(obj.times):
+            want = torch.as_tensor(obj.points[i], dtype=torch.float32) + offs[i]
+            drawn = model.means_at(float(t), index)
+            out[i * k:(i + 1) * k] = canonical[torch.cdist(want, drawn).argmin(1)]
+    return out
 
 
-__all__ = ["CarriedObject", "fit_objects", "materialise", "objects_from_tracks"]
+__all__ = ["CarriedObject", "fit_objects", "materialise", "nearest_seeds",
+           "objects_from_tracks"]

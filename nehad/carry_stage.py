@@ -4,36 +4,25 @@ as one appearance along its track, and write it in where the held-out views pref
 
 from __future__ import annotations
 
-import contextlib
 from dataclasses import replace
 from types import SimpleNamespace
 
 import numpy as np
 import torch
 
-from nehad.carry import fit_objects, materialise, objects_from_tracks
+from nehad.carry import fit_objects, materialise, nearest_seeds, objects_from_tracks
+from nehad.views import transparent
 
 #: A written-out member the field cannot take within this many object radii of its fitted place
 #: is left out (`nehad.carry.materialise`).
 MISS_RADII = 0.1
 
+#: The most a spinning object turns between two of its written-out copies, in radians.
+MAX_TURN = 0.1
+
 #: Chain Gaussians this close to a carried object's path at their own time, in object radii, are
 #: what the object replaces.
 NEAR_RADII = 2.0
-
-
-@contextlib.contextmanager
-def _transparent(g, rows):
-    """The Gaussians `rows` of `g` transparent inside the block, their opacities restored after."""
-    rows = torch.as_tensor(np.asarray(rows, np.int64))
-    with torch.no_grad():
-        kept = g.opacity_logits[rows].clone()
-        g.opacity_logits[rows] = -30.0
-    try:
-        yield
-    finally:
-        with torch.no_grad():
-            g.opacity_logits[rows] = kept
 
 
 def undrawn_tracks(model, views, degree: int, background, carve_cfg, hidden_rows):
@@ -43,7 +32,7 @@ def undrawn_tracks(model, views, degree: int, background, carve_cfg, hidden_rows
     from nehad.tracks import TrackSettings, find_blobs, fit_tracks
     from nehad.views import render_views
 
-    with _transparent(model.gaussians, hidden_rows):
+    with transparent(model.gaussians, hidden_rows):
         cams, targets, alphas, drawn = render_views(model, True, range(len(views.times)), views,
                                                     degree, background)
     blobs = find_blobs(cams, np.asarray(views.times, np.float64), targets, alphas,
@@ -66,24 +55,36 @@ def near_rows(obj, means_at_own_time: np.ndarray, t_eq: np.ndarray, rows: np.nda
 
 def carry_stage(model, train_views, val_views, carve_cfg, degree: int, background,
                 spacing: float, time_range, seed: int = 0) -> dict:
-    """Find, fit and judge the carried objects of a trained model (module docstring); the
-    accepted ones are appended to its Gaussians and the chain Gaussians about their paths made
-    transparent. Returns what it did (tracks found, objects kept, Gaussians added)."""
-    from nehad.densify import append_gaussians, keep_gaussians
-
+    """Find, fit and judge the carried objects of a trained model (module docstring): what it
+    draws only with its chains, and what spins faster than its field follows
+    (`nehad.spin_tracks`, with `carve.carry_spin`); the accepted ones are appended to its
+    Gaussians and the Gaussians about their paths made transparent. Returns what it did
+    (tracks found, objects kept, Gaussians added)."""
     g = model.gaussians
     mortal = np.nonzero(g.mortal().numpy())[0]
     if val_views is None or not len(val_views.times) or spacing <= 0:
         return {}
     rng = np.random.default_rng(seed)
     tracks, cams = undrawn_tracks(model, train_views, degree, background, carve_cfg, mortal)
-    if not tracks:
-        return {"carry_tracks": 0}
     knot = spacing * carve_cfg.carry_knots
-    objects = objects_from_tracks(tracks, cams, knot, time_range, carve_cfg.carry_members, rng)
     sigma = carve_cfg.life * knot
+    objects = objects_from_tracks(tracks, cams, knot, time_range, carve_cfg.carry_members, rng)
     log = fit_objects(objects, model, train_views, degree, background, sigma,
                       carve_cfg.carry_steps, mortal, rng)
+    along, lives = [np.zeros(0, np.int64)] * len(objects), [sigma] * len(objects)
+    spun, field_rows = [], np.zeros(0, np.int64)
+    if carve_cfg.carry_spin or objects:
+        from nehad.spin_tracks import moving_rows
+
+        moving = moving_rows(model)
+        field_rows = np.setdiff1d(moving, mortal)
+    if carve_cfg.carry_spin:
+        spun, spun_along, spun_lives = _spinning_objects(
+            model, train_views, degree, background, carve_cfg, spacing, time_range, mortal,
+            moving, rng)
+        objects, along, lives = objects + spun, along + spun_along, lives + spun_lives
+    if not objects:
+        return {"carry_tracks": len(tracks), "carry_spinning": 0}
     with torch.no_grad():
         t_eq = g.t_eq.detach().reshape(-1).numpy().astype(np.float64)
         own = np.zeros((len(g), 3))
@@ -91,39 +92,85 @@ def carry_stage(model, train_views, val_views, carve_cfg, degree: int, backgroun
             rows = mortal[t_eq[mortal] == t]
             own[rows] = model.means_at(float(t), torch.as_tensor(rows)).numpy()
     judge = _Judge(model, val_views, degree, background)
-    kept, added, miss, unplaced, trimmed, beside = 0, 0, 0.0, 0, 0, 0
-    no_optimizer = SimpleNamespace(param_groups=[], state={})
-    for obj in objects:
-        new, off = materialise(obj, model.field, g, sigma)
-        placed = off <= MISS_RADII * obj.radius
-        new = {name: value[placed] for name, value in new.items()}
-        knot_of = np.repeat(np.arange(len(obj.times)), obj.offsets.shape[0])[placed.numpy()]
-        unplaced += int((~placed).sum())
-        miss = max(miss, float(off[placed].max()) / obj.radius if bool(placed.any()) else 0.0)
-        start = len(g)
-        append_gaussians(g, no_optimizer, new)
-        judge.forget()
-        rows = np.arange(start, len(g))
-        def replaced(a, b, o=obj):  # the chain rows knots a..b replace
-            return near_rows(_knots(o, a, b), own, t_eq, mortal, sigma)
+    did = {"carry_tracks": len(tracks), "carry_spinning": len(spun), "carry_kept": 0,
+           "carry_gaussians": 0, "carry_knots_trimmed": 0, "carry_kept_beside_chains": 0,
+           "carry_placement_radii": 0.0, "carry_unplaced": 0}
+    for obj, rows_near, life in zip(objects, along, lives):
+        def replaced(a, b, o=obj, extra=rows_near, life=life):  # the rows knots a..b replace
+            return np.union1d(near_rows(_knots(o, a, b), own, t_eq, mortal, life), extra)
 
-        knots = _kept_knots(obj, judge, rows, knot_of, replaced, sigma)
-        keep = torch.ones(len(g), dtype=torch.bool)
-        if knots is None:
-            keep[start:] = False
-        else:
-            lo, hi, swap = knots
-            keep[torch.as_tensor(rows[(knot_of < lo) | (knot_of > hi)])] = False
-            if swap:
-                with torch.no_grad():
-                    g.opacity_logits[torch.as_tensor(replaced(lo, hi))] = -30.0
-            kept, added, beside = kept + 1, added + int(keep[start:].sum()), beside + (not swap)
-            trimmed += len(obj.times) - (hi - lo + 1)
-        keep_gaussians(g, no_optimizer, keep)
-    return {"carry_tracks": len(tracks), "carry_kept": kept, "carry_gaussians": added,
-            "carry_knots_trimmed": trimmed, "carry_kept_beside_chains": beside,
-            "carry_placement_radii": round(miss, 4), "carry_unplaced": unplaced,
-            "carry_fit_l1": [round(v, 6) for v in log]}
+        _write_in(model, obj, judge, replaced, life, did, field_rows)
+    did["carry_placement_radii"] = round(did["carry_placement_radii"], 4)
+    did["carry_fit_l1"] = [round(v, 6) for v in log]
+    return did
+
+
+def _spinning_objects(model, views, degree, background, carve_cfg, spacing, time_range,
+                      mortal, moving, rng):
+    """The spinning objects (`nehad.spin_tracks`; `moving`: the rows the field moves), each
+    fitted with the field's Gaussians about its path and the chains transparent; (objects, the
+    field's rows about each one's path, each one's life sigma). A spinning object's knots are
+    at most MAX_TURN of its turn apart: a copy moves in a straight line over its life, and
+    the tip of a body turning a radian over it would leave the body's place by a quarter of
+    its radius."""
+    from nehad.spin_tracks import rows_along, spinning_tracks
+
+    tracks, spins, cams = spinning_tracks(model, views, degree, background, carve_cfg, spacing,
+                                          moving)
+    field_rows = np.setdiff1d(moving, mortal)
+    objects, along, lives = [], [], []
+    for track, spin in zip(tracks, spins):
+        knot = min(spacing * carve_cfg.carry_knots,
+                   MAX_TURN / max(float(np.linalg.norm(spin.omega)), 1e-9))
+        life = carve_cfg.life * knot
+        obj = objects_from_tracks([track], cams, knot, time_range, carve_cfg.carry_members, rng,
+                                  [spin])[0]
+        rows = rows_along(model, obj, field_rows, life)
+        fit_objects([obj], model, views, degree, background, life, carve_cfg.carry_steps,
+                    np.union1d(mortal, rows), rng)
+        objects.append(obj)
+        along.append(rows)
+        lives.append(life)
+    return objects, along, lives
+
+
+def _write_in(model, obj, judge, replaced, sigma: float, did: dict, field_rows) -> None:
+    """Append the object's members (`materialise`, from the places of the field's moving
+    `field_rows` too; those the field cannot place left out), judge them (`_kept_knots`), and
+    keep the knots judged good, the rows they replace made transparent when that was judged
+    better; `did` counts what was done."""
+    from nehad.densify import append_gaussians, keep_gaussians
+
+    g = model.gaussians
+    no_optimizer = SimpleNamespace(param_groups=[], state={})
+    new, off = materialise(obj, model.field, g, sigma, nearest_seeds(obj, model, field_rows))
+    placed = off <= MISS_RADII * obj.radius
+    new = {name: value[placed] for name, value in new.items()}
+    knot_of = np.repeat(np.arange(len(obj.times)), obj.offsets.shape[0])[placed.numpy()]
+    did["carry_unplaced"] += int((~placed).sum())
+    if bool(placed.any()):
+        did["carry_placement_radii"] = max(did["carry_placement_radii"],
+                                           float(off[placed].max()) / obj.radius)
+    start = len(g)
+    append_gaussians(g, no_optimizer, new)
+    judge.forget()
+    rows = np.arange(start, len(g))
+    knots = _kept_knots(obj, judge, rows, knot_of, replaced, sigma)
+    keep = torch.ones(len(g), dtype=torch.bool)
+    if knots is None:
+        keep[start:] = False
+    else:
+        lo, hi, swap = knots
+        keep[torch.as_tensor(rows[(knot_of < lo) | (knot_of > hi)])] = False
+        if swap:
+            with torch.no_grad():
+                g.opacity_logits[torch.as_tensor(replaced(lo, hi))] = -30.0
+        did["carry_kept"] += 1
+        did["carry_gaussians"] += int(keep[start:].sum())
+        did["carry_kept_beside_chains"] += int(not swap)
+        did["carry_knots_trimmed"] += len(obj.times) - (hi - lo + 1)
+    keep_gaussians(g, no_optimizer, keep)
+    judge.forget()
 
 
 def _knots(obj, lo: int, hi: int):

@@ -364,7 +364,10 @@ def check_run_chains(carving: ResidualCarving, model, cfg, data_dir, run, step: 
     from nehad.views import views_of
 
     split, g = cfg.carve.check_split, model.gaussians
-    if not split or cfg.carve.mode != "tracks" or len(g) == 0 or not g.has_life():
+    carries = cfg.carve.carry_steps > 0 and cfg.lod.levels <= 1
+    if not split or cfg.carve.mode != "tracks" or len(g) == 0:
+        return {}
+    if not g.has_life() and not (carries and cfg.carve.carry_spin):
         return {}
     try:
         scene = load_dataset(data_dir, splits=(split,), background=load_background,
@@ -373,8 +376,9 @@ def check_run_chains(carving: ResidualCarving, model, cfg, data_dir, run, step: 
         return {}  # no such split: nothing to check against
     train_times = train_views.times
     held_out = views_of(scene, split)
-    did = carving.check_chains(model, held_out, degree, frame_spacing(train_times), train_times)
-    if did and cfg.carve.carry_steps > 0 and cfg.lod.levels <= 1:
+    did = (carving.check_chains(model, held_out, degree, frame_spacing(train_times), train_times)
+           if g.has_life() else {})
+    if (did or cfg.carve.carry_spin) and carries:
         from nehad.carry_stage import carry_stage
 
         did.update(carry_stage(model, train_views, held_out, cfg.carve, degree,

@@ -194,6 +194,8 @@ class CarveConfig:
     carry_min_blobs: int = 12  # tracks with fewer blobs are not carried
     carry_knots: int = 1  # frame spacings between a carried object's written-out copies (each
     # lives as many spacings)
+    carry_spin: bool = True  # also carry the moving objects whose blobs turn with a spin the
+    # field does not follow (nehad.spin_tracks; docs/training.md, "Objects that spin")
     anchor_weight: float = 0.0  # "tracks": > 0 teaches the field each long track's path from a
     # point at its canonical-time place and adds Gaussians there (nehad.track_anchors); 0 off
     anchor_samples: int = 512  # (anchor, time) pairs of that loss a step

@@ -1,10 +1,12 @@
 """The training views of a run: a split's cameras, images (torch tensors, composited over the
 load background), times and alphas (`Views`), at another resolution (`downscale_views`, the
-resolution warm-up of docs/training.md), and the background arithmetic of training over another
-colour (`recomposite`, `resolve_background`)."""
+resolution warm-up of docs/training.md), the background arithmetic of training over another
+colour (`recomposite`, `resolve_background`), and views rendered with some Gaussians made
+transparent (`transparent`)."""
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 
 import numpy as np
@@ -80,5 +82,19 @@ def render_views(model, deforms: bool, indices, views, degree: int, background, 
     return cams, targets, alphas, drawn
 
 
+@contextlib.contextmanager
+def transparent(g, rows):
+    """The Gaussians `rows` of `g` transparent inside the block, their opacities restored after."""
+    rows = torch.as_tensor(np.asarray(rows, np.int64))
+    with torch.no_grad():
+        kept = g.opacity_logits[rows].clone()
+        g.opacity_logits[rows] = -30.0
+    try:
+        yield
+    finally:
+        with torch.no_grad():
+            g.opacity_logits[rows] = kept
+
+
 __all__ = ["Views", "downscale_views", "recomposite", "render_views", "resolve_background",
-           "views_of"]
+           "transparent", "views_of"]

@@ -1,0 +1,149 @@
+"""Objects that spin faster than the field follows, found for the carried-objects stage
+(docs/training.md, "Objects that spin").
+
+The deformation field's time axis has a few dozen cells; an object that turns a radian a cell
+is fitted at each training time but not between them (the stress thin rod: +10 to +15 dB over a
+blank image on its training views, under +5 on the held-out ones, which lie in gaps where it
+turns 84 degrees). Such an object is found whole on the final model by hiding what moves: the
+training views are rendered with every Gaussian that the field moves more than
+`MOVING_EXTENT` of the scene's extent over time made transparent, and what is then unexplained
+are the moving objects' silhouettes, followed as tracks (`nehad.tracks`). A track whose blobs'
+shapes turn with a spin (`nehad.spin.estimate_spin`) becomes a carried object that turns with
+it, fitted and judged in place of the field's Gaussians about its path (`nehad.carry_stage`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+#: A Gaussian that the field moves more than this fraction of the scene's extent over the time
+#: grid counts as moving (the export's static split allows a thousandth).
+MOVING_EXTENT = 0.01
+
+#: Times sampled when measuring how far the field moves a Gaussian.
+TIME_SAMPLES = 49
+
+
+def moving_rows(model) -> np.ndarray:
+    """Rows of the model's Gaussians the field (with their drift) moves more than
+    MOVING_EXTENT of the scene's extent over TIME_SAMPLES times in [0, 1], and the mortal ones."""
+    g = model.gaussians
+    rows = torch.arange(len(g))
+    with torch.no_grad():
+        ref = model.means_at(0.5, rows)
+        far = torch.zeros(len(g))
+        for t in np.linspace(0.0, 1.0, TIME_SAMPLES):
+            far = torch.maximum(far, (model.means_at(float(t), rows) - ref).norm(dim=1))
+    moving = far.numpy() > MOVING_EXTENT * float(model.field.extent)
+    return np.nonzero(moving | g.mortal().numpy())[0]
+
+
+def spinning_tracks(model, views, degree: int, background, carve_cfg, spacing: float,
+                    moving: np.ndarray):
+    """(tracks, spins, cameras) of the training `views`' moving objects (the `moving` rows
+    transparent) of at least `carve.carry_min_blobs` blobs whose shapes show a spin, the pieces
+    of one spinning body joined (`join_spinning`)."""
+    from nehad.tracks import TrackSettings, find_blobs, fit_tracks
+    from nehad.views import render_views, transparent
+
+    with transparent(model.gaussians, moving):
+        cams, targets, alphas, drawn = render_views(model, True, range(len(views.times)), views,
+                                                    degree, background)
+    blobs = find_blobs(cams, np.asarray(views.times, np.float64), targets, alphas,
+                       [d.rgb for d in drawn], residual=carve_cfg.residual)
+    settings = TrackSettings(max_tracks=carve_cfg.max_tracks)
+    pieces = join_spinning(fit_tracks(cams, blobs, settings), cams, spacing, settings.max_gap)
+    kept = [(track, spin) for track, spin in pieces
+            if spin.spins and len(track.blobs) >= carve_cfg.carry_min_blobs]
+    return [k[0] for k in kept], [k[1] for k in kept], cams
+
+
+def _spin_of(track, cams, spacing: float):
+    from nehad.spin import estimate_spin
+
+    points, _ = smooth_path(track, np.array([b.time for b in track.blobs]))
+    return estimate_spin(track.blobs, cams, points, spacing)
+
+
+def join_spinning(tracks, cams, spacing: float, max_gap: float) -> list:
+    """(track, spin) of each track, where a track that starts within `max_gap` after another
+    ends, where that one's path ends (within its body's half length) and with its spin (within
+    a tenth), is joined to it: a spinning body's centroid wanders with its outline, its blobs
+    miss the tracker's gates and its track breaks (the stress thin rod's into pieces of 57 and
+    21 blobs a frame apart)."""
+    from nehad.tracks import Track
+
+    out = []
+    for track in sorted(tracks, key=lambda tr: tr.times[0]):
+        spin = _spin_of(track, cams, spacing)
+        for i, (prev, prev_spin) in enumerate(out):
+            gap = track.times[0] - prev.times[-1]
+            if not (0.0 < gap <= max_gap and spin.spins and prev_spin.spins):
+                continue
+            rate = max(np.linalg.norm(spin.omega), np.linalg.norm(prev_spin.omega))
+            half = float(np.sqrt(3.0 * max(np.linalg.eigvalsh(prev_spin.spread)[-1], 0.0)))
+            ends = (smooth_path(prev, prev.times[-1:])[0][0]
+                    - smooth_path(track, track.times[:1])[0][0])
+            if (np.linalg.norm(spin.omega - prev_spin.omega) <= 0.1 * rate
+                    and np.linalg.norm(ends) <= half):
+                both = Track(prev.blobs + track.blobs, np.concatenate([prev.times, track.times]),
+                             np.concatenate([prev.points, track.points]),
+                             np.concatenate([prev.velocities, track.velocities]))
+                out[i] = (both, _spin_of(both, cams, spacing))
+                break
+        else:
+            out.append((track, spin))
+    return out
+
+
+#: Half the window of time, either side of a knot, over which a spinning object's path is
+#: fitted (`smooth_path`).
+PATH_WINDOW = 0.08
+
+
+def smooth_path(track, times: np.ndarray, window: float = PATH_WINDOW):
+    """(points (m, 3), velocities (m, 3)) of the track at `times`, each from a quadratic motion
+    fitted to the rays of its blobs within `window` of that time (`nehad.tracks.fit_motion`;
+    widened until they fix one); past the track's ends, along the end's velocity (a quadratic
+    fitted to one side only runs off). A spinning body's blob centroid wanders about its centre as
+    its shading and outline turn (the stress thin rod's by 0.05-0.1 of its length, at local
+    velocities of up to 12 units a unit of time for a rod that does not move): a track's own
+    samples, fitted to six blobs each, follow that wander, and across a held-out gap a curve
+    through them overshoots by a third of the rod's length."""
+    from nehad.tracks import fit_motion
+
+    blob_times = np.array([b.time for b in track.blobs])
+    times = np.asarray(times, np.float64)
+    inside = np.clip(times, blob_times.min(), blob_times.max())
+    points, velocities = np.empty((len(times), 3)), np.empty((len(times), 3))
+    for i, t in enumerate(inside):
+        coef, reach = None, window
+        while coef is None and reach < 4.0:
+            near = [b for b, bt in zip(track.blobs, blob_times) if abs(bt - t) <= reach]
+            coef = fit_motion(near, float(t), 2) if len(near) >= 6 else None
+            reach *= 1.5
+        if coef is None:
+            points[i], velocities[i] = (x[0] for x in track.smooth_at(np.array([t])))
+        else:
+            points[i], velocities[i] = coef[0], coef[1]
+    return points + velocities * (times - inside)[:, None], velocities
+
+
+def rows_along(model, obj, rows: np.ndarray, sigma: float, samples: int = 24) -> np.ndarray:
+    """The `rows` within the object's radius of its path at most of `samples` times across its
+    span: the Gaussians that draw it now."""
+    lo, hi = obj.span(sigma)
+    times = np.linspace(max(lo, float(obj.times[0])), min(hi, float(obj.times[-1])), samples)
+    near = np.zeros(len(rows), np.int64)
+    index = torch.as_tensor(rows)
+    with torch.no_grad():
+        for t in times:
+            path = np.array([np.interp(t, obj.times, obj.points[:, j]) for j in range(3)])
+            at = model.means_at(float(t), index).numpy()
+            near += np.linalg.norm(at - path, axis=1) <= obj.radius
+    return rows[2 * near >= samples]
+
+
+__all__ = ["MOVING_EXTENT", "PATH_WINDOW", "join_spinning", "moving_rows", "rows_along",
+           "smooth_path", "spinning_tracks"]
