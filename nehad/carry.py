@@ -266,7 +266,7 @@ def materialise(obj: CarriedObject, field, like, sigma: float,
         t_eq = torch.as_tensor(np.repeat(obj.times, k), dtype=torch.float32).reshape(-1, 1)
         reach = torch.full((n * k,), 0.2 * obj.radius)
         mu, ls, q, miss = solve_places(field, want_mu, obj.log_scales.repeat(n, 1),
-                                       turned.reshape(-1, 4), t_eq, seeds, reach)
+                                       turned.reshape(-1, 4), t_eq, seeds, reach, neighbours=k)
         velocity = ((torch.as_tensor(obj.velocities, dtype=torch.float32)[:, None]
                      + swirl).reshape(-1, 3) - field_velocity(field, mu, ls, q, t_eq, sigma))
         shape = lambda name: (n * k,) + tuple(getattr(like, name).shape[1:])  # noqa: E731
