@@ -17,7 +17,9 @@ Written out (`materialise`), each member's canonical place, scale and rotation a
 the deformation field, which moves every Gaussian, puts it where the fit had it at its own time.
 An object is written in, in place of the chain Gaussians about its path or beside them, only
 where the held-out views are closer to their targets with it; its extrapolated ends are judged
-apart (`carry_stage`)."""
+apart (`carry_stage`). An object that spins (`nehad.spin_tracks`) turns with its spin: each
+copy is the body turned as it is at its knot's time, moving with w x its offset besides its
+path's velocity (docs/training.md, "Objects that spin")."""
 
 from __future__ import annotations
 
@@ -119,9 +121,10 @@ def objects_from_tracks(tracks, cameras, spacing: float, time_range, members: in
     occluder's sphere is then a median 0.06 radii from its true centre at the test times, 0.16
     along the chord); `members` Gaussians uniform in a ball of 0.7 object radii (the blobs'
     median radius at their depth), round, half a radius wide, of the track's colour, opacity
-    0.9. With `spins` (a `nehad.spin.Spin` per track), each object turns with its track's spin
-    and its members start spread as its body is (a normal of the body's spread at the spin's
-    time) and as wide as its thinnest spread, its radius the larger of its blobs' and the body's (sqrt(3) times its longest
+    0.9. With `spins` (a `nehad.spin.Spin` per track), each object turns with its track's spin,
+    on its smoothed path (`nehad.spin_tracks.smooth_path`); its members start spread as its
+    body is (a normal of the body's spread at the spin's time) and as wide as its thinnest
+    spread, its radius the larger of its blobs' and the body's (sqrt(3) times its longest
     standard deviation: a uniform rod's half length)."""
     from nehad.gaussians import rgb_to_sh_dc
     from nehad.tracks import TrackSettings, seeds_along

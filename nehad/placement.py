@@ -9,8 +9,9 @@ derivative by mu is far from the identity. Newton steps with that derivative (3x
 from autograd) converge there, from x itself, from the fixed point's end and from the canonical
 mean of the field's own Gaussian drawn nearest x at t (a point the field does take near x),
 and, for a carried object's copies, from the same member's place at the neighbouring knots;
-each Gaussian keeps its best. Between its times the field moves a written-in Gaussian too: `field_velocity`
-is that motion, which a Gaussian carrying its own velocity (its drift) subtracts.
+each Gaussian keeps its best. Between its times the field moves a written-in Gaussian too:
+`field_velocity` is that motion, which a Gaussian carrying its own velocity (its drift)
+subtracts.
 """
 
 from __future__ import annotations

@@ -177,4 +177,5 @@ def estimate_spin(blobs, cameras, points: np.ndarray, spacing: float) -> Spin:
     return Spin(omega, float(centre), spread, float(fit[0]), float(still))
 
 
-__all__ = ["LIKELY_GAIN", "SEARCH_VIEWS", "SPIN_GAIN", "Spin", "estimate_spin", "projection_jacobians", "rotations"]
+__all__ = ["LIKELY_GAIN", "SEARCH_VIEWS", "SPIN_GAIN", "Spin", "estimate_spin",
+           "projection_jacobians", "rotations"]

@@ -121,7 +121,9 @@ def test_a_spinning_carried_objects_members_turn_with_it():
     from nehad.model import NeHaDModel
     from nehad.splat.projection import quat_to_rotmat
 
-    leaf = lambda x: torch.as_tensor(x, dtype=torch.float32).clone().requires_grad_(True)  # noqa: E731
+    def leaf(x):
+        return torch.as_tensor(x, dtype=torch.float32).clone().requires_grad_(True)
+
     omega = np.array([0.0, 3.0, 4.0])  # 5 rad per unit about (0, 0.6, 0.8)
     offsets = np.array([[0.3, 0.0, 0.0], [0.0, 0.0, 0.2]])
     knots = np.array([0.2, 0.3])
