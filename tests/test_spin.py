@@ -109,6 +109,31 @@ def test_newton_steps_place_where_the_fixed_point_stops_short():
                           atol=1e-3)
 
 
+def test_a_place_found_at_one_knot_carries_to_the_next():
+    """The folding field again, its solutions 4 or more away from the wanted places, Newton
+    steps capped at 0.1 (20 of them reach 2): only the first knot's copies get a good seed.
+    With `neighbours` the three knots after it start from their neighbours' places and land
+    (within a quarter of a step's reach, where a copy is no longer retried); without, they stay
+    off."""
+    from nehad.placement import solve_places
+
+    c = torch.tensor([3.0, 0.0, 0.0])
+    field = _stand_in_field(lambda x, t: c - 0.5 * x)
+    k, knots = 2, 4
+    want = torch.tensor([[0.0, 0.1 * i, 0.05 * j] for i in range(knots) for j in range(k)])
+    exact = 2.0 * (c - want)
+    seeds = want.clone()
+    seeds[:k] = exact[:k]
+    args = (field, want, torch.zeros(k * knots, 3),
+            torch.tensor([[1.0, 0, 0, 0]]).repeat(k * knots, 1), torch.zeros(k * knots, 1),
+            seeds, torch.full((k * knots,), 0.1))
+    *_, alone = solve_places(*args)
+    assert float(alone[:k].max()) < 1e-4 and float(alone[k:].min()) > 1.0
+    mu, *_, left = solve_places(*args, neighbours=k)
+    assert float(left.max()) < 0.25 * 0.1  # retried until within a quarter of a step's reach
+    assert float((mu - exact).norm(dim=1).max()) < 0.5 * 0.1
+
+
 def test_a_spinning_carried_objects_members_turn_with_it():
     """A carried object turning at w: at a knot's time its members sit at the path's point plus
     their offsets turned by exp([w] (t - spin_time)), their rotations turned alike; written out
