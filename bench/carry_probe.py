@@ -1,6 +1,7 @@
 """The carried-objects stage (nehad.carry_stage) applied to a finished run, written as a copy.
 
     python bench/carry_probe.py RUN OUT [--steps 1500] [--members 24] [--min-blobs 12] [--knots 1]
+                                        [--spin]
 
 RUN is a `nehad train` output whose model.pt went through the chain check (the recipe's); OUT
 gets its config.yaml and a model.pt with the stage applied (then `nehad eval OUT --no-lpips`
@@ -28,6 +29,9 @@ def main() -> None:
     ap.add_argument("--members", type=int, default=24)
     ap.add_argument("--min-blobs", type=int, default=12)
     ap.add_argument("--knots", type=int, default=1)
+    ap.add_argument("--spin", action="store_true",
+                    help="look for spinning objects even where the run's config has "
+                         "carve.carry_spin off")
     args = ap.parse_args()
     from dataclasses import replace
 
@@ -41,7 +45,8 @@ def main() -> None:
     model, info = load_run(run)
     cfg = info.config
     carve = replace(cfg.carve, carry_steps=args.steps, carry_members=args.members,
-                    carry_min_blobs=args.min_blobs, carry_knots=args.knots)
+                    carry_min_blobs=args.min_blobs, carry_knots=args.knots,
+                    carry_spin=cfg.carve.carry_spin or args.spin)
     scene = load_dataset(info.data_dir, splits=("train", cfg.carve.check_split or "val"),
                          background=info.background, downscale=cfg.data.downscale,
                          frame_stride=cfg.data.frame_stride)
