@@ -81,7 +81,7 @@ def carry_stage(model, train_views, val_views, carve_cfg, degree: int, backgroun
     if carve_cfg.carry_spin:
         spun, spun_along, spun_lives = _spinning_objects(
             model, train_views, degree, background, carve_cfg, spacing, time_range, mortal,
-            moving, rng)
+            moving, field_rows, rng)
         objects, along, lives = objects + spun, along + spun_along, lives + spun_lives
     if not objects:
         return {"carry_tracks": len(tracks), "carry_spinning": 0}
@@ -106,8 +106,9 @@ def carry_stage(model, train_views, val_views, carve_cfg, degree: int, backgroun
 
 
 def _spinning_objects(model, views, degree, background, carve_cfg, spacing, time_range,
-                      mortal, moving, rng):
-    """The spinning objects (`nehad.spin_tracks`; `moving`: the rows the field moves), each
+                      mortal, moving, field_rows, rng):
+    """The spinning objects (`nehad.spin_tracks`; `moving`: the rows the field moves and the
+    mortal ones, `field_rows`: the former only), each
     fitted with the field's Gaussians about its path and the chains transparent; (objects, the
     field's rows about each one's path, each one's life sigma). A spinning object's knots are
     at most MAX_TURN of its turn apart: a copy moves in a straight line over its life, and
@@ -117,7 +118,6 @@ def _spinning_objects(model, views, degree, background, carve_cfg, spacing, time
 
     tracks, spins, cams = spinning_tracks(model, views, degree, background, carve_cfg, spacing,
                                           moving)
-    field_rows = np.setdiff1d(moving, mortal)
     objects, along, lives = [], [], []
     for track, spin in zip(tracks, spins):
         knot = min(spacing * carve_cfg.carry_knots,

@@ -64,7 +64,7 @@ def _newton_from(field, start, placed, want, t_eq, reach, steps: int, rows):
     left) does, the latter is replaced (in place)."""
     sub = [x[rows] for x in want]
     mu, ls, q, left = (x[rows] for x in placed)
-    tried = _newton(field, start[rows].clone(), ls, q, t_eq[rows], sub[0], reach[rows], steps)
+    tried = _newton(field, start[rows], ls, q, t_eq[rows], sub[0], reach[rows], steps)
     t_ls, t_q = _settle(field, sub, tried, ls, q, t_eq[rows], False, 5)[1:]
     t_left = _miss(field, sub[0], tried, t_ls, t_q, t_eq[rows])
     better = t_left < left
@@ -90,7 +90,7 @@ def solve_places(field, want_mu, want_ls, want_q, t_eq, seeds=None, reach=None,
         if reach is None:
             return tuple(placed)
         every = torch.arange(len(want_mu))
-        for start in (want_mu, placed[0].clone(), seeds):
+        for start in (want_mu, placed[0].clone(), seeds):  # the fixed point's end, as it is now
             if start is not None:
                 _newton_from(field, start, placed, want, t_eq, reach, newton_steps, every)
         for _ in range(3 if neighbours > 0 else 0):
