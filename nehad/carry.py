@@ -52,8 +52,10 @@ class CarriedObject:
     # about the path's point, refined by the fit; the offsets and rotations are the body's at
     # `spin_time` (None: no spin)
     spin_time: float = 0.0
-    shift: torch.Tensor | None = None  # (3,) a correction of its whole path, fitted (the point
-    # a spinning object turns about is its blobs' centroid, which its shading moves)
+    path_fix: torch.Tensor | None = None  # (c, 3) a correction of its path at `fix_times`,
+    # fitted, linear between them (a spinning object's path is its blobs' centroids, which its
+    # outline and shading move about the point it turns about; None: no correction)
+    fix_times: np.ndarray | None = None  # (c,)
 
     def turns(self, times: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """The body's rotation at `times` (the knots' times) since `spin_time`, as (m, 3, 3)
@@ -75,14 +77,19 @@ class CarriedObject:
         """Per knot of `knots` (indices) its K members' (offsets from the path's point, turned,
         (m, K, 3); velocities from the spin (m, K, 3); quaternions turned (m, K, 4)): the body
         as it is at each knot's time, each member moving with the spin's velocity there
-        (w x its offset from the point turned about); the path's `shift` included."""
+        (w x its offset from the point turned about, and the path correction's rate); the
+        path's correction (`path_fix`) included."""
         from nehad.field.rigidity import quat_multiply
 
         mats, quats = self.turns(self.times[knots])
         turned_offs = torch.einsum("mij,kj->mki", mats, self.offsets)
         swirl = (torch.zeros_like(turned_offs) if self.omega is None else
                  torch.cross(self.omega.expand_as(turned_offs), turned_offs, dim=-1))
-        offs = turned_offs if self.shift is None else turned_offs + self.shift
+        offs = turned_offs
+        if self.path_fix is not None:
+            at, rate = _linear_weights(self.fix_times, self.times[knots])
+            offs = offs + (at @ self.path_fix)[:, None, :]
+            swirl = swirl + (rate @ self.path_fix)[:, None, :]
         unit = self.quats / self.quats.norm(dim=1, keepdim=True).clamp_min(1e-12)
         turned = quat_multiply(quats[:, None, :].expand(-1, unit.shape[0], -1),
                                unit[None].expand(len(knots), -1, -1))
@@ -113,8 +120,27 @@ class CarriedObject:
                 self.sh_dc.repeat(rep, 1, 1))
 
 
+def _linear_weights(knots: np.ndarray, times: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """(m, c) weights of the values at `knots` (c,) that give their piecewise-linear
+    interpolation at `times` (m,) (constant past the ends), and (m, c) those of its slope."""
+    c = len(knots)
+    at, rate = np.zeros((len(times), c)), np.zeros((len(times), c))
+    if c == 1:
+        at[:, 0] = 1.0
+    else:
+        i = np.clip(np.searchsorted(knots, times) - 1, 0, c - 2)
+        gap = knots[i + 1] - knots[i]
+        u = np.clip((times - knots[i]) / gap, 0.0, 1.0)
+        rows = np.arange(len(times))
+        at[rows, i], at[rows, i + 1] = 1.0 - u, u
+        inside = (times >= knots[0]) & (times <= knots[-1])
+        rate[rows, i], rate[rows, i + 1] = -inside.astype(float) / gap, inside / gap
+    return (torch.as_tensor(at, dtype=torch.float32), torch.as_tensor(rate, dtype=torch.float32))
+
+
 def objects_from_tracks(tracks, cameras, spacing: float, time_range, members: int,
-                        rng: np.random.Generator, spins=None) -> list[CarriedObject]:
+                        rng: np.random.Generator, spins=None,
+                        fix_every: float = 0.0) -> list[CarriedObject]:
     """A CarriedObject per track: knots every `spacing` over the track's span and half a
     `max_gap` past its ends (`nehad.tracks.seeds_along`, within `time_range` widened by as
     much), on the track's smooth path (`Track.smooth_at`: across a held-out gap the stress
@@ -125,7 +151,8 @@ def objects_from_tracks(tracks, cameras, spacing: float, time_range, members: in
     on its smoothed path (`nehad.spin_tracks.smooth_path`); its members start spread as its
     body is (a normal of the body's spread at the spin's time) and as wide as its thinnest
     spread, its radius the larger of its blobs' and the body's (sqrt(3) times its longest
-    standard deviation: a uniform rod's half length)."""
+    standard deviation: a uniform rod's half length), and its path a correction to fit
+    (`path_fix`) at most `fix_every` apart in time (0: none)."""
     from nehad.gaussians import rgb_to_sh_dc
     from nehad.tracks import TrackSettings, seeds_along
 
@@ -166,8 +193,18 @@ def objects_from_tracks(tracks, cameras, spacing: float, time_range, members: in
             (float(track.times[0]), float(track.times[-1])),
             None if spin is None else leaf(torch.as_tensor(spin.omega, dtype=torch.float32)),
             0.0 if spin is None else spin.centre_time,
-            None if spin is None else leaf(torch.zeros(3))))
+            *((None, None) if spin is None or fix_every <= 0 else
+              _path_fix(float(track.times[0]), float(track.times[-1]), fix_every))))
     return out
+
+
+def _path_fix(lo: float, hi: float, every: float):
+    """A zero path correction (`CarriedObject.path_fix`) and its times: at most `every`
+    apart, from `lo` to `hi` (the times the track saw; past them it holds its end's value,
+    which no view there would fit)."""
+    count = 1 if hi - lo <= 1e-9 else max(int(np.ceil((hi - lo) / every - 1e-9)) + 1, 2)
+    times = np.linspace(lo, hi, count)
+    return torch.zeros((len(times), 3), requires_grad=True), times
 
 
 #: Adam's learning rates of the shared parameters: 3DGS's for the shapes, opacities and colours;
@@ -214,9 +251,10 @@ def fit_objects(objects, model, views, degree: int, background, sigma: float, st
         return []
     groups = [{"params": [getattr(o, name) for o in objects], "lr": lr}
               for name, lr in LEARNING_RATES.items()]
+    still = len(groups)  # the places' groups follow (their rates fall)
     groups += [{"params": [o.offsets], "lr": OFFSET_RATE * o.radius} for o in objects]
-    groups += [{"params": [o.shift], "lr": OFFSET_RATE * o.radius} for o in objects
-               if o.shift is not None]
+    groups += [{"params": [o.path_fix], "lr": OFFSET_RATE * o.radius} for o in objects
+               if o.path_fix is not None]
     groups += [{"params": [o.omega], "lr": SPIN_RATE / max(hi - lo, 1e-3)}
                for o, (lo, hi) in zip(objects, spans) if o.omega is not None]
     opt = torch.optim.Adam(groups, eps=1e-15)
@@ -225,7 +263,7 @@ def fit_objects(objects, model, views, degree: int, background, sigma: float, st
     from tqdm import tqdm
 
     decay = PLACE_DECAY ** (1.0 / steps)
-    moving_groups = opt.param_groups[len(LEARNING_RATES):]
+    moving_groups = opt.param_groups[still:]
     for _ in tqdm(range(steps), desc="carried objects", leave=False, disable=None):
         for group in moving_groups:
             group["lr"] *= decay

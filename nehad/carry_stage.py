@@ -20,6 +20,17 @@ MISS_RADII = 0.1
 #: The most a spinning object turns between two of its written-out copies, in radians.
 MAX_TURN = 0.1
 
+#: A spinning object's path is corrected by the fit at points this many frame spacings apart
+#: (`nehad.carry.CarriedObject.path_fix`): the stress thin rod's smoothed path, its blobs'
+#: centroids, was 0.02-0.10 off its fixed centre at the test times (its thickness 0.06).
+PATH_FIX_FRAMES = 5
+
+#: The field's Gaussians within this many radii of a spinning object's path are the wider
+#: choice of what it replaces: about the stress thin rod, white Gaussians that trimmed the
+#: field's smeared rod in some training views circle 0.4-1.05 from its centre (its half length
+#: 0.7) and, the field's rod hidden, cut holes in the carried one.
+WIDE_RADII = 2.0
+
 #: Chain Gaussians this close to a carried object's path at their own time, in object radii, are
 #: what the object replaces.
 NEAR_RADII = 2.0
@@ -71,7 +82,7 @@ def carry_stage(model, train_views, val_views, carve_cfg, degree: int, backgroun
     objects = objects_from_tracks(tracks, cams, knot, time_range, carve_cfg.carry_members, rng)
     log = fit_objects(objects, model, train_views, degree, background, sigma,
                       carve_cfg.carry_steps, mortal, rng)
-    along, lives = [np.zeros(0, np.int64)] * len(objects), [sigma] * len(objects)
+    along, lives = [[np.zeros(0, np.int64)]] * len(objects), [sigma] * len(objects)
     spun, field_rows = [], np.zeros(0, np.int64)
     if carve_cfg.carry_spin or objects:
         from nehad.spin_tracks import moving_rows
@@ -94,12 +105,13 @@ def carry_stage(model, train_views, val_views, carve_cfg, degree: int, backgroun
     judge = _Judge(model, val_views, degree, background)
     did = {"carry_tracks": len(tracks), "carry_spinning": len(spun), "carry_kept": 0,
            "carry_gaussians": 0, "carry_knots_trimmed": 0, "carry_kept_beside_chains": 0,
-           "carry_placement_radii": 0.0, "carry_unplaced": 0}
-    for obj, rows_near, life in zip(objects, along, lives):
-        def replaced(a, b, o=obj, extra=rows_near, life=life):  # the rows knots a..b replace
-            return np.union1d(near_rows(_knots(o, a, b), own, t_eq, mortal, life), extra)
-
-        _write_in(model, obj, judge, replaced, life, did, field_rows, len(rows_near) > 0)
+           "carry_placement_radii": 0.0, "carry_unplaced": 0, "carry_replaced_wider": 0}
+    for obj, extras, life in zip(objects, along, lives):
+        options = [  # each: the rows knots a..b replace, one way
+            lambda a, b, o=obj, extra=extra, life=life: np.union1d(
+                near_rows(_knots(o, a, b), own, t_eq, mortal, life), extra) for extra in extras]
+        _write_in(model, obj, judge, options, life, did, field_rows,
+                  any(len(extra) for extra in extras))
     did["carry_placement_radii"] = round(did["carry_placement_radii"], 4)
     did["carry_fit_l1"] = [round(v, 6) for v in log]
     return did
@@ -109,8 +121,9 @@ def _spinning_objects(model, views, degree, background, carve_cfg, spacing, time
                       mortal, moving, field_rows, rng):
     """The spinning objects (`nehad.spin_tracks`; `moving`: the rows the field moves and the
     mortal ones, `field_rows`: the former only), each
-    fitted with the field's Gaussians about its path and the chains transparent; (objects, the
-    field's rows about each one's path, each one's life sigma). A spinning object's knots are
+    fitted with the field's Gaussians about its path and the chains transparent; (objects, per
+    object the field's rows it may replace (those within its radius of its path, and those
+    within WIDE_RADII radii: `_kept_knots` chooses), each one's life sigma). A spinning object's knots are
     at most MAX_TURN of its turn apart: a copy moves in a straight line over its life, and
     the tip of a body turning a radian over it would leave the body's place by a quarter of
     its radius."""
@@ -124,23 +137,24 @@ def _spinning_objects(model, views, degree, background, carve_cfg, spacing, time
                    MAX_TURN / max(float(np.linalg.norm(spin.omega)), 1e-9))
         life = carve_cfg.life * knot
         obj = objects_from_tracks([track], cams, knot, time_range, carve_cfg.carry_members, rng,
-                                  [spin])[0]
+                                  [spin], PATH_FIX_FRAMES * spacing)[0]
         rows = rows_along(model, obj, field_rows, life)
+        wide = rows_along(model, obj, field_rows, life, reach=WIDE_RADII)
         fit_objects([obj], model, views, degree, background, life, carve_cfg.carry_steps,
                     np.union1d(mortal, rows), rng)
         objects.append(obj)
-        along.append(rows)
+        along.append([rows] if len(wide) == len(rows) else [rows, wide])
         lives.append(life)
     return objects, along, lives
 
 
-def _write_in(model, obj, judge, replaced, sigma: float, did: dict, field_rows,
+def _write_in(model, obj, judge, options, sigma: float, did: dict, field_rows,
               everywhere: bool = False) -> None:
     """Append the object's members (`materialise`, from the places of the field's moving
     `field_rows` too; those the field cannot place left out), judge them (`_kept_knots`), and
-    keep the knots judged good, the rows they replace made transparent when that was judged
-    better (`everywhere`: they include rows that draw at every time, the field's, judged on
-    every held-out view); `did` counts what was done."""
+    keep the knots judged good, the rows they replace (one of `options`) made transparent when
+    that was judged better (`everywhere`: they include rows that draw at every time, the
+    field's, judged on every held-out view); `did` counts what was done."""
     from nehad.densify import append_gaussians, keep_gaussians
 
     g = model.gaussians
@@ -157,19 +171,20 @@ def _write_in(model, obj, judge, replaced, sigma: float, did: dict, field_rows,
     append_gaussians(g, no_optimizer, new)
     judge.forget()
     rows = np.arange(start, len(g))
-    knots = _kept_knots(obj, judge, rows, knot_of, replaced, sigma, everywhere)
+    knots = _kept_knots(obj, judge, rows, knot_of, options, sigma, everywhere)
     keep = torch.ones(len(g), dtype=torch.bool)
     if knots is None:
         keep[start:] = False
     else:
         lo, hi, swap = knots
         keep[torch.as_tensor(rows[(knot_of < lo) | (knot_of > hi)])] = False
-        if swap:
+        if swap is not None:
             with torch.no_grad():
-                g.opacity_logits[torch.as_tensor(replaced(lo, hi))] = -30.0
+                g.opacity_logits[torch.as_tensor(options[swap](lo, hi))] = -30.0
         did["carry_kept"] += 1
         did["carry_gaussians"] += int(keep[start:].sum())
-        did["carry_kept_beside_chains"] += int(not swap)
+        did["carry_kept_beside_chains"] += int(swap is None)
+        did["carry_replaced_wider"] += int(bool(swap))
         did["carry_knots_trimmed"] += len(obj.times) - (hi - lo + 1)
     keep_gaussians(g, no_optimizer, keep)
     judge.forget()
@@ -181,11 +196,12 @@ def _knots(obj, lo: int, hi: int):
                    velocities=obj.velocities[lo:hi + 1])
 
 
-def _kept_knots(obj, judge, rows, knot_of, replaced, sigma: float, everywhere: bool = False):
-    """The knots (lo, hi) of a written-out object to keep and whether the chains about them
-    are hidden (`swap`), or None. First those of the span its track saw: kept where the
-    held-out views inside that span get closer to their targets with them, either in place of
-    the chains they replace (`replaced(lo, hi)` hidden) or beside them, whichever is closer
+def _kept_knots(obj, judge, rows, knot_of, options, sigma: float, everywhere: bool = False):
+    """The knots (lo, hi) of a written-out object to keep and which of `options` gives the rows
+    about them to hide (`swap`, None: none), or None. First those of the span its track saw:
+    kept where the held-out views inside that span get closer to their targets with them,
+    either in place of the chains they replace (`options[i](lo, hi)` hidden) or beside them,
+    whichever is closest
     (where the field cannot place many of an object's copies, the chains still draw part of
     it: `nehad demo`'s bouncing ball); kept where no held-out view falls there, as a chain is.
     Then knot by knot outwards, each kept while the held-out views within one spacing of it
@@ -204,14 +220,16 @@ def _kept_knots(obj, judge, rows, knot_of, replaced, sigma: float, everywhere: b
 
     def error(views, a, b, swap):  # the views' error with knots a..b kept
         out = rows[(knot_of < a) | (knot_of > b)]
-        return judge.error(views, hide=np.concatenate([out, replaced(a, b)]) if swap else out)
+        return judge.error(views, hide=out if swap is None else
+                           np.concatenate([out, options[swap](a, b)]))
 
-    views, swap = judge.views_in((-np.inf, np.inf) if everywhere else seen), True
+    views, swap = judge.views_in((-np.inf, np.inf) if everywhere else seen), 0
     if views:
-        swapped, beside = error(views, lo, hi, True), error(views, lo, hi, False)
-        if not min(swapped, beside) < judge.error(views, hide=rows):
+        choices = list(range(len(options))) + [None]
+        errors = [error(views, lo, hi, c) for c in choices]
+        if not min(errors) < judge.error(views, hide=rows):
             return None
-        swap = swapped <= beside
+        swap = choices[int(np.argmin(errors))]
     reach = sigma * (1.0 + 1e-6)
     for step in (-1, 1):
         while 0 <= (nxt := (lo if step < 0 else hi) + step) < len(obj.times):

@@ -110,29 +110,46 @@ def smooth_path(track, times: np.ndarray, window: float = PATH_WINDOW):
     its shading and outline turn (the stress thin rod's by 0.05-0.1 of its length, at local
     velocities of up to 12 units a unit of time for a rod that does not move): a track's own
     samples, fitted to six blobs each, follow that wander, and across a held-out gap a curve
-    through them overshoots by a third of the rod's length."""
-    from nehad.tracks import fit_motion
-
+    through them overshoots by a third of the rod's length. Past an end the path runs on along
+    a straight line fitted to the blobs within twice `window` of it: a quadratic's slope at
+    its window's edge follows the wander (the thin rod's took its carried copy 0.11 off its
+    fixed centre 0.025 of time past its last training view)."""
     blob_times = np.array([b.time for b in track.blobs])
     times = np.asarray(times, np.float64)
     inside = np.clip(times, blob_times.min(), blob_times.max())
     points, velocities = np.empty((len(times), 3)), np.empty((len(times), 3))
     for i, t in enumerate(inside):
-        coef, reach = None, window
-        while coef is None and reach < 4.0:
-            near = [b for b, bt in zip(track.blobs, blob_times) if abs(bt - t) <= reach]
-            coef = fit_motion(near, float(t), 2) if len(near) >= 6 else None
-            reach *= 1.5
+        coef = _local_motion(track, blob_times, float(t), window, 2)
         if coef is None:
             points[i], velocities[i] = (x[0] for x in track.smooth_at(np.array([t])))
         else:
             points[i], velocities[i] = coef[0], coef[1]
+    ends = {}
+    for i in np.nonzero(times != inside)[0]:
+        if inside[i] not in ends:
+            coef = _local_motion(track, blob_times, float(inside[i]), 2.0 * window, 1)
+            ends[inside[i]] = velocities[i] if coef is None else coef[1]
+        velocities[i] = ends[inside[i]]
     return points + velocities * (times - inside)[:, None], velocities
 
 
-def rows_along(model, obj, rows: np.ndarray, sigma: float, samples: int = 24) -> np.ndarray:
-    """The `rows` within the object's radius of its path at most of `samples` times across its
-    span: the Gaussians that draw it now."""
+def _local_motion(track, blob_times, t: float, window: float, degree: int):
+    """`nehad.tracks.fit_motion` of the track's blobs within `window` of t (widened until they
+    fix one), or None."""
+    from nehad.tracks import fit_motion
+
+    coef, reach = None, window
+    while coef is None and reach < 4.0:
+        near = [b for b, bt in zip(track.blobs, blob_times) if abs(bt - t) <= reach]
+        coef = fit_motion(near, t, degree) if len(near) >= 6 else None
+        reach *= 1.5
+    return coef
+
+
+def rows_along(model, obj, rows: np.ndarray, sigma: float, samples: int = 24,
+               reach: float = 1.0) -> np.ndarray:
+    """The `rows` within `reach` times the object's radius of its path at most of `samples`
+    times across its span: the Gaussians that draw it now."""
     lo, hi = obj.span(sigma)
     times = np.linspace(max(lo, float(obj.times[0])), min(hi, float(obj.times[-1])), samples)
     near = np.zeros(len(rows), np.int64)
@@ -141,7 +158,7 @@ def rows_along(model, obj, rows: np.ndarray, sigma: float, samples: int = 24) ->
         for t in times:
             path = np.array([np.interp(t, obj.times, obj.points[:, j]) for j in range(3)])
             at = model.means_at(float(t), index).numpy()
-            near += np.linalg.norm(at - path, axis=1) <= obj.radius
+            near += np.linalg.norm(at - path, axis=1) <= reach * obj.radius
     return rows[2 * near >= samples]
 
 

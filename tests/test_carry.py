@@ -183,7 +183,8 @@ def test_an_objects_ends_are_kept_only_as_far_as_the_held_out_views_agree():
     there), 0.08 (there) and 0.165 (gone): the knots kept are 0.05-0.15, those of the seen span
     and the three after it that no view contradicts, not 0.04 or 0.16. With the object nowhere,
     the view inside its seen span rejects it whole; with no view, every knot is kept; where
-    hiding the chains it would replace costs more than it gains, it is kept beside them."""
+    hiding the chains it would replace costs more than it gains, it is kept beside them; of
+    two sets of rows it may replace, the one whose hiding the views prefer is chosen."""
     from nehad.carry_stage import _kept_knots
 
     knots = np.round(np.arange(20) * 0.01, 6)
@@ -193,15 +194,28 @@ def test_an_objects_ends_are_kept_only_as_far_as_the_held_out_views_agree():
     none = lambda a, b: np.zeros(0, np.int64)  # noqa: E731
     present = (knots >= 0.05 - 1e-9) & (knots <= 0.15 + 1e-9)
     judge = _CountingJudge([0.035, 0.08, 0.165], knots, present, 2)
-    assert _kept_knots(obj, judge, rows, knot_of, none, 0.01) == (5, 15, True)
+    assert _kept_knots(obj, judge, rows, knot_of, [none], 0.01) == (5, 15, 0)
     judge = _CountingJudge([0.035, 0.08, 0.165], knots, np.zeros(20, bool), 2)
-    assert _kept_knots(obj, judge, rows, knot_of, none, 0.01) is None
+    assert _kept_knots(obj, judge, rows, knot_of, [none], 0.01) is None
     judge = _CountingJudge([], knots, present, 2)
-    assert _kept_knots(obj, judge, rows, knot_of, none, 0.01) == (0, 19, True)
+    assert _kept_knots(obj, judge, rows, knot_of, [none], 0.01) == (0, 19, 0)
     # chains (rows 40-41) that still draw what the object's copies miss: kept beside them
     judge = _ChainsStillNeeded([0.035, 0.08, 0.165], knots, present, 2)
     chains = lambda a, b: np.array([40, 41])  # noqa: E731
-    assert _kept_knots(obj, judge, rows, knot_of, chains, 0.01) == (5, 15, False)
+    assert _kept_knots(obj, judge, rows, knot_of, [chains], 0.01) == (5, 15, None)
+    # rows 42-43 that cut the object where they stay drawn: the wider set, which hides them
+    judge = _CutByRows([0.035, 0.08, 0.165], knots, present, 2)
+    wider = lambda a, b: np.array([42, 43])  # noqa: E731
+    assert _kept_knots(obj, judge, rows, knot_of, [none, wider], 0.01) == (5, 15, 1)
+    assert _kept_knots(obj, judge, rows, knot_of, [none], 0.01) == (5, 15, 0)
+
+
+class _CutByRows(_CountingJudge):
+    """As _CountingJudge, and each view 3 worse while rows 42-43 are drawn."""
+
+    def error(self, views, hide):
+        hide = np.asarray(hide, np.int64)
+        return super().error(views, hide[hide < 40]) + 3 * len(views) * (42 not in hide)
 
 
 class _ChainsStillNeeded(_CountingJudge):

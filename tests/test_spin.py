@@ -172,6 +172,38 @@ def test_a_spinning_carried_objects_members_turn_with_it():
     assert np.abs(drawn - body).max() < 0.5 * 25.0 * dt ** 2 * 0.3 + 1e-5
 
 
+def test_a_carried_objects_path_correction_moves_and_carries_its_members():
+    """A path correction (`path_fix`, linear between its times) adds its value at each knot's
+    time to the members' places and its slope to their velocities: through a field that moves
+    nothing, a member written out at a knot is, a little later, where the corrected path is."""
+    from nehad.carry import CarriedObject, materialise
+    from nehad.field.config import FieldConfig
+    from nehad.field.deformation import DeformationField
+    from nehad.gaussians import GaussianParameters
+    from nehad.model import NeHaDModel
+
+    def leaf(x):
+        return torch.as_tensor(x, dtype=torch.float32).clone().requires_grad_(True)
+
+    fix = np.array([[0.0, 0.0, 0.0], [0.4, -0.2, 0.0], [0.4, -0.2, 0.0]])
+    obj = CarriedObject(np.array([0.2, 0.3]), np.array([[1.0, 0, 0], [1.0, 0.5, 0]]),
+                        np.array([[0.0, 5.0, 0], [0.0, 5.0, 0]]), 0.3, leaf([[0.1, 0.0, 0.0]]),
+                        leaf(np.full((1, 3), -3.0)), leaf([[1.0, 0, 0, 0]]), leaf([[2.0]]),
+                        leaf(np.zeros((1, 1, 3))), None, leaf(np.zeros(3)), 0.25,
+                        leaf(fix), np.array([0.0, 0.4, 0.8]))
+    means = obj.members_at(0.3, 1e-3)[0].detach().numpy()
+    assert np.allclose(means, [[1.1 + 0.3, 0.5 - 0.15, 0.0]], atol=1e-6)  # 3/4 of the way
+    field = DeformationField(FieldConfig(), np.array([[-2.0] * 3, [2.0] * 3]), 4.0)
+    new, miss = materialise(obj, field, GaussianParameters.random_in_box(0, sh_degree=0), 0.05)
+    assert float(miss.max()) < 1e-5
+    g = GaussianParameters.empty_like_state(new)
+    g.load_state_dict(GaussianParameters.with_defaults(new))
+    dt = 0.01
+    with torch.no_grad():
+        drawn = NeHaDModel(g, field).gaussians_at(0.3 + dt)[0][1].numpy()
+    assert np.allclose(drawn, [1.1 + 0.3 + dt, 0.5 + 5.0 * dt - 0.15 - 0.5 * dt, 0.0], atol=1e-5)
+
+
 def test_a_spinning_bodys_path_is_smoothed_over_its_wandering_centroids():
     """A body that does not move, whose blob centroids wander about its centre (seeded noise
     of 2 pixels): across a held-out gap the smoothed path stays within a quarter of the
