@@ -194,17 +194,24 @@ def objects_from_tracks(tracks, cameras, spacing: float, time_range, members: in
             None if spin is None else leaf(torch.as_tensor(spin.omega, dtype=torch.float32)),
             0.0 if spin is None else spin.centre_time,
             *((None, None) if spin is None or fix_every <= 0 else
-              _path_fix(float(track.times[0]), float(track.times[-1]), fix_every))))
+              _path_fix(np.array([b.time for b in track.blobs]), fix_every))))
     return out
 
 
-def _path_fix(lo: float, hi: float, every: float):
-    """A zero path correction (`CarriedObject.path_fix`) and its times: at most `every`
-    apart, from `lo` to `hi` (the times the track saw; past them it holds its end's value,
-    which no view there would fit)."""
-    count = 1 if hi - lo <= 1e-9 else max(int(np.ceil((hi - lo) / every - 1e-9)) + 1, 2)
-    times = np.linspace(lo, hi, count)
-    return torch.zeros((len(times), 3), requires_grad=True), times
+def _path_fix(seen: np.ndarray, every: float):
+    """A zero path correction (`CarriedObject.path_fix`) and its times: times its track saw
+    (`seen`, its blobs'), each the first at least `every` after the one before, and the last.
+    None falls inside a gap of the track (a held-out block of times): no view there would fit
+    it, and across such a gap the stress thin rod's correction drifted 0.05 off its fixed
+    centre; past the times it holds its ends' values."""
+    seen = np.unique(np.asarray(seen, np.float64))
+    times = [float(seen[0])]
+    for t in seen[1:]:
+        if t >= times[-1] + every - 1e-9:
+            times.append(float(t))
+    if seen[-1] > times[-1]:
+        times.append(float(seen[-1]))
+    return torch.zeros((len(times), 3), requires_grad=True), np.array(times)
 
 
 #: Adam's learning rates of the shared parameters: 3DGS's for the shapes, opacities and colours;

@@ -98,8 +98,12 @@ def join_spinning(tracks, cams, spacing: float, max_gap: float) -> list:
 
 
 #: Half the window of time, either side of a knot, over which a spinning object's path is
-#: fitted (`smooth_path`).
-PATH_WINDOW = 0.08
+#: fitted (`smooth_path`). Its local motion is left to the fit's correction of the path
+#: (`nehad.carry.CarriedObject.path_fix`, a value every few frame spacings): with 0.08 the
+#: path still followed the stress thin rod's wandering centroid, which the correction, linear
+#: across a held-out gap, cannot undo there (0.019 off the rod's fixed centre across its axis
+#: at the test times, median; 0.009 with 0.25, two wander periods of its half turn).
+PATH_WINDOW = 0.25
 
 
 def smooth_path(track, times: np.ndarray, window: float = PATH_WINDOW):

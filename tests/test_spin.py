@@ -204,6 +204,18 @@ def test_a_carried_objects_path_correction_moves_and_carries_its_members():
     assert np.allclose(drawn, [1.1 + 0.3 + dt, 0.5 + 5.0 * dt - 0.15 - 0.5 * dt, 0.0], atol=1e-5)
 
 
+def test_a_path_corrections_times_are_times_its_track_saw():
+    """The correction's times are blob times at least `every` apart, the last blob's included,
+    none inside a gap of the track (a held-out block, where no view would fit it)."""
+    from nehad.carry import _path_fix
+
+    seen = np.concatenate([np.arange(0, 14), np.arange(20, 34), np.arange(40, 45)]) / 120.0
+    fix, times = _path_fix(seen, 5 / 120.0)
+    assert np.allclose(times * 120, [0, 5, 10, 20, 25, 30, 40, 44])
+    assert fix.shape == (8, 3) and not fix.detach().any() and fix.requires_grad
+    assert len(_path_fix(np.array([0.3, 0.3]), 0.04)[1]) == 1
+
+
 def test_a_spinning_bodys_path_is_smoothed_over_its_wandering_centroids():
     """A body that does not move, whose blob centroids wander about its centre (seeded noise
     of 2 pixels): across a held-out gap the smoothed path stays within a quarter of the
