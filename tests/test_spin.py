@@ -134,16 +134,30 @@ def test_a_place_found_at_one_knot_carries_to_the_next():
     assert float((mu - exact).norm(dim=1).max()) < 0.5 * 0.1
 
 
+def _written_out_at(obj, t: float) -> np.ndarray:
+    """The means at time t of a carried object's members written out (`materialise`, each
+    copy living 0.05) through a field that moves nothing, every one of them placed."""
+    from nehad.carry import materialise
+    from nehad.field.config import FieldConfig
+    from nehad.field.deformation import DeformationField
+    from nehad.gaussians import GaussianParameters
+    from nehad.model import NeHaDModel
+
+    field = DeformationField(FieldConfig(), np.array([[-2.0] * 3, [2.0] * 3]), 4.0)
+    new, miss = materialise(obj, field, GaussianParameters.random_in_box(0, sh_degree=0), 0.05)
+    assert float(miss.max()) < 1e-5
+    g = GaussianParameters.empty_like_state(new)
+    g.load_state_dict(GaussianParameters.with_defaults(new))
+    with torch.no_grad():
+        return NeHaDModel(g, field).gaussians_at(t)[0].numpy()
+
+
 def test_a_spinning_carried_objects_members_turn_with_it():
     """A carried object turning at w: at a knot's time its members sit at the path's point plus
     their offsets turned by exp([w] (t - spin_time)), their rotations turned alike; written out
     through a field that moves nothing, a member a little later is where the turning body puts
     it to second order in the time (it moves along w x its offset)."""
-    from nehad.carry import CarriedObject, materialise
-    from nehad.field.config import FieldConfig
-    from nehad.field.deformation import DeformationField
-    from nehad.gaussians import GaussianParameters
-    from nehad.model import NeHaDModel
+    from nehad.carry import CarriedObject
     from nehad.splat.projection import quat_to_rotmat
 
     def leaf(x):
@@ -160,14 +174,8 @@ def test_a_spinning_carried_objects_members_turn_with_it():
     turn = _axis_angle(omega, 5.0 * 0.2)
     assert np.allclose(means.detach().numpy(), [1.0, 0.5, 0.0] + offsets @ turn.T, atol=1e-5)
     assert np.allclose(quat_to_rotmat(quats.detach()).numpy(), turn, atol=1e-5)
-    field = DeformationField(FieldConfig(), np.array([[-2.0] * 3, [2.0] * 3]), 4.0)
-    new, miss = materialise(obj, field, GaussianParameters.random_in_box(0, sh_degree=0), 0.05)
-    assert float(miss.max()) < 1e-5
-    g = GaussianParameters.empty_like_state(new)
-    g.load_state_dict(GaussianParameters.with_defaults(new))
     dt = 0.01
-    with torch.no_grad():
-        drawn = NeHaDModel(g, field).gaussians_at(0.3 + dt)[0][2:].numpy()
+    drawn = _written_out_at(obj, 0.3 + dt)[2:]
     body = [1.0, 0.5 + 5.0 * dt, 0.0] + offsets @ _axis_angle(omega, 5.0 * (0.2 + dt)).T
     assert np.abs(drawn - body).max() < 0.5 * 25.0 * dt ** 2 * 0.3 + 1e-5
 
@@ -176,11 +184,7 @@ def test_a_carried_objects_path_correction_moves_and_carries_its_members():
     """A path correction (`path_fix`, linear between its times) adds its value at each knot's
     time to the members' places and its slope to their velocities: through a field that moves
     nothing, a member written out at a knot is, a little later, where the corrected path is."""
-    from nehad.carry import CarriedObject, materialise
-    from nehad.field.config import FieldConfig
-    from nehad.field.deformation import DeformationField
-    from nehad.gaussians import GaussianParameters
-    from nehad.model import NeHaDModel
+    from nehad.carry import CarriedObject
 
     def leaf(x):
         return torch.as_tensor(x, dtype=torch.float32).clone().requires_grad_(True)
@@ -193,14 +197,8 @@ def test_a_carried_objects_path_correction_moves_and_carries_its_members():
                         leaf(fix), np.array([0.0, 0.4, 0.8]))
     means = obj.members_at(0.3, 1e-3)[0].detach().numpy()
     assert np.allclose(means, [[1.1 + 0.3, 0.5 - 0.15, 0.0]], atol=1e-6)  # 3/4 of the way
-    field = DeformationField(FieldConfig(), np.array([[-2.0] * 3, [2.0] * 3]), 4.0)
-    new, miss = materialise(obj, field, GaussianParameters.random_in_box(0, sh_degree=0), 0.05)
-    assert float(miss.max()) < 1e-5
-    g = GaussianParameters.empty_like_state(new)
-    g.load_state_dict(GaussianParameters.with_defaults(new))
     dt = 0.01
-    with torch.no_grad():
-        drawn = NeHaDModel(g, field).gaussians_at(0.3 + dt)[0][1].numpy()
+    drawn = _written_out_at(obj, 0.3 + dt)[1]
     assert np.allclose(drawn, [1.1 + 0.3 + dt, 0.5 + 5.0 * dt - 0.15 - 0.5 * dt, 0.0], atol=1e-5)
 
 
