@@ -120,13 +120,12 @@ def carry_stage(model, train_views, val_views, carve_cfg, degree: int, backgroun
 def _spinning_objects(model, views, degree, background, carve_cfg, spacing, time_range,
                       mortal, moving, field_rows, rng):
     """The spinning objects (`nehad.spin_tracks`; `moving`: the rows the field moves and the
-    mortal ones, `field_rows`: the former only), each
-    fitted with the field's Gaussians about its path and the chains transparent; (objects, per
-    object the field's rows it may replace (those within its radius of its path, and those
-    within WIDE_RADII radii: `_kept_knots` chooses), each one's life sigma). A spinning object's knots are
-    at most MAX_TURN of its turn apart: a copy moves in a straight line over its life, and
-    the tip of a body turning a radian over it would leave the body's place by a quarter of
-    its radius."""
+    mortal ones, `field_rows`: the former only), each fitted with the field's Gaussians about
+    its path and the chains transparent; (objects, per object the field's rows it may replace
+    (those within its radius of its path, and those within WIDE_RADII radii: `_kept_knots`
+    chooses), each one's life sigma). A spinning object's knots are at most MAX_TURN of its
+    turn apart: a copy moves in a straight line over its life, and the tip of a body turning a
+    radian over it would leave the body's place by a quarter of its radius."""
     from nehad.spin_tracks import rows_along, spinning_tracks
 
     tracks, spins, cams = spinning_tracks(model, views, degree, background, carve_cfg, spacing,
