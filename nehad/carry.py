@@ -134,7 +134,8 @@ def _linear_weights(knots: np.ndarray, times: np.ndarray) -> tuple[torch.Tensor,
         rows = np.arange(len(times))
         at[rows, i], at[rows, i + 1] = 1.0 - u, u
         inside = (times >= knots[0]) & (times <= knots[-1])
-        rate[rows, i], rate[rows, i + 1] = -inside.astype(float) / gap, inside / gap
+        step = inside / gap
+        rate[rows, i], rate[rows, i + 1] = -step, step
     return (torch.as_tensor(at, dtype=torch.float32), torch.as_tensor(rate, dtype=torch.float32))
 
 

@@ -137,8 +137,7 @@ def _spinning_objects(model, views, degree, background, carve_cfg, spacing, time
         life = carve_cfg.life * knot
         obj = objects_from_tracks([track], cams, knot, time_range, carve_cfg.carry_members, rng,
                                   [spin], PATH_FIX_FRAMES * spacing)[0]
-        rows = rows_along(model, obj, field_rows, life)
-        wide = rows_along(model, obj, field_rows, life, reach=WIDE_RADII)
+        rows, wide = rows_along(model, obj, field_rows, life, (1.0, WIDE_RADII))
         fit_objects([obj], model, views, degree, background, life, carve_cfg.carry_steps,
                     np.union1d(mortal, rows), rng)
         objects.append(obj)

@@ -150,20 +150,22 @@ def _local_motion(track, blob_times, t: float, window: float, degree: int):
     return coef
 
 
-def rows_along(model, obj, rows: np.ndarray, sigma: float, samples: int = 24,
-               reach: float = 1.0) -> np.ndarray:
-    """The `rows` within `reach` times the object's radius of its path at most of `samples`
-    times across its span: the Gaussians that draw it now."""
+def rows_along(model, obj, rows: np.ndarray, sigma: float, reaches=(1.0,),
+               samples: int = 24) -> list[np.ndarray]:
+    """Per reach of `reaches`, the `rows` within that many times the object's radius of its
+    path at most of `samples` times across its span (1: the Gaussians that draw it now); the
+    field is evaluated once for all of them."""
     lo, hi = obj.span(sigma)
     times = np.linspace(max(lo, float(obj.times[0])), min(hi, float(obj.times[-1])), samples)
-    near = np.zeros(len(rows), np.int64)
+    limits = np.asarray(reaches, np.float64)[:, None] * obj.radius
+    near = np.zeros((len(limits), len(rows)), np.int64)
     index = torch.as_tensor(rows)
     with torch.no_grad():
         for t in times:
             path = np.array([np.interp(t, obj.times, obj.points[:, j]) for j in range(3)])
             at = model.means_at(float(t), index).numpy()
-            near += np.linalg.norm(at - path, axis=1) <= reach * obj.radius
-    return rows[2 * near >= samples]
+            near += np.linalg.norm(at - path, axis=1)[None] <= limits
+    return [rows[2 * n >= samples] for n in near]
 
 
 __all__ = ["MOVING_EXTENT", "PATH_WINDOW", "join_spinning", "moving_rows", "rows_along",
