@@ -250,6 +250,10 @@ class LossConfig:
     # part that moves more than its own width between two training frames still pulls the
     # Gaussians of the frame before (docs/training.md, "Blurred early steps"; 0 = off)
     blur_until: float = 0.5  # share of the deforming stage at which the blur reaches 0
+    eraser_weight: float = 0.0  # > 0: in the deforming stage each Gaussian of the background's
+    # colour pays this much per unit of its opacity, so that the model does not trim an edge
+    # for one camera with Gaussians that cut what passes behind them from the others
+    # (nehad.erasers, docs/training.md "Erasers"; 0 = off)
 
 
 #: How `train.hold_mode` sets the held space-time rows (nehad.curriculum.hold_time_planes).
@@ -527,6 +531,7 @@ class Config:
         ("loss.isometry_refresh", 1, None), ("loss.acceleration_weight", 0.0, None),
         ("loss.acceleration_samples", 1, None), ("loss.scale_rate_weight", 0.0, None),
         ("loss.scale_rate_samples", 1, None),
+        ("loss.eraser_weight", 0.0, None),
         ("loss.blur", 0.0, 0.25), ("loss.blur_until", 0.0, 1.0),
         ("carve.anchor_weight", 0.0, None),
         ("carve.anchor_samples", 1, None), ("carve.anchor_cover", 0.0, 1.0),

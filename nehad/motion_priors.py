@@ -1,13 +1,16 @@
-"""The priors on the motion that a deforming step adds to its loss (docs/training.md): each
+"""The priors that a deforming step adds to its loss (docs/training.md): on the motion, each
 Gaussian keeps its neighbours' distances (`nehad.isometry`), its path bends little
-(`nehad.acceleration`), its size changes slowly (`nehad.scale_rate`). Each is off at weight 0,
-`LossConfig`'s default; the `cpu` preset turns the last one on (`loss.scale_rate_weight=0.1`)."""
+(`nehad.acceleration`), its size changes slowly (`nehad.scale_rate`); on the appearance, a
+Gaussian of the background's colour pays for its opacity (`nehad.erasers`). Each is off at
+weight 0, `LossConfig`'s default; the `cpu` preset turns on the slow-size prior
+(`loss.scale_rate_weight=0.1`) and the erasers' (`loss.eraser_weight`)."""
 
 from __future__ import annotations
 
 from typing import NamedTuple
 
 from nehad.acceleration import AccelerationPrior
+from nehad.erasers import EraserPrior
 from nehad.isometry import IsometryPrior
 from nehad.scale_rate import ScaleRatePrior
 from nehad.track_anchors import TrackAnchors
@@ -18,16 +21,18 @@ class MotionPriors(NamedTuple):
     acceleration: AccelerationPrior
     scale_rate: ScaleRatePrior
     anchors: TrackAnchors  # the tracks' paths taught to the field (carve.anchor_weight)
+    erasers: EraserPrior
 
     @classmethod
-    def of(cls, loss_cfg, seed: int, times, carve_cfg=None,
-           canonical_time: float = 0.5) -> "MotionPriors":
-        """The priors a `LossConfig` asks for, over the training views' `times`, and the
-        track anchors a `CarveConfig` asks for (none without one)."""
+    def of(cls, loss_cfg, seed: int, times, carve_cfg=None, canonical_time: float = 0.5,
+           background=(1.0, 1.0, 1.0)) -> "MotionPriors":
+        """The priors a `LossConfig` asks for, over the training views' `times` and a run's
+        `background`, and the track anchors a `CarveConfig` asks for (none without one)."""
         anchors = (TrackAnchors() if carve_cfg is None
                    else TrackAnchors.of(carve_cfg, seed, canonical_time))
         return cls(IsometryPrior.of(loss_cfg), AccelerationPrior.of(loss_cfg, seed, times),
-                   ScaleRatePrior.of(loss_cfg, seed, times), anchors)
+                   ScaleRatePrior.of(loss_cfg, seed, times), anchors,
+                   EraserPrior.of(loss_cfg, background))
 
     def gaussians_at(self, model, t: float, step: int, deform: bool):
         """(model.gaussians_at(t, deform)'s tuple, the field's output for the slow-size prior's
@@ -44,7 +49,8 @@ class MotionPriors(NamedTuple):
         deformed means at t, `sampled` what `gaussians_at` returned for the samples."""
         return (self.isometry.loss(model.gaussians, deformed_means, step)
                 + self.acceleration.loss(model, deformed_means, t, step)
-                + self.scale_rate.loss(model, step, sampled, t) + self.anchors.loss(model, step))
+                + self.scale_rate.loss(model, step, sampled, t) + self.anchors.loss(model, step)
+                + self.erasers.loss(model.gaussians))
 
 
 __all__ = ["MotionPriors"]

@@ -90,7 +90,7 @@ class Trainer:
         self.strategy = DensifyStrategy(cfg.densify, self.extent)
         self.densify_state = DensifyState.zeros(0)
         self.priors = MotionPriors.of(cfg.loss, cfg.train.seed, self.train_views.times, cfg.carve,
-                                      cfg.train.canonical_time)
+                                      cfg.train.canonical_time, self.background)
         self.carving = ResidualCarving(cfg.carve, cfg.train.seed, cfg.train.canonical_time,
                                        cfg.densify.max_gaussians, self.aabb.copy(), self.background,
                                        free_offset_of(cfg.field, float(field.extent)))
