@@ -582,7 +582,8 @@ def _cpu() -> Config:
     images and the next 30% 200x200 (data.resolution_schedule), and densification stops at 15k
     Gaussians. 2500 of the dataset's points start it (the MuJoCo `fused.ply` holds 100k random
     points). The slow-size prior is on (`loss.scale_rate_weight=0.1`, docs/training.md
-    "Gaussians that blink")."""
+    "Gaussians that blink"), and so is the prior against erasers (`loss.eraser_weight=2e-6`,
+    docs/training.md "Erasers")."""
     return Config(
         preset="cpu",
         data=DataConfig(downscale=2, resolution_schedule=((0.0, 4), (0.4, 2), (0.7, 1))),
@@ -592,7 +593,7 @@ def _cpu() -> Config:
         densify=DensifyConfig(interval=100, max_gaussians=15000),
         train=TrainConfig(sh_degree=3, sh_degree_interval=1000, checkpoint_interval=1000,
                           init_max_points=2500),
-        loss=LossConfig(scale_rate_weight=0.1),
+        loss=LossConfig(scale_rate_weight=0.1, eraser_weight=2e-6),
     )
 
 
