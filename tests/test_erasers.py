@@ -34,7 +34,8 @@ def test_value_is_the_hand_computed_sum_and_pulls_only_on_opacity():
     loss = EraserPrior(w).loss(g)
     near = [1.0, math.exp(-3 * 0.05 ** 2 / (2 * WIDTH ** 2)), math.exp(-0.01 / (2 * WIDTH ** 2)),
             math.exp(-(0.25 + 0.64 + 0.81) / (2 * WIDTH ** 2))]
-    assert float(loss.detach()) == pytest.approx(w * sum(a * o for a, o in zip(near, opacities)), rel=1e-5)
+    want_loss = w * sum(a * o for a, o in zip(near, opacities))
+    assert float(loss.detach()) == pytest.approx(want_loss, rel=1e-5)
     loss.backward()
     dlogit = g.opacity_logits.grad.reshape(-1).numpy()
     want = [w * a * o * (1 - o) for a, o in zip(near, opacities)]
