@@ -46,16 +46,24 @@ class Blob:
 
 
 def find_blobs(cameras, times, targets, alphas, renders, *, residual: float = 0.25,
-               min_area: int = 3, max_area_fraction: float = 0.05) -> list[Blob]:
+               min_area: int = 3, max_area_fraction: float = 0.05,
+               close_px: int = 0) -> list[Blob]:
     """The blobs of every view: 8-connected regions of `nehad.carve.unexplained_mask` of at
     least `min_area` pixels and at most `max_area_fraction` of the image (a larger region is
-    a badly drawn backdrop, not a missing object)."""
+    a badly drawn backdrop, not a missing object). `close_px` > 1: the mask is first closed
+    with a disc that many pixels wide, so that an object whose texture has the backdrop's
+    colour (the stress suite's striped box: white stripes before a white floor) is one blob,
+    not one per stripe of its other colour."""
     import cv2
 
+    disc = (cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (close_px, close_px))
+            if close_px > 1 else None)
     blobs = []
     for k, (cam, t, target, alpha, drawn) in enumerate(zip(cameras, times, targets, alphas,
                                                              renders)):
         bad = unexplained_mask(drawn, target, alpha, residual)
+        if disc is not None:
+            bad = cv2.morphologyEx(bad.astype(np.uint8), cv2.MORPH_CLOSE, disc).astype(bool)
         n, labels, stats, centres = cv2.connectedComponentsWithStats(bad.astype(np.uint8),
                                                                      connectivity=8)
         most = max_area_fraction * bad.size

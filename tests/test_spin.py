@@ -262,3 +262,36 @@ def test_pieces_of_one_spinning_body_are_joined(rod):
                                    _axis_angle(AXIS, -RATE * t), (0.9, 0.25, 0.2)))
     other = track([b for b in back if b.time > 0.5])
     assert len(join_spinning([first, other], cams, spacing, 0.08)) == 2
+
+
+def test_a_short_piece_after_a_hidden_stretch_is_joined_to_the_spinning_body(rod):
+    """The rod followed over t < 0.3, hidden until 0.45 (longer than the tracker's 0.08, as
+    when another object passes before it), then a piece of 6 blobs, too few to show a spin of
+    its own: joined, the whole spinning as the rod does. The same piece after a hidden stretch
+    longer than the first piece was followed is not joined, nor is a piece 6 blobs long
+    elsewhere."""
+    from nehad.spin_tracks import join_spinning
+    from nehad.tracks import TrackSettings, fit_tracks
+
+    blobs, cams = rod
+    spacing = 1.0 / (FRAMES - 1)
+
+    def track(lo, hi, part=blobs):
+        (tr,) = fit_tracks(cams, [b for b in part if lo <= b.time < hi],
+                           TrackSettings(gate_px=30.0, min_blobs=4))
+        return tr
+
+    first, short = track(0.0, 0.3), track(0.45, 0.55)
+    assert len(short.blobs) == 6 and not estimate_spin(
+        short.blobs, cams, np.repeat(CENTRE[None], 6, 0), spacing).spins
+    ((whole, spin),) = join_spinning([short, first], cams, spacing, 0.08)
+    assert len(whole.blobs) == len(first.blobs) + 6
+    assert abs(float(np.linalg.norm(spin.omega)) - RATE) < 0.02 * RATE
+    early = track(0.0, 0.2)  # followed for 0.19 of time, hidden for 0.27
+    assert estimate_spin(early.blobs, cams, np.repeat(CENTRE[None], len(early.blobs), 0),
+                         spacing).spins
+    assert len(join_spinning([early, short], cams, spacing, 0.08)) == 2
+    away, _ = _blobs(lambda t: Box("rod", CENTRE + np.array([1.2, 0.0, 0.0]),
+                                   np.array([0.5, 0.025, 0.025]), _axis_angle(AXIS, RATE * t),
+                                   (0.9, 0.25, 0.2)))
+    assert len(join_spinning([first, track(0.45, 0.55, away)], cams, spacing, 0.08)) == 2

@@ -110,6 +110,25 @@ def test_nothing_missing_no_track(loop):
     assert fit_tracks(cams, []) == []
 
 
+def test_closing_joins_a_body_striped_with_the_backdrops_colour():
+    """The stress suite's striped box from above over white: its near-white stripes match the
+    backdrop, so its unexplained pixels are four stripes of green; closed with a 7-pixel disc
+    (nehad.spin_tracks.CLOSE_FRACTION at 200 pixels) they are one blob, as wide as the box."""
+    from nehad.data.synth_stress import stress_objects
+
+    cam = rig_camera(4, 200)
+    full = render_view(stress_objects("spinning_textures", 0.3)[2:3], cam, supersample=1)
+    target = full[..., :3] + (1.0 - full[..., 3:])
+
+    def blobs(close):
+        return find_blobs([cam], [0.3], [target], [full[..., 3]], [np.ones_like(target)],
+                          min_area=1, close_px=close)
+
+    assert len(blobs(0)) == 4
+    (whole,) = blobs(7)
+    assert whole.area > 0.9 * int((full[..., 3] >= 0.5).sum())
+
+
 def test_blobs_with_no_common_path_make_no_track():
     """A sphere drawn nowhere that jumps to a random place at every time: one blob per view,
     but no smooth path through their rays, so no track (the same views with the loop's sphere
