@@ -61,11 +61,10 @@ def find_blobs(cameras, times, targets, alphas, renders, *, residual: float = 0.
     blobs = []
     for k, (cam, t, target, alpha, drawn) in enumerate(zip(cameras, times, targets, alphas,
                                                              renders)):
-        bad = unexplained_mask(drawn, target, alpha, residual)
+        bad = unexplained_mask(drawn, target, alpha, residual).astype(np.uint8)
         if disc is not None:
-            bad = cv2.morphologyEx(bad.astype(np.uint8), cv2.MORPH_CLOSE, disc).astype(bool)
-        n, labels, stats, centres = cv2.connectedComponentsWithStats(bad.astype(np.uint8),
-                                                                     connectivity=8)
+            bad = cv2.morphologyEx(bad, cv2.MORPH_CLOSE, disc)
+        n, labels, stats, centres = cv2.connectedComponentsWithStats(bad, connectivity=8)
         most = max_area_fraction * bad.size
         c2w = cam.camera_to_world
         for i in range(1, n):
