@@ -76,7 +76,7 @@ class ResidualCarving:
 
     def step_post_update(self, model, optimizer, state: DensifyState, *, deforms: bool,
                          layer: int, it: int, step: int, window: TimeWindow, views,
-                         degree: int, timing: DensifySchedule, anchors=None) -> dict:
+                         degree: int, timing: DensifySchedule, priors=None) -> dict:
         """One pass when due (see `due`): the views nearest to one time (the canonical time in
         the static stage; in the deforming stage the frame time nearest to the next point of a
         van der Corput sequence over the window, so that passes cover the time range evenly),
@@ -86,7 +86,7 @@ class ResidualCarving:
         rng = np.random.default_rng([self.seed, step, 7])
         if self.cfg.mode == "tracks":
             return self._track_pass(model, optimizer, state, deforms, window, views, degree,
-                                    anchors)
+                                    priors)
         t_c, nearest = self._pass_views(deforms, self._pass_index(it, timing), window, views)
         pts, cols, widths, n_bad = self._find_points(model, deforms, nearest, views, degree, rng)
         most = self._most_new()
@@ -133,7 +133,7 @@ class ResidualCarving:
             rng=rng)
 
     def _track_pass(self, model, optimizer, state: DensifyState, deforms: bool,
-                    window: TimeWindow, views, degree: int, anchors=None) -> dict:
+                    window: TimeWindow, views, degree: int, priors=None) -> dict:
         """`carve.mode=tracks` (nehad.tracks): every view of the window rendered at its own
         time; the tracks of its unexplained blobs become chains of Gaussians, one every frame
         spacing along each track, living around their own time and moving with the track,
@@ -152,6 +152,10 @@ class ResidualCarving:
         tracks = fit_tracks(cams, blobs, TrackSettings(max_tracks=c.max_tracks))
         spacing = frame_spacing(times) or 1.0
         out = {"carve_blobs": len(blobs), "carve_tracks": len(tracks), "carved": 0}
+        if deforms and priors is not None and priors.spins.on:  # before this pass's chains
+            out["spin_bodies"] = priors.spins.find(model, views, degree, self.background, c,
+                                                   spacing)
+        anchors = None if priors is None else priors.anchors
         seeds = [seeds_along(tr, cams, spacing, 0.0, 1.0, c.track_width) for tr in tracks]
         if not seeds:
             return out

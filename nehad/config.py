@@ -254,6 +254,10 @@ class LossConfig:
     # colour pays this much per unit of its opacity, so that the model does not trim an edge
     # for one camera with Gaussians that cut what passes behind them from the others
     # (nehad.erasers, docs/training.md "Erasers"; 0 = off)
+    spin_weight: float = 0.0  # > 0: the deforming stage's tracks pass also searches the
+    # training views for spinning bodies, and from then on the field's Gaussians on each turn
+    # with it (nehad.spin_prior, docs/training.md "Objects that spin"; 0 = off)
+    spin_samples: int = 256  # Gaussians of a body drawn each step for it
 
 
 #: How `train.hold_mode` sets the held space-time rows (nehad.curriculum.hold_time_planes).
@@ -531,7 +535,8 @@ class Config:
         ("loss.isometry_refresh", 1, None), ("loss.acceleration_weight", 0.0, None),
         ("loss.acceleration_samples", 1, None), ("loss.scale_rate_weight", 0.0, None),
         ("loss.scale_rate_samples", 1, None),
-        ("loss.eraser_weight", 0.0, None),
+        ("loss.eraser_weight", 0.0, None), ("loss.spin_weight", 0.0, None),
+        ("loss.spin_samples", 1, None),
         ("loss.blur", 0.0, 0.25), ("loss.blur_until", 0.0, 1.0),
         ("carve.anchor_weight", 0.0, None),
         ("carve.anchor_samples", 1, None), ("carve.anchor_cover", 0.0, 1.0),

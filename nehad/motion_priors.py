@@ -13,6 +13,7 @@ from nehad.acceleration import AccelerationPrior
 from nehad.erasers import EraserPrior
 from nehad.isometry import IsometryPrior
 from nehad.scale_rate import ScaleRatePrior
+from nehad.spin_prior import SpinPrior
 from nehad.track_anchors import TrackAnchors
 
 
@@ -22,6 +23,7 @@ class MotionPriors(NamedTuple):
     scale_rate: ScaleRatePrior
     anchors: TrackAnchors  # the tracks' paths taught to the field (carve.anchor_weight)
     erasers: EraserPrior
+    spins: SpinPrior  # spinning bodies' turns taught to the field (loss.spin_weight)
 
     @classmethod
     def of(cls, loss_cfg, seed: int, times, carve_cfg=None, canonical_time: float = 0.5,
@@ -32,7 +34,7 @@ class MotionPriors(NamedTuple):
                    else TrackAnchors.of(carve_cfg, seed, canonical_time))
         return cls(IsometryPrior.of(loss_cfg), AccelerationPrior.of(loss_cfg, seed, times),
                    ScaleRatePrior.of(loss_cfg, seed, times), anchors,
-                   EraserPrior.of(loss_cfg, background))
+                   EraserPrior.of(loss_cfg, background), SpinPrior.of(loss_cfg, seed))
 
     def gaussians_at(self, model, t: float, step: int, deform: bool):
         """(model.gaussians_at(t, deform)'s tuple, the field's output for the slow-size prior's
@@ -50,7 +52,16 @@ class MotionPriors(NamedTuple):
         return (self.isometry.loss(model.gaussians, deformed_means, step)
                 + self.acceleration.loss(model, deformed_means, t, step)
                 + self.scale_rate.loss(model, step, sampled, t) + self.anchors.loss(model, step)
-                + self.erasers.loss(model.gaussians))
+                + self.erasers.loss(model.gaussians)
+                + self.spins.loss(model, deformed_means, t, step))
+
+    def state_dict(self) -> dict:
+        """What a checkpoint keeps of them: what the tracks passes found."""
+        return {"anchors": self.anchors.state_dict(), "spins": self.spins.state_dict()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.anchors.load_state_dict(state.get("anchors"))
+        self.spins.load_state_dict(state.get("spins"))
 
 
 __all__ = ["MotionPriors"]

@@ -98,7 +98,7 @@ class Trainer:
             self.optimizer.load_state_dict(state["optimizer"])
             self.densify_state = DensifyState.from_state_dict(state["strategy"])
             self.step = int(state["step"])
-            self.priors.anchors.load_state_dict(state.get("anchors"))
+            self.priors.load_state_dict(state)
         self.schedule.attach(self, state)
         self._enter_stage(self.schedule.phase(min(self.step, max(self.total_steps - 1, 0))))
 
@@ -245,7 +245,7 @@ class Trainer:
             layer=phase.layer, it=phase.it + 1, step=step, window=window,
             views=self.schedule.views(self, phase.layer),
             degree=self.active_sh_degree(step), timing=self.densify_timing,
-            anchors=self.priors.anchors))
+            priors=self.priors))
         if len(self.model.gaussians) == 0 and not getattr(self, "_warned_empty", False):
             self._warned_empty = True  # the stress suite's thin rod: docs/results.md
             self.warn(f"warning: step {step + 1}: every Gaussian was pruned; the model now draws "
@@ -257,7 +257,7 @@ class Trainer:
         return {"step": self.step, "gaussians": self.model.gaussians.state_dict(),
                 "field": self.model.field.state_dict(), "optimizer": self.optimizer.state_dict(),
                 "strategy": self.densify_state.state_dict(), "config": to_dict(self.cfg),
-                "anchors": self.priors.anchors.state_dict(), **self.schedule.state_dict()}
+                **self.priors.state_dict(), **self.schedule.state_dict()}
 
     def model_state(self) -> dict:
         """RUN/model.pt (read back as `nehad.model.load_run`'s model and RunInfo)."""
