@@ -3,6 +3,7 @@ of it behind a wall, found and followed where it is, on ray-cast views whose geo
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -11,7 +12,7 @@ import pytest
 from nehad.data.synth import Box, Sphere, render_view
 from nehad.data.synth_stress import rig_camera, rig_cameras
 from nehad.runtime.cameras import Camera
-from nehad.tracks import (Blob, blob_axes, fit_motion, fit_tracks, find_blobs,
+from nehad.tracks import (Blob, TrackSettings, blob_axes, fit_motion, fit_tracks, find_blobs,
                           motion_at, seeds_along)
 
 SIZE = 96
@@ -339,9 +340,49 @@ def test_a_track_is_followed_round_a_bend_across_held_out_times():
     assert [len(tr.blobs) for tr in tracks] == [len(blobs)] == [56]
     err = [np.linalg.norm(p - centre(t)) for t, p in zip(tracks[0].times, tracks[0].points)]
     assert max(err) < 0.01, err
-    line = fit_tracks(cams, blobs, dataclasses.replace(TrackSettings(), grow_degree=1))
+    line = fit_tracks(cams, blobs, dataclasses.replace(TrackSettings(), grow_degree=1,
+                                                       refit=False))
     covered = [(tr.times[0], tr.times[-1]) for tr in line]
     assert not any(lo <= 0.55 <= hi for lo, hi in covered), covered
+
+
+def _ray_blob(blob: Blob, cam, shift) -> Blob:
+    """`blob` with its centroid moved by `shift` pixels and its ray through the new centroid."""
+    uv = blob.centre + shift
+    ray = np.array([(uv[0] - cam.cx) / cam.fx, (uv[1] - cam.cy) / cam.fy, 1.0])
+    d = np.linalg.solve(cam.world_to_camera[:3, :3], ray)
+    return dataclasses.replace(blob, centre=uv, direction=d / np.linalg.norm(d))
+
+
+def test_a_track_is_followed_past_centroids_a_pixel_off():
+    """The stress occluder variant's loop, two blocks of 14 views with 7 held out between them
+    and two views hidden near the end, each blob's centroid (and ray) off by a normal pixel:
+    the quadratic fitted to a track's last six blobs predicts the next one outside its gate
+    here and there, and the track loses 3-4 of its 26 blobs; with the refit (a motion through
+    those six and each candidate, kept when all seven land in their gates) it keeps all 26.
+    On the variant itself the prediction missed by 10-28 pixels after the hidden views, and
+    the sphere's last 0.05 of time had no track, chain or carried copy (docs/results.md,
+    2026-11-30)."""
+    def centre(t):
+        a = 2.0 * math.pi * t + 0.7
+        return np.array([1.35 * math.cos(a), 0.25 + 1.1 * math.sin(a),
+                         0.3 + 0.15 * math.sin(3.0 * a)])
+
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        times = [k / 119 for k in range(80, 94)] + [k / 119 for k in range(100, 114)]
+        cams, blobs = [], []
+        for i, t in enumerate(times):
+            cams.append(_rig_view(i, 7))
+            if not 0.899 < t < 0.915:
+                blobs.append(_ray_blob(_exact_blob(i, t, cams[-1], centre), cams[-1],
+                                       rng.normal(0.0, 1.0, 2)))
+        refit = fit_tracks(cams, blobs)
+        assert [len(tr.blobs) for tr in refit] == [26]
+        err = [np.linalg.norm(p - centre(t)) for t, p in zip(refit[0].times, refit[0].points)]
+        assert np.median(err) < 0.05 and max(err) < 0.25, err  # on the path, ends looser
+        before = fit_tracks(cams, blobs, dataclasses.replace(TrackSettings(), refit=False))
+        assert max(len(tr.blobs) for tr in before) <= 23
 
 
 def test_every_object_gets_a_track_up_to_the_cap():
