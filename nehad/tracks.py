@@ -253,18 +253,9 @@ def _hypothesis(cameras, views: _Views, anchor: Blob, free, s: TrackSettings,
         return None
     best = None
     for _ in range(s.samples):
-        chosen = rng.choice(len(options), 3, replace=False)
-        sample = [anchor, *(options[i][rng.integers(len(options[i]))] for i in chosen)]
-        coef = fit_motion(sample, anchor.time)
-        if coef is None or max(_reprojection(cameras, coef, anchor.time, b)
-                               for b in sample) > s.gate_px:
+        support = _drawn_support(cameras, views, anchor, near, options, free, s, rng, 1)
+        if support is None:
             continue
-        support = [anchor]
-        for v in near:
-            m = _best_match(cameras, coef, anchor.time,
-                            [b for b in views.of[v] if id(b) in free], s)
-            if m is not None:
-                support.append(m)
         if best is None or len(support) > len(best):
             best = support
             if len(best) == len(near) + 1:
@@ -290,25 +281,36 @@ def _curved_hypothesis(cameras, views: _Views, anchor: Blob, near: list, options
     of time apart, docs/results.md, 2026-11-30)."""
     best = None
     for _ in range(s.samples):
-        chosen = rng.choice(len(options), 4, replace=False)
-        sample = [anchor, *(options[i][rng.integers(len(options[i]))] for i in chosen)]
-        coef = fit_motion(sample, anchor.time, degree=2)
-        if coef is None or max(_reprojection(cameras, coef, anchor.time, b)
-                               for b in sample) > s.gate_px:
+        support = _drawn_support(cameras, views, anchor, near, options, free, s, rng, 2)
+        if support is None:
             continue
-        support = [anchor]
-        for v in near:
-            m = _best_match(cameras, coef, anchor.time,
-                            [b for b in views.of[v] if id(b) in free], s)
-            if m is not None:
-                support.append(m)
-        if (len(support) > max(len(sample) + 1, s.min_support)
+        if (len(support) > max(5 + 1, s.min_support)  # 5: the blobs it was fitted to
                 and len(support) > len(options)  # every neighbour with a blob of its colour
                 and (best is None or len(support) > len(best))):
             best = support
             if len(best) == len(near) + 1:
                 break
     return best
+
+
+def _drawn_support(cameras, views: _Views, anchor: Blob, near: list, options: list, free,
+                   s: TrackSettings, rng: np.random.Generator, degree: int):
+    """One random hypothesis of a motion of `degree` (1: a line through the anchor and blobs
+    of 3 neighbouring views, 2: a quadratic through it and 4): the blobs of the `near` views
+    it lands on (the anchor first), or None when it misses its own sample by more than
+    `gate_px`."""
+    chosen = rng.choice(len(options), 3 if degree == 1 else 4, replace=False)
+    sample = [anchor, *(options[i][rng.integers(len(options[i]))] for i in chosen)]
+    coef = fit_motion(sample, anchor.time, degree=degree)
+    if coef is None or max(_reprojection(cameras, coef, anchor.time, b)
+                           for b in sample) > s.gate_px:
+        return None
+    support = [anchor]
+    for v in near:
+        m = _best_match(cameras, coef, anchor.time, [b for b in views.of[v] if id(b) in free], s)
+        if m is not None:
+            support.append(m)
+    return support
 
 
 def _grow(cameras, views: _Views, blobs: list, free, s: TrackSettings, step: int) -> list:
