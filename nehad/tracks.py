@@ -244,7 +244,8 @@ def _hypothesis(cameras, views: _Views, anchor: Blob, free, s: TrackSettings,
                 rng: np.random.Generator, curve_rng: np.random.Generator | None = None):
     """The best-supported straight-line motion through `anchor` and compatible free blobs of
     three of its neighbouring views (`samples` random draws): the blobs it lands on, or
-    None."""
+    None; where it lands on fewer than `min_support`, a curved one if one holds
+    (`_curved_hypothesis`, drawn with `curve_rng`)."""
     near = views.near(anchor.view, s.neighbours)
     options = [[b for b in views.of[v] if id(b) in free and _compatible(anchor, b, s.colour_tol)]
                for v in near]
@@ -346,12 +347,13 @@ def _grow(cameras, views: _Views, blobs: list, free, s: TrackSettings, step: int
 
 def _refitted_match(cameras, recent: list, last: Blob, candidates: list, s: TrackSettings):
     """The candidate blob that, added to the track's `recent` blobs, leaves every one of them
-    within its gate of one motion of `grow_degree` fitted to them all (the least largest
-    reprojection), or None. `_grow`'s prediction extrapolates a quadratic fitted to a few
-    blobs from different cameras over a short time, whose acceleration they barely fix: past
-    a view where the stress occluder variant's sphere was hidden at the wall's end it missed
-    the next blobs by 10-28 pixels, where one quadratic through the track's last six blobs and
-    the next five lands on all eleven within a pixel (docs/results.md, 2026-11-30)."""
+    within its gate of one motion of `grow_degree` fitted to them all (of several, the one
+    whose worst blob is furthest inside its gate), or None. `_grow`'s prediction extrapolates
+    a quadratic fitted to a few blobs from different cameras over a short time, whose
+    acceleration they barely fix: past two views where the wall's end hid the stress occluder
+    variant's sphere it missed the next blobs by 10-28 pixels, where one quadratic through
+    the twelve blobs of 0.84-0.95 lands on each within its gate (0.1-2.1 pixels;
+    docs/results.md, 2026-11-30)."""
     if len(recent) < 5:
         return None
     best, best_err = None, np.inf
