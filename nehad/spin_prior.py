@@ -30,6 +30,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from nehad.spin import rotations
+
 #: The second time of a pair is this many frame spacings after the view's (before it at the
 #: span's end): across a block's held-out gap (7 spacings) is where the turn is lost.
 SPIN_STEPS = 2
@@ -37,16 +39,6 @@ SPIN_STEPS = 2
 #: Fewer selected Gaussians than this at a step: no term for that body (a mean and a spread
 #: need a few points).
 MIN_POINTS = 8
-
-
-def _rotation(axis_angle: np.ndarray) -> np.ndarray:
-    """Rodrigues' rotation matrix (3, 3) of the rotation vector `axis_angle`."""
-    angle = float(np.linalg.norm(axis_angle))
-    if angle < 1e-12:
-        return np.eye(3)
-    k = axis_angle / angle
-    cross = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(angle) * cross + (1.0 - np.cos(angle)) * cross @ cross
 
 
 class SpinPrior:
@@ -94,7 +86,7 @@ class SpinPrior:
                 continue
             x0 = deformed_means[torch.as_tensor(rows)]
             x1 = model.means_at(t2, torch.as_tensor(rows))
-            turn = torch.as_tensor(_rotation(body["omega"] * (t2 - t)), dtype=x0.dtype)
+            turn = torch.as_tensor(rotations(body["omega"] * (t2 - t)), dtype=x0.dtype)
             d0, d1 = x0 - x0.mean(0), x1 - x1.mean(0)
             err = ((d1 - d0 @ turn.T) ** 2).sum(1).mean() / body["radius"] ** 2
             total = total + self.weight * err

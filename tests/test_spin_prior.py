@@ -5,7 +5,17 @@ import numpy as np
 import torch
 
 from nehad.spin import rotations
-from nehad.spin_prior import SPIN_STEPS, SpinPrior, _rotation
+from nehad.spin_prior import SPIN_STEPS, SpinPrior
+
+
+def _rotation(axis_angle):
+    """Rodrigues' rotation matrix of a rotation vector, written out: the reference."""
+    angle = float(np.linalg.norm(axis_angle))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = np.asarray(axis_angle, np.float64) / angle
+    cross = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * cross + (1.0 - np.cos(angle)) * cross @ cross
 
 
 class _Gaussians:
