@@ -191,7 +191,10 @@ class CarveConfig:
     # its chains as tracks again and fits each as one appearance carried along its track, this
     # many steps (nehad.carry, nehad.carry_stage); kept where the check split's views prefer it
     carry_members: int = 24  # Gaussians of one carried object (written out at every frame spacing)
-    carry_min_blobs: int = 12  # tracks with fewer blobs are not carried
+    carry_min_blobs: int = 12  # tracks with fewer blobs are not carried, unless
+    carry_absent_cover: float = 0.3  # the render (chains hidden) covers their blobs less than
+    # this on the mean: an object the model does not draw at all, not a texture it draws wrong
+    # (nehad.carry_stage.carried_tracks); 0: never
     carry_knots: int = 1  # frame spacings between a carried object's written-out copies (each
     # lives as many spacings)
     carry_spin: bool = True  # also carry the moving objects whose blobs turn with a spin the
@@ -552,7 +555,8 @@ class Config:
     )
     #: checked in configs built from a preset, a file and --set (`build_config`), not in a saved
     #: run's, which loaded before these checks were written
-    NEW_RANGES = (("train.revive_opacity", 0.0, 0.99), ("train.drift_window", 0.0, None))
+    NEW_RANGES = (("train.revive_opacity", 0.0, 0.99), ("train.drift_window", 0.0, None),
+                  ("carve.carry_absent_cover", 0.0, 1.0))
 
     def _check_ranges(self, ranges=None) -> None:
         for key, low, high in self.RANGES if ranges is None else ranges:

@@ -43,24 +43,29 @@ class Blob:
     direction: np.ndarray  # (3,) unit ray through the centroid
     shape: np.ndarray | None = None  # (2, 2) covariance of its pixels' (u, v), pixels^2 (each
     # pixel a unit square); None: round
+    cover: float = float("nan")  # the render's mean alpha over its pixels, where `find_blobs`
+    # had the renders' alphas: near 0 where nothing is drawn there, near 1 where something is
+    # drawn in the wrong colour
 
 
 def find_blobs(cameras, times, targets, alphas, renders, *, residual: float = 0.25,
                min_area: int = 3, max_area_fraction: float = 0.05,
-               close_px: int = 0) -> list[Blob]:
+               close_px: int = 0, covers=None) -> list[Blob]:
     """The blobs of every view: 8-connected regions of `nehad.carve.unexplained_mask` of at
     least `min_area` pixels and at most `max_area_fraction` of the image (a larger region is
     a badly drawn backdrop, not a missing object). `close_px` > 1: the mask is first closed
     with a disc that many pixels wide, so that an object whose texture has the backdrop's
     colour (the stress suite's striped box: white stripes before a white floor) is one blob,
-    not one per stripe of its other colour."""
+    not one per stripe of its other colour. `covers`: the renders' alphas (H, W), each blob's
+    mean over its pixels kept as its `cover`."""
     import cv2
 
     disc = (cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (close_px, close_px))
             if close_px > 1 else None)
     blobs = []
-    for k, (cam, t, target, alpha, drawn) in enumerate(zip(cameras, times, targets, alphas,
-                                                             renders)):
+    covers = [None] * len(renders) if covers is None else covers
+    for k, (cam, t, target, alpha, drawn, drawn_alpha) in enumerate(
+            zip(cameras, times, targets, alphas, renders, covers)):
         bad = unexplained_mask(drawn, target, alpha, residual).astype(np.uint8)
         if disc is not None:
             bad = cv2.morphologyEx(bad, cv2.MORPH_CLOSE, disc)
@@ -75,9 +80,10 @@ def find_blobs(cameras, times, targets, alphas, renders, *, residual: float = 0.
             d = np.array([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, 1.0]) @ c2w[:3, :3].T
             rows, cols = np.nonzero(labels == i)
             shape = np.cov(np.stack([cols, rows]).astype(np.float64), bias=True) + np.eye(2) / 12
+            cover = float("nan") if drawn_alpha is None else float(drawn_alpha[rows, cols].mean())
             blobs.append(Blob(k, float(t), np.array([u, v]), area,
                               target[rows, cols].reshape(-1, 3).mean(axis=0),
-                              c2w[:3, 3].copy(), d / np.linalg.norm(d), shape))
+                              c2w[:3, 3].copy(), d / np.linalg.norm(d), shape, cover))
     return blobs
 
 

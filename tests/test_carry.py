@@ -224,3 +224,23 @@ class _ChainsStillNeeded(_CountingJudge):
     def error(self, views, hide):
         hide = np.asarray(hide, np.int64)
         return super().error(views, hide[hide < 40]) + 5 * len(views) * bool((hide >= 40).any())
+
+
+def test_a_short_track_is_carried_only_where_nothing_is_drawn_over_it():
+    """`carried_tracks`: a 12-blob track whatever the render covers; a 7-blob one (a fast object
+    seen in few views) where the render covers its blobs 0.1 on the mean, not where it covers
+    them 0.6 (a texture drawn in the wrong colours), nor where the covers are unknown."""
+    from nehad.carry_stage import carried_tracks
+    from nehad.tracks import Blob, Track
+
+    def track(n, covers):
+        return Track([Blob(i, i / 60, np.zeros(2), 9, np.ones(3), np.zeros(3),
+                           np.array([0.0, 0.0, 1.0]), cover=c)
+                      for i, c in zip(range(n), np.resize(covers, n))])
+
+    long_covered, fast, texture, unknown, edge = (
+        track(12, [0.9]), track(7, [0.0, 0.2, 0.1]), track(7, [0.6]), track(7, [np.nan]),
+        track(7, [0.3]))  # at the bound: not under it
+    kept = carried_tracks([long_covered, fast, texture, unknown, edge], 12, 0.3)
+    assert [len(t.blobs) for t in kept] == [12, 7] and kept[1] is fast
+    assert carried_tracks([fast], 12, 0.0) == []  # 0 turns the short ones off

@@ -130,6 +130,27 @@ def test_closing_joins_a_body_striped_with_the_backdrops_colour():
     assert whole.area > 0.9 * int((full[..., 3] >= 0.5).sum())
 
 
+def test_a_blobs_cover_is_the_renders_mean_alpha_over_its_pixels():
+    """Two unexplained squares over white: where the render's alpha is 1 on the left 6 of one's
+    16 columns and 0.25 over all of the other, their covers are 6/16 and 0.25; without the
+    alphas, nan."""
+    cam = rig_camera(0, 64)
+    target = np.ones((64, 64, 3))
+    target[10:18, 10:26] = (0.9, 0.1, 0.1)
+    target[40:50, 40:50] = (0.1, 0.1, 0.9)
+    drawn_alpha = np.zeros((64, 64))
+    drawn_alpha[10:18, 10:16] = 1.0
+    drawn_alpha[40:50, 40:50] = 0.25
+    blobs = find_blobs([cam], [0.5], [target], [None], [np.ones_like(target)],
+                       covers=[drawn_alpha])
+    covers = sorted((b.area, b.cover) for b in blobs)
+    assert [a for a, _ in covers] == [100, 128]
+    assert covers[0][1] == pytest.approx(0.25) and covers[1][1] == pytest.approx(6 / 16)
+    (plain, _) = sorted(find_blobs([cam], [0.5], [target], [None], [np.ones_like(target)]),
+                        key=lambda b: b.area)
+    assert math.isnan(plain.cover)
+
+
 def test_blobs_with_no_common_path_make_no_track():
     """A sphere drawn nowhere that jumps to a random place at every time: one blob per view,
     but no smooth path through their rays, so no track (the same views with the loop's sphere
