@@ -61,9 +61,8 @@ def carried_tracks(tracks, min_blobs: int, absent_cover: float) -> list:
     the field draws wrong; only the first is missing from the render. On the stress suite's
     spinning textures the 6-11 blob tracks of the model before the stage were covered
     0.55-0.95 on the mean, the fast ball variant's 7-blob track 0.00 (docs/results.md,
-    2026-11-30). An
-    object the field leaves out before a drawn backdrop (a floor) is covered by it, and so is
-    carried only when its track is long."""
+    2026-11-30). An object the field leaves out before a drawn backdrop (a floor) is covered
+    by it, and so is carried only when its track is long."""
     return [t for t in tracks if len(t.blobs) >= min_blobs
             or np.mean([b.cover for b in t.blobs]) < absent_cover]
 
