@@ -31,6 +31,14 @@ import torch
 #: A member is drawn at the times where its life window is above 1e-3 of its peak (3.7 sigma).
 REACH_SIGMAS = 3.7
 
+#: A round object's members start uniform in a ball of MEMBER_SPREAD object radii, each
+#: MEMBER_WIDTH radii wide, so that together they are about the object's size (0.6 + 2 x 0.2).
+#: Started at 0.7 and 0.5 (1.7 radii across), the fit shrank the object by pulling every member
+#: to its centre (on the fast ball variant 0.62 -> 0.03 radii apart, one flat colour where the
+#: ball is shaded; docs/results.md, 2026-12-01).
+MEMBER_SPREAD = 0.6
+MEMBER_WIDTH = 0.2
+
 
 @dataclass
 class CarriedObject:
@@ -99,6 +107,17 @@ class CarriedObject:
         return (float(self.times[0]) - REACH_SIGMAS * sigma,
                 float(self.times[-1]) + REACH_SIGMAS * sigma)
 
+    def fitted_span(self, sigma: float) -> tuple[float, float]:
+        """The times whose training views fit it: those its track saw, widened by one life
+        `sigma`. Past them the object may be gone (landed, hidden, out of the picture), and views
+        there would fit its shared opacity down to hide its extrapolated copies: the fast ball
+        variant's ball, fitted on its whole span, scored 5-7 dB lower on its own pixels than
+        before the fit (docs/results.md, 2026-12-01). Whether those copies are drawn is the
+        held-out views' choice (`nehad.carry_stage`)."""
+        if self.seen is None:
+            return self.span(sigma)
+        return self.seen[0] - sigma, self.seen[1] + sigma
+
     def members_at(self, t: float, sigma: float):
         """(means, scales, unit quats, opacities, sh_dc) of the members drawn at time t: each
         knot's K Gaussians moved with the knot's velocity, their opacity times its life window
@@ -146,14 +165,14 @@ def objects_from_tracks(tracks, cameras, spacing: float, time_range, members: in
     `max_gap` past its ends (`nehad.tracks.seeds_along`, within `time_range` widened by as
     much), on the track's smooth path (`Track.smooth_at`: across a held-out gap the stress
     occluder's sphere is then a median 0.06 radii from its true centre at the test times, 0.16
-    along the chord); `members` Gaussians uniform in a ball of 0.7 object radii (the blobs'
-    median radius at their depth), round, half a radius wide, of the track's colour, opacity
-    0.9. With `spins` (a `nehad.spin.Spin` per track), each object turns with its track's spin,
-    on its smoothed path (`nehad.spin_tracks.smooth_path`); its members start spread as its
-    body is (a normal of the body's spread at the spin's time) and as wide as its thinnest
-    spread, its radius the larger of its blobs' and the body's (sqrt(3) times its longest
-    standard deviation: a uniform rod's half length), and its path a correction to fit
-    (`path_fix`) at most `fix_every` apart in time (0: none)."""
+    along the chord); `members` Gaussians uniform in a ball of MEMBER_SPREAD object radii (the
+    blobs' median radius at their depth), round, MEMBER_WIDTH radii wide, of the track's
+    colour, opacity 0.9. With `spins` (a `nehad.spin.Spin` per track), each object turns with
+    its track's spin, on its smoothed path (`nehad.spin_tracks.smooth_path`); its members start
+    spread as its body is (a normal of the body's spread at the spin's time) and as wide as its
+    thinnest spread (and at most half a radius), its radius the larger of its blobs' and the
+    body's (sqrt(3) times its longest standard deviation: a uniform rod's half length), and its
+    path a correction to fit (`path_fix`) at most `fix_every` apart in time (0: none)."""
     from nehad.gaussians import rgb_to_sh_dc
     from nehad.tracks import TrackSettings, seeds_along
 
@@ -171,11 +190,12 @@ def objects_from_tracks(tracks, cameras, spacing: float, time_range, members: in
             pts, vel = smooth_path(track, taus)
         radius = float(widths[0])
         ball = rng.normal(size=(members, 3))
-        width = 0.5 * radius
+        width = MEMBER_WIDTH * radius
         if spin is None:
-            ball *= (0.7 * radius * rng.random(members) ** (1 / 3)
+            ball *= (MEMBER_SPREAD * radius * rng.random(members) ** (1 / 3)
                      / np.linalg.norm(ball, axis=1))[:, None]
         else:
+            width = 0.5 * radius
             values, axes = np.linalg.eigh(spin.spread)
             values = np.clip(values, (0.05 * radius) ** 2, None)
             ball = ball @ (axes * np.sqrt(values)).T
@@ -248,12 +268,12 @@ def _with_objects(cloud, objects, t: float, sigma: float):
 
 def fit_objects(objects, model, views, degree: int, background, sigma: float, steps: int,
                 hidden_rows, rng: np.random.Generator) -> list[float]:
-    """Fit the objects' shared parameters on the training `views` inside their spans (one view
-    a step, L1), the model held, its `hidden_rows` (the chains) transparent; the mean L1 of
-    each tenth of the steps."""
+    """Fit the objects' shared parameters on the training `views` inside their fitted spans
+    (`CarriedObject.fitted_span`; one view a step, L1), the model held, its `hidden_rows` (the
+    chains) transparent; the mean L1 of each tenth of the steps."""
     from nehad.splat.rasterize import render_torch
 
-    spans = [obj.span(sigma) for obj in objects]
+    spans = [obj.fitted_span(sigma) for obj in objects]
     picks = [k for k, t in enumerate(views.times) if any(lo <= t <= hi for lo, hi in spans)]
     if not picks or steps <= 0:
         return []

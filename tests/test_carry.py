@@ -156,6 +156,66 @@ def test_fit_on_the_views_draws_the_object():
     assert after < 0.15 * before, (before, after)  # 381 -> 32 when written
 
 
+def test_the_fit_leaves_out_the_views_past_what_its_track_saw():
+    """The same sphere on its loop, but gone after t = 0.5 (a ball that lands), its track seeing
+    it over 0-0.5 and its knots running on to 1.04. Fitted on the views of 0-0.5 only
+    (`CarriedObject.fitted_span`), its members stay opaque and it draws the sphere at the other
+    cameras of 0-0.5; fitted on every view of its knots (before 2026-12-01), the views where
+    the sphere is gone fade the opacity that all its copies share (median 0.04 against 0.66)
+    and the sphere with it (squared error 92 against 9.3)."""
+    from types import SimpleNamespace
+
+    from nehad.field.config import FieldConfig
+    from nehad.field.deformation import DeformationField
+    from nehad.gaussians import GaussianParameters
+    from nehad.model import NeHaDModel
+    from nehad.carry import _with_objects
+    from nehad.splat.rasterize import render_torch
+
+    colour = (0.9, 0.15, 0.1)
+
+    def views(times, first):
+        cams, images = [], []
+        for i, t in enumerate(times):
+            cam = rig_camera(first + i, SIZE, float(t))
+            there = [Sphere("s", _loop(t), RADIUS, colour)] if t <= 0.5 else []
+            full = render_view(there, cam, supersample=2)
+            cams.append(cam)
+            images.append(torch.as_tensor(full[..., :3] + (1.0 - full[..., 3:]),
+                                          dtype=torch.float32))
+        return SimpleNamespace(cameras=cams, images=images, times=list(times))
+
+    train = views(np.linspace(0.0, 1.0, 24), 0)
+    test = views(np.linspace(0.02, 0.46, 4) + 0.011, 5)
+    knots = np.linspace(-0.04, 1.04, 55)
+    pts = np.stack([_loop(t) for t in knots])
+    vel = np.stack([(_loop(t + 1e-4) - _loop(t - 1e-4)) / 2e-4 for t in knots])
+    g = GaussianParameters.random_in_box(1, sh_degree=0)
+    with torch.no_grad():
+        g.opacity_logits.fill_(-30.0)
+    model = NeHaDModel(g, DeformationField(FieldConfig(), np.array([[-2.0] * 3, [2.0] * 3]), 4.0))
+    sigma = knots[1] - knots[0]
+
+    def fitted(seen):
+        rng = np.random.default_rng(0)
+        obj = _object(knots, pts, vel, rng.normal(size=(16, 3)) * 0.4 * RADIUS, colour)
+        obj.seen = seen
+        fit_objects([obj], model, train, 0, (1.0, 1.0, 1.0), sigma, 400, [], rng)
+        total = 0.0
+        for cam, img, t in zip(test.cameras, test.images, test.times):
+            with torch.no_grad():
+                cloud = [x.detach() for x in model.gaussians_at(float(t))]
+                rgb = render_torch(*_with_objects(cloud, [obj], float(t), sigma), cam,
+                                   background=(1.0, 1.0, 1.0), sh_degree=0).rgb
+            total += float(((rgb - img) ** 2).sum())
+        return total, float(torch.sigmoid(obj.opacity_logits.detach()).median())
+
+    error, opacity = fitted((0.0, 0.5))
+    whole_error, whole_opacity = fitted(None)  # no seen span: every view of its knots
+    assert opacity > 0.5 > 2 * whole_opacity, (opacity, whole_opacity)
+    assert error < 0.25 * whole_error, (error, whole_error)
+
+
 class _CountingJudge:
     """A stand-in for the held-out views: each view's error counts the knots within one spacing
     of its time that are drawn where the object is absent, or hidden where it is present."""
