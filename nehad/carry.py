@@ -32,12 +32,13 @@ import torch
 REACH_SIGMAS = 3.7
 
 #: A round object's members start uniform in a ball of MEMBER_SPREAD object radii, each
-#: MEMBER_WIDTH radii wide, so that together they are about the object's size (0.6 + 2 x 0.2).
-#: Started at 0.7 and 0.5 (1.7 radii across), the fit shrank the object by pulling every member
-#: to its centre (on the fast ball variant 0.62 -> 0.03 radii apart, one flat colour where the
-#: ball is shaded; docs/results.md, 2026-12-01).
+#: MEMBER_WIDTH radii wide (a standard deviation), about the object's size together. Started at
+#: 0.7 and 0.5, the fit shrank the object by drawing every member to its centre (on the fast ball
+#: variant 0.62 -> 0.03 radii apart, one flat colour where the ball is shaded); 0.2 wide kept them
+#: apart but cost `nehad demo`'s bouncing ball 1.7 dB in a quarter, 0.3 wide 1.0 (docs/results.md,
+#: 2026-12-01).
 MEMBER_SPREAD = 0.6
-MEMBER_WIDTH = 0.2
+MEMBER_WIDTH = 0.3
 
 
 @dataclass
