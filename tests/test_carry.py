@@ -99,59 +99,73 @@ def _loop(t):
     return np.array([0.8 * math.cos(a), 0.8 * math.sin(a), 0.5])
 
 
-def test_fit_on_the_views_draws_the_object():
-    """A red sphere on a loop, one rig camera per time; a carried object on its true path,
-    starting grey, fitted on 24 views, draws the sphere at 8 other times (other cameras) far
-    better than it started: its squared error there falls by a factor of 6.7 or more (12)."""
+RED = (0.9, 0.15, 0.1)
+
+
+def _sphere_views(times, first, gone_after=math.inf):
+    """A red sphere on `_loop` seen by one rig camera per time (cameras `first` on), composited
+    on white; not there after `gone_after`."""
     from types import SimpleNamespace
 
+    cams, images = [], []
+    for i, t in enumerate(times):
+        cam = rig_camera(first + i, SIZE, float(t))
+        there = [Sphere("s", _loop(t), RADIUS, RED)] if t <= gone_after else []
+        full = render_view(there, cam, supersample=2)
+        cams.append(cam)
+        images.append(torch.as_tensor(full[..., :3] + (1.0 - full[..., 3:]), dtype=torch.float32))
+    return SimpleNamespace(cameras=cams, images=images, times=list(times))
+
+
+def _on_the_loop(knots, offsets, colour=(0.5, 0.5, 0.5)):
+    """A carried object on `_loop`'s true path at `knots`, its members at `offsets`."""
+    pts = np.stack([_loop(t) for t in knots])
+    vel = np.stack([(_loop(t + 1e-4) - _loop(t - 1e-4)) / 2e-4 for t in knots])
+    return _object(knots, pts, vel, offsets, colour)
+
+
+def _empty_model():
+    """A model that draws nothing: one transparent Gaussian and an untrained field."""
     from nehad.field.config import FieldConfig
     from nehad.field.deformation import DeformationField
     from nehad.gaussians import GaussianParameters
     from nehad.model import NeHaDModel
-    from nehad.splat.rasterize import render_torch
 
-    colour = (0.9, 0.15, 0.1)
-
-    def views(times, first):
-        cams, images = [], []
-        for i, t in enumerate(times):
-            cam = rig_camera(first + i, SIZE, float(t))
-            full = render_view([Sphere("s", _loop(t), RADIUS, colour)], cam, supersample=2)
-            cams.append(cam)
-            images.append(torch.as_tensor(full[..., :3] + (1.0 - full[..., 3:]),
-                                          dtype=torch.float32))
-        return SimpleNamespace(cameras=cams, images=images, times=list(times))
-
-    train = views(np.linspace(0.0, 1.0, 24), 0)
-    test = views(np.linspace(0.02, 0.98, 8) + 0.011, 5)
-    knots = np.linspace(-0.04, 1.04, 55)
-    pts = np.stack([_loop(t) for t in knots])
-    vel = np.stack([(_loop(t + 1e-4) - _loop(t - 1e-4)) / 2e-4 for t in knots])
-    rng = np.random.default_rng(0)
-    ball = rng.normal(size=(16, 3)) * 0.4 * RADIUS
-    obj = _object(knots, pts, vel, ball)
     g = GaussianParameters.random_in_box(1, sh_degree=0)
     with torch.no_grad():
         g.opacity_logits.fill_(-30.0)
-    model = NeHaDModel(g, DeformationField(FieldConfig(), np.array([[-2.0] * 3, [2.0] * 3]), 4.0))
+    return NeHaDModel(g, DeformationField(FieldConfig(), np.array([[-2.0] * 3, [2.0] * 3]), 4.0))
+
+
+def _squared_error(model, obj, views, sigma):
+    """The object drawn with the model at each view's time, against the view."""
+    from nehad.carry import _with_objects
+    from nehad.splat.rasterize import render_torch
+
+    total = 0.0
+    for cam, img, t in zip(views.cameras, views.images, views.times):
+        with torch.no_grad():
+            cloud = [x.detach() for x in model.gaussians_at(float(t))]
+            rgb = render_torch(*_with_objects(cloud, [obj], float(t), sigma), cam,
+                               background=(1.0, 1.0, 1.0), sh_degree=0).rgb
+        total += float(((rgb - img) ** 2).sum())
+    return total
+
+
+def test_fit_on_the_views_draws_the_object():
+    """A red sphere on a loop, one rig camera per time; a carried object on its true path,
+    starting grey, fitted on 24 views, draws the sphere at 8 other times (other cameras) far
+    better than it started: its squared error there falls by a factor of 6.7 or more (12)."""
+    train = _sphere_views(np.linspace(0.0, 1.0, 24), 0)
+    test = _sphere_views(np.linspace(0.02, 0.98, 8) + 0.011, 5)
+    knots = np.linspace(-0.04, 1.04, 55)
+    rng = np.random.default_rng(0)
+    obj = _on_the_loop(knots, rng.normal(size=(16, 3)) * 0.4 * RADIUS)
+    model = _empty_model()
     sigma = knots[1] - knots[0]
-
-    def error():
-        from nehad.carry import _with_objects
-
-        total = 0.0
-        for cam, img, t in zip(test.cameras, test.images, test.times):
-            with torch.no_grad():
-                cloud = [x.detach() for x in model.gaussians_at(float(t))]
-                rgb = render_torch(*_with_objects(cloud, [obj], float(t), sigma), cam,
-                                   background=(1.0, 1.0, 1.0), sh_degree=0).rgb
-            total += float(((rgb - img) ** 2).sum())
-        return total
-
-    before = error()
+    before = _squared_error(model, obj, test, sigma)
     log = fit_objects([obj], model, train, 0, (1.0, 1.0, 1.0), sigma, 600, [], rng)
-    after = error()
+    after = _squared_error(model, obj, test, sigma)
     assert log[-1] < 0.5 * log[0]
     assert after < 0.15 * before, (before, after)  # 381 -> 32 when written
 
@@ -163,52 +177,19 @@ def test_the_fit_leaves_out_the_views_past_what_its_track_saw():
     cameras of 0-0.5; fitted on every view of its knots (before 2026-12-01), the views where
     the sphere is gone fade the opacity that all its copies share (median 0.04 against 0.66)
     and the sphere with it (squared error 92 against 9.3)."""
-    from types import SimpleNamespace
-
-    from nehad.field.config import FieldConfig
-    from nehad.field.deformation import DeformationField
-    from nehad.gaussians import GaussianParameters
-    from nehad.model import NeHaDModel
-    from nehad.carry import _with_objects
-    from nehad.splat.rasterize import render_torch
-
-    colour = (0.9, 0.15, 0.1)
-
-    def views(times, first):
-        cams, images = [], []
-        for i, t in enumerate(times):
-            cam = rig_camera(first + i, SIZE, float(t))
-            there = [Sphere("s", _loop(t), RADIUS, colour)] if t <= 0.5 else []
-            full = render_view(there, cam, supersample=2)
-            cams.append(cam)
-            images.append(torch.as_tensor(full[..., :3] + (1.0 - full[..., 3:]),
-                                          dtype=torch.float32))
-        return SimpleNamespace(cameras=cams, images=images, times=list(times))
-
-    train = views(np.linspace(0.0, 1.0, 24), 0)
-    test = views(np.linspace(0.02, 0.46, 4) + 0.011, 5)
+    train = _sphere_views(np.linspace(0.0, 1.0, 24), 0, gone_after=0.5)
+    test = _sphere_views(np.linspace(0.02, 0.46, 4) + 0.011, 5)
     knots = np.linspace(-0.04, 1.04, 55)
-    pts = np.stack([_loop(t) for t in knots])
-    vel = np.stack([(_loop(t + 1e-4) - _loop(t - 1e-4)) / 2e-4 for t in knots])
-    g = GaussianParameters.random_in_box(1, sh_degree=0)
-    with torch.no_grad():
-        g.opacity_logits.fill_(-30.0)
-    model = NeHaDModel(g, DeformationField(FieldConfig(), np.array([[-2.0] * 3, [2.0] * 3]), 4.0))
+    model = _empty_model()
     sigma = knots[1] - knots[0]
 
     def fitted(seen):
         rng = np.random.default_rng(0)
-        obj = _object(knots, pts, vel, rng.normal(size=(16, 3)) * 0.4 * RADIUS, colour)
+        obj = _on_the_loop(knots, rng.normal(size=(16, 3)) * 0.4 * RADIUS, RED)
         obj.seen = seen
         fit_objects([obj], model, train, 0, (1.0, 1.0, 1.0), sigma, 400, [], rng)
-        total = 0.0
-        for cam, img, t in zip(test.cameras, test.images, test.times):
-            with torch.no_grad():
-                cloud = [x.detach() for x in model.gaussians_at(float(t))]
-                rgb = render_torch(*_with_objects(cloud, [obj], float(t), sigma), cam,
-                                   background=(1.0, 1.0, 1.0), sh_degree=0).rgb
-            total += float(((rgb - img) ** 2).sum())
-        return total, float(torch.sigmoid(obj.opacity_logits.detach()).median())
+        return (_squared_error(model, obj, test, sigma),
+                float(torch.sigmoid(obj.opacity_logits.detach()).median()))
 
     error, opacity = fitted((0.0, 0.5))
     whole_error, whole_opacity = fitted(None)  # no seen span: every view of its knots
