@@ -191,16 +191,15 @@ def objects_from_tracks(tracks, cameras, spacing: float, time_range, members: in
             pts, vel = smooth_path(track, taus)
         radius = float(widths[0])
         ball = rng.normal(size=(members, 3))
-        width = MEMBER_WIDTH * radius
         if spin is None:
             ball *= (MEMBER_SPREAD * radius * rng.random(members) ** (1 / 3)
                      / np.linalg.norm(ball, axis=1))[:, None]
+            width = MEMBER_WIDTH * radius
         else:
-            width = 0.5 * radius
             values, axes = np.linalg.eigh(spin.spread)
             values = np.clip(values, (0.05 * radius) ** 2, None)
             ball = ball @ (axes * np.sqrt(values)).T
-            width = min(width, float(np.sqrt(values[0])))  # as thin as the body
+            width = min(0.5 * radius, float(np.sqrt(values[0])))  # as thin as the body
         colour = torch.as_tensor(np.clip(cols[0], 0.0, 1.0), dtype=torch.float32)
         leaf = lambda x: x.detach().clone().requires_grad_(True)  # noqa: E731
         out.append(CarriedObject(
