@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputProblem
+from .errors import InputProblem, write_failure
 from .tempfiles import temp_prefix
 
 WEB_ROOT = Path(__file__).resolve().parent / "web"
@@ -158,7 +158,10 @@ def build_player(source, out, cameras=None) -> WebReport:
         if info.default_camera is None:
             raise WebError(f"{source}: the model has no default camera; give --cameras FILE")
         cams = [info.default_camera]
-    work = Path(tempfile.mkdtemp(prefix=temp_prefix(out), suffix=".tmp", dir=out.parent))
+    try:
+        work = Path(tempfile.mkdtemp(prefix=temp_prefix(out), suffix=".tmp", dir=out.parent))
+    except OSError as e:  # the folder is staged beside `out`: name `out`, not the stage
+        raise write_failure(out, e, f"cannot create a folder in {out.parent}") from None
     try:
         umask = os.umask(0)
         os.umask(umask)

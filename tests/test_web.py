@@ -220,6 +220,12 @@ def test_bad_inputs_end_in_one_error_and_write_nothing(model, tmp_path, fake_lib
     refused([str(onnx), "-o", str(tmp_path / "c"), "--cameras", str(tmp_path / "none.json")],
             "none.json")
     assert not (tmp_path / "c").exists()
+    with pytest.MonkeyPatch.context() as mp:  # a parent folder that refuses a new folder
+        def no_folder(*args, **kwargs):
+            raise PermissionError(13, "Permission denied")
+        mp.setattr(web.tempfile, "mkdtemp", no_folder)
+        refused([str(onnx), "-o", str(tmp_path / "e")],
+                f"{tmp_path / 'e'}: cannot create a folder in {tmp_path} (Permission denied)")
     web.ORT_DIST = tmp_path / "empty"  # fake_libraries' monkeypatch restores it
     refused([str(onnx), "-o", str(tmp_path / "d")], "npm ci --prefix")
     assert not (tmp_path / "d").exists()
