@@ -201,12 +201,17 @@ class _CountingJudge:
     """A stand-in for the held-out views: each view's error counts the knots within one spacing
     of its time that are drawn where the object is absent, or hidden where it is present."""
 
-    def __init__(self, view_times, knot_times, present, per_knot):
-        self.times, self.knots = view_times, knot_times
+    def __init__(self, view_times, knot_times, present, per_knot, train_times=()):
+        self.held_out = len(view_times)
+        self.times, self.knots = list(view_times) + list(train_times), knot_times
         self.present, self.per_knot = present, per_knot
 
     def views_in(self, span):
-        return [k for k, t in enumerate(self.times) if span[0] <= t <= span[1]]
+        return [k for k, t in enumerate(self.times[:self.held_out]) if span[0] <= t <= span[1]]
+
+    def unfitted_in(self, span, fitted):
+        return [self.held_out + k for k, t in enumerate(self.times[self.held_out:])
+                if span[0] <= t <= span[1] and not fitted[0] <= t <= fitted[1]]
 
     def error(self, views, hide):
         hidden = np.bincount(np.asarray(hide, np.int64) // self.per_knot,
@@ -222,7 +227,8 @@ def test_an_objects_ends_are_kept_only_as_far_as_the_held_out_views_agree():
     """Knots every 0.01 over 0-0.19, its track seeing it over 0.05-0.12, the object there over
     0.05-0.15 (it runs on past its last blob, then is gone). With held-out views at 0.035 (none
     there), 0.08 (there) and 0.165 (gone): the knots kept are 0.05-0.15, those of the seen span
-    and the three after it that no view contradicts, not 0.04 or 0.16. With the object nowhere,
+    and the three after it that no view contradicts, not 0.04 or 0.16. A training view past
+    the span its fit saw judges as a held-out one does. With the object nowhere,
     the view inside its seen span rejects it whole; with no view, every knot is kept; where
     hiding the chains it would replace costs more than it gains, it is kept beside them; of
     two sets of rows it may replace, the one whose hiding the views prefer is chosen."""
@@ -239,6 +245,13 @@ def test_an_objects_ends_are_kept_only_as_far_as_the_held_out_views_agree():
     judge = _CountingJudge([0.035, 0.08, 0.165], knots, np.zeros(20, bool), 2)
     assert _kept_knots(obj, judge, rows, knot_of, [none], 0.01) is None
     judge = _CountingJudge([], knots, present, 2)
+    assert _kept_knots(obj, judge, rows, knot_of, [none], 0.01) == (0, 19, 0)
+    # no held-out view past its end, but training views there that its fit (0.04-0.13) did not
+    # see: the one at 0.165 (gone) trims the knots past 0.15 as a held-out view would; one at
+    # 0.125, inside the fitted span, says nothing
+    judge = _CountingJudge([0.08], knots, present, 2, train_times=[0.125, 0.165])
+    assert _kept_knots(obj, judge, rows, knot_of, [none], 0.01) == (0, 15, 0)
+    judge = _CountingJudge([0.08], knots, present, 2, train_times=[0.125])
     assert _kept_knots(obj, judge, rows, knot_of, [none], 0.01) == (0, 19, 0)
     # chains (rows 40-41) that still draw what the object's copies miss: kept beside them
     judge = _ChainsStillNeeded([0.035, 0.08, 0.165], knots, present, 2)
