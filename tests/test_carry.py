@@ -197,21 +197,27 @@ def test_the_fit_leaves_out_the_views_past_what_its_track_saw():
     assert error < 0.25 * whole_error, (error, whole_error)
 
 
+def _times_only(times):
+    """Views with times and no pictures (what `_CountingJudge` reads)."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(cameras=[None] * len(times), images=[None] * len(times),
+                           times=list(times))
+
+
 class _CountingJudge:
-    """A stand-in for the held-out views: each view's error counts the knots within one spacing
-    of its time that are drawn where the object is absent, or hidden where it is present."""
+    """A stand-in for the stage's judge (`nehad.carry_stage._Judge`, whose choice of views it
+    keeps: the held-out ones and the training ones past a fit's span): each view's error counts
+    the knots within one spacing of its time that are drawn where the object is absent, or
+    hidden where it is present."""
 
     def __init__(self, view_times, knot_times, present, per_knot, train_times=()):
-        self.held_out = len(view_times)
-        self.times, self.knots = list(view_times) + list(train_times), knot_times
+        from nehad.carry_stage import _Judge
+
+        self._views = _Judge(None, _times_only(view_times), 0, None, _times_only(train_times))
+        self.views_in, self.unfitted_in = self._views.views_in, self._views.unfitted_in
+        self.times, self.knots = self._views.views.times, knot_times
         self.present, self.per_knot = present, per_knot
-
-    def views_in(self, span):
-        return [k for k, t in enumerate(self.times[:self.held_out]) if span[0] <= t <= span[1]]
-
-    def unfitted_in(self, span, fitted):
-        return [self.held_out + k for k, t in enumerate(self.times[self.held_out:])
-                if span[0] <= t <= span[1] and not fitted[0] <= t <= fitted[1]]
 
     def error(self, views, hide):
         hidden = np.bincount(np.asarray(hide, np.int64) // self.per_knot,
