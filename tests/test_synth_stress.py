@@ -49,6 +49,27 @@ def test_written_scene_layout_and_masks(tmp_path):
     assert (root / "fused.ply").stat().st_size > 500 * 15
 
 
+def test_a_scene_of_given_objects_is_written_like_the_suite(tmp_path):
+    """`objects=` draws a caller's scene (bench/variant_scenes.py) in the suite's protocol: its
+    names in the class mapping, and a frame's pixels those of the objects at its time."""
+    from nehad.data.synth_stress import FLOOR
+    from nehad.runtime.images import read_image
+
+    def objects(t):
+        return [FLOOR, Sphere("ball", np.array([0.3 * t, 0.0, 0.3]), 0.3, (0.9, 0.1, 0.1))]
+
+    root = synthesize_stress_scene(tmp_path / "v", "any name", resolution=24, frames=20,
+                                   points=0, supersample=1, objects=objects)
+    assert json.loads((root / "class_mapping.json").read_text()) == {"0": "background",
+                                                                     "1": "ball"}
+    frame = json.loads((root / "transforms_train.json").read_text())["frames"][3]
+    cam = rig_camera(frame["camera"], 24, time=frame["time"])
+    stem = frame["file_path"].split("/")[-1]
+    ours = read_image(root / "train" / f"{stem}.png")
+    np.testing.assert_allclose(ours, render_view(objects(frame["time"]), cam, supersample=1),
+                               atol=1 / 255)
+
+
 def test_label_mask_follows_coverage():
     """Against an independent count: each pixel of a lone sphere's mask is a pixel whose centre
     ray hits the sphere, up to the pixels on its outline."""

@@ -49,14 +49,14 @@ from nehad.runtime.images import atomic_write_bytes
 from .synth import (Box, Sphere, Surface, _axis_angle, class_mapping,
                     orbit_camera_to_world, write_frame)
 
-__all__ = ["STRESS_SCENES", "stress_objects", "rig_cameras", "rig_camera", "stress_plan",
+__all__ = ["FLOOR", "STRESS_SCENES", "stress_objects", "rig_cameras", "rig_camera", "stress_plan",
            "synthesize_stress_scene", "synthesize_stress_suite"]
 
 #: One scene per failure class (module docstring).
 STRESS_SCENES = ("occluder", "crossing", "scaling", "split_merge", "spinning_textures",
                  "thin_rod", "fast_few_frames")
 
-_FLOOR = Box("floor", np.array([0.0, 0.0, -0.02]), np.array([4.0, 4.0, 0.02]), np.eye(3),
+FLOOR = Box("floor", np.array([0.0, 0.0, -0.02]), np.array([4.0, 4.0, 0.02]), np.eye(3),
              (1.0, 1.0, 1.0), surface=Surface(unlit=True), labelled=False)
 _TARGET = (0.0, 0.0, 0.4)
 _FOV_DEG = 50.0
@@ -79,7 +79,7 @@ def _occluder(t: float) -> list:
     """A small sphere on a long loop that passes behind a large static wall."""
     th = 2.0 * math.pi * t
     return [
-        _FLOOR,
+        FLOOR,
         Box("wall", np.array([0.0, 0.0, 0.75]), np.array([0.06, 1.1, 0.75]), np.eye(3),
             (0.2, 0.3, 0.9)),
         Sphere("sphere", np.array([1.0 * math.cos(th), 1.45 * math.sin(th),
@@ -91,7 +91,7 @@ def _crossing(t: float) -> list:
     """Two identical spheres whose paths cross (at different times)."""
     colour = (0.35, 0.8, 0.45)
     return [
-        _FLOOR,
+        FLOOR,
         Sphere("sphere_1", np.array([2.2 * (t - 0.35), 1.5 * (t - 0.35), 0.25]), 0.25, colour),
         Sphere("sphere_2", np.array([2.2 * (t - 0.65), -1.5 * (t - 0.65), 0.25]), 0.25, colour),
     ]
@@ -102,7 +102,7 @@ def _scaling(t: float) -> list:
     r = 0.08 * (0.45 / 0.08) ** t
     h = 0.4 * (0.08 / 0.4) ** t
     return [
-        _FLOOR,
+        FLOOR,
         Sphere("grower", np.array([-0.6, -0.1, r]), r, (0.9, 0.3, 0.25)),
         Box("shrinker", np.array([0.6, 0.3, h]), np.array([h, h, h]),
             _axis_angle([0.0, 0.0, 1.0], 0.5), (0.25, 0.5, 0.9)),
@@ -117,7 +117,7 @@ def _split_merge(t: float) -> list:
     m = np.array([0.6, 0.5, 0.22])
     pink, blue = (0.85, 0.3, 0.6), (0.2, 0.6, 0.9)
     return [
-        _FLOOR,
+        FLOOR,
         Sphere("piece_stays", a, 0.22, pink),
         Sphere("piece_splits_off", a + split * np.array([0.9, -0.6, 0.0]), 0.22, pink),
         Sphere("merger_1", m + merge * np.array([0.0, 0.9, 0.0]), 0.22, blue),
@@ -129,7 +129,7 @@ def _spinning_textures(t: float) -> list:
     """A checkered sphere that spins and bounces, a striped box that spins."""
     r = 0.35
     return [
-        _FLOOR,
+        FLOOR,
         Sphere("checker_sphere",
                np.array([-0.5 + 1.0 * t, -0.2, r + 0.7 * abs(math.sin(3.0 * math.pi * t))]), r,
                (0.6, 0.2, 0.8), rotation=_axis_angle([0.3, 0.2, 1.0], 6.0 * math.pi * t),
@@ -143,7 +143,7 @@ def _spinning_textures(t: float) -> list:
 def _thin_rod(t: float) -> list:
     """A rod 23 times longer than it is thick, spinning four turns."""
     return [
-        _FLOOR,
+        FLOOR,
         Box("rod", np.array([0.0, 0.0, 0.6]), np.array([0.7, 0.03, 0.03]),
             _axis_angle([0.3, 0.2, 1.0], 8.0 * math.pi * t), (0.9, 0.25, 0.2)),
     ]
@@ -160,7 +160,7 @@ def _fast_few_frames(t: float) -> list:
     else:
         ball = np.array([-1.5 + 3.0 * u, 0.3, -0.3 + 6.4 * u * (1.0 - u)])
     return [
-        _FLOOR,
+        FLOOR,
         Box("block", np.array([0.0, -0.7, 0.25]), np.array([0.25, 0.25, 0.25]),
             _axis_angle([0.0, 0.0, 1.0], 0.3), (0.3, 0.7, 0.35)),
         Sphere("ball", ball, 0.15, (0.95, 0.8, 0.1)),
@@ -214,15 +214,18 @@ def stress_plan(frames: int) -> dict[str, list[tuple[int, float, int]]]:
 
 def synthesize_stress_scene(out_dir, name: str, resolution: int = 400, frames: int = 120,
                             seed: int = 0, supersample: int = 2, points: int = 100_000,
-                            progress=None) -> Path:
+                            progress=None, objects=None) -> Path:
     """Write stress scene `name` to `out_dir` (module docstring) and return its path.
 
     `resolution` is the square image size, `frames` the number of timestamps (120: 84 train,
     18 test, 18 val); `seed` only draws ``fused.ply``. `progress`, if given, is called once per
-    image. Same arguments give the same bytes.
+    image. `objects`, if given, is a function of time returning the objects to draw instead of
+    scene `name`'s (the floor first; ``bench/variant_scenes.py`` writes unseen scenes of each
+    kind this way). Same arguments give the same bytes.
     """
-    if name not in STRESS_SCENES:
+    if objects is None and name not in STRESS_SCENES:
         raise _unknown(name)
+    objects_at = objects or (lambda t: stress_objects(name, t))
     resolution, frames = int(resolution), int(frames)
     if resolution < 4:
         raise ValueError(f"resolution: expected an integer >= 4, got {resolution}")
@@ -239,7 +242,7 @@ def synthesize_stress_scene(out_dir, name: str, resolution: int = 400, frames: i
         for k, t, cam_id in entries:
             cam = rig_camera(cam_id, resolution, time=t)
             file = f"r_{k:04d}"
-            write_frame(out, split, file, stress_objects(name, t), cam, supersample)
+            write_frame(out, split, file, objects_at(t), cam, supersample)
             if progress is not None:
                 progress()
             records.append({"file_path": f"./{split}/{file}", "time": t, "camera": cam_id,
@@ -247,7 +250,7 @@ def synthesize_stress_scene(out_dir, name: str, resolution: int = 400, frames: i
         atomic_write_bytes(out / f"transforms_{split}.json", (json.dumps(
             {"camera_angle_x": angle_x, "frames": records}, indent=2) + "\n").encode("utf-8"))
     atomic_write_bytes(out / "class_mapping.json", (json.dumps(
-        class_mapping(stress_objects(name, 0.0)), indent=2) + "\n").encode("utf-8"))
+        class_mapping(objects_at(0.0)), indent=2) + "\n").encode("utf-8"))
     if points > 0:
         rng = np.random.default_rng(int(seed))
         pts = rng.uniform(-2.0, 2.0, size=(int(points), 3)).astype(np.float32)
