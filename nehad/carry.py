@@ -234,6 +234,7 @@ def objects_from_tracks(tracks, cameras, spacing: float, time_range, members: in
 #: "Objects carried along their tracks", step 6).
 END_BLOBS = 7
 GAP_BLOBS = (5, 7)
+GAP_DEGREES = (3, 2)
 GAP_STEPS = 2.5
 
 
@@ -271,12 +272,14 @@ def refit_unseen(obj: CarriedObject, choose=None) -> None:
                                   (inside(last[0], last[-1]), times > seen[-1] + eps, seen[-1])):
         obj.points, obj.velocities = _refit(obj, fix, fix_rate, window, where, origin, 2)
     steps = np.diff(seen)
+    pad = 0.5 * float(np.median(np.diff(times))) if len(times) > 1 else 0.0
     for i in np.nonzero(steps > GAP_STEPS * np.median(steps))[0]:
         a, b = seen[i], seen[i + 1]
         where, options = (times > a + eps) & (times < b - eps), [obj]
-        for n in GAP_BLOBS:
-            window = inside(seen[max(i + 1 - n, 0)], a) | inside(b, seen[min(i + n, len(seen) - 1)])
-            points, velocities = _refit(obj, fix, fix_rate, window, where, 0.5 * (a + b), 3)
+        for degree, n in ((d, n) for d in GAP_DEGREES for n in GAP_BLOBS):
+            window = (inside(seen[max(i + 1 - n, 0)] - pad, a + pad)
+                      | inside(b - pad, seen[min(i + n, len(seen) - 1)] + pad))
+            points, velocities = _refit(obj, fix, fix_rate, window, where, 0.5 * (a + b), degree)
             options.append(replace(obj, points=points, velocities=velocities))
         pick = choose(obj, (a, b), options) if choose is not None else None
         chosen = options[1 if pick is None else pick]

@@ -193,8 +193,9 @@ class CarveConfig:
     carry_members: int = 24  # Gaussians of one carried object (written out at every frame spacing)
     carry_min_blobs: int = 12  # shorter tracks are carried only as carry_absent_cover says
     carry_absent_cover: float = 0.3  # a shorter track is carried where the render (chains
-    # hidden) covers its blobs less than this on the mean: an object the model does not draw at
-    # all, not a texture it draws wrong (nehad.carry_stage.carried_tracks); 0: never
+    # hidden) covers its blobs less than this on the mean, or covers 3 of them less than this:
+    # an object the model does not draw at all, not a texture it draws wrong
+    # (nehad.carry_stage.carried_tracks); 0: never
     carry_knots: int = 1  # frame spacings between a carried object's written-out copies (each
     # lives as many spacings)
     carry_spin: bool = True  # also carry the moving objects whose blobs turn with a spin the

@@ -186,7 +186,7 @@ def test_unseen_knots_are_placed_from_the_corrected_path():
     kept = replace(obj, points=obj.points.copy(), velocities=obj.velocities.copy())
     asked = []
     refit_unseen(kept, lambda o, span, options: asked.append((span, len(options))) or 0)
-    assert asked == [((0.35, 0.65), 3)]  # one gap; the track's path and two cubics
+    assert asked == [((0.35, 0.65), 5)]  # one gap; the track's path, two cubics, two quadratics
     assert np.array_equal(kept.points[gap], untouched[gap])  # the track's own path chosen
     ends = (knots < 0.0) | (knots > 1.0)
     assert not np.allclose(kept.points[ends], untouched[ends])  # the ends run on anew
@@ -196,6 +196,38 @@ def test_unseen_knots_are_placed_from_the_corrected_path():
     rate = np.where((knots >= 0.0) & (knots <= 1.0), 1.0, 0.0)[:, None] * [0.1, 0.2, 0.0]
     velocity = v + np.outer(knots, a) + rate  # the correction's own rate (-bias') taken off
     assert np.allclose(obj.velocities[unseen], velocity[unseen], atol=1e-5)
+
+
+def test_a_gap_with_one_blob_past_it_is_bridged_from_both_sides():
+    """A gap of a track with one blob after it, between two knots (a fast ball seen once after a
+    held-out block): the options across it are the track's own path, then cubics and
+    quadratics (GAP_DEGREES) over GAP_BLOBS blobs a side, each the least-squares polynomial
+    (numpy's, here) of the corrected points at the knots before the gap and at the knot
+    within half a spacing of the one blob after it; before 2026-12-02 no knot lay on that
+    side, and the polynomials ran on from one side only."""
+    from nehad.carry import GAP_BLOBS, GAP_DEGREES
+
+    knots = np.round(np.arange(0.0, 1.001, 0.05), 9)
+    truth = lambda t: np.stack([np.sin(3.0 * t), np.cos(2.0 * t), t * t], axis=1)  # noqa: E731
+    seen = np.concatenate([knots[knots <= 0.5], [0.81]])
+    points = truth(knots)
+    bulge = (knots > 0.5) & (knots < 0.79)
+    points[bulge] += [0.3, -0.2, 0.1]  # the track's own path across the gap: off
+    obj = _object(knots, points, np.zeros_like(points), np.zeros((2, 3)))
+    obj.seen, obj.seen_times = (0.0, 0.81), seen
+    obj.fix_times, obj.path_fix = np.array([0.0, 0.5, 0.81]), _leaf(np.zeros((3, 3)))
+    offered = []
+    refit_unseen(obj, lambda o, span, options: offered.append((span, options)) or 0)
+    (span, options), = offered
+    assert span == (0.5, 0.81) and len(options) == 1 + len(GAP_DEGREES) * len(GAP_BLOBS)
+    gap = (knots > 0.5) & (knots < 0.81)
+    assert np.array_equal(options[0].points[gap], points[gap])
+    poly = np.polynomial.polynomial
+    for option, (degree, n) in zip(options[1:], [(d, n) for d in GAP_DEGREES
+                                                 for n in GAP_BLOBS]):
+        window = ((knots >= seen[-2 - (n - 1)] - 1e-9) & (knots <= 0.5)) | (knots == 0.8)
+        coef = poly.polyfit(knots[window], points[window], degree)
+        assert np.allclose(option.points[gap], poly.polyval(knots[gap], coef).T, atol=1e-6)
 
 
 def test_fit_on_the_views_draws_the_object():
@@ -334,9 +366,11 @@ class _ChainsStillNeeded(_CountingJudge):
 
 def test_a_short_track_is_carried_only_where_nothing_is_drawn_over_it():
     """`carried_tracks`: a 12-blob track whatever the render covers; a 7-blob one (a fast object
-    seen in few views) where the render covers its blobs 0.1 on the mean, not where it covers
-    them 0.6 (a texture drawn in the wrong colours), nor where the covers are unknown."""
-    from nehad.carry_stage import carried_tracks
+    seen in few views) where the render covers its blobs 0.1 on the mean, or covers 3 of them
+    0.0 and the rest 0.9 (the object partly before a drawn backdrop: 0.51 on the mean), not
+    where it covers them 0.6 (a texture drawn in the wrong colours), nor 2 of them 0.0 and the
+    rest 0.9, nor where the covers are unknown."""
+    from nehad.carry_stage import ABSENT_BLOBS, carried_tracks
     from nehad.tracks import Blob, Track
 
     def track(n, covers):
@@ -344,9 +378,13 @@ def test_a_short_track_is_carried_only_where_nothing_is_drawn_over_it():
                            np.array([0.0, 0.0, 1.0]), cover=c)
                       for i, c in zip(range(n), np.resize(covers, n))])
 
+    assert ABSENT_BLOBS == 3
     long_covered, fast, texture, unknown, edge = (
         track(12, [0.9]), track(7, [0.0, 0.2, 0.1]), track(7, [0.6]), track(7, [np.nan]),
         track(7, [0.3]))  # at the bound: not under it
-    kept = carried_tracks([long_covered, fast, texture, unknown, edge], 12, 0.3)
-    assert [len(t.blobs) for t in kept] == [12, 7] and kept[1] is fast
+    before_box, two_gaps = track(7, [0.0] * 3 + [0.9] * 4), track(7, [0.0] * 2 + [0.9] * 5)
+    kept = carried_tracks([long_covered, fast, texture, unknown, edge, before_box, two_gaps],
+                          12, 0.3)
+    assert [len(t.blobs) for t in kept] == [12, 7, 7]
+    assert kept[1] is fast and kept[2] is before_box
     assert carried_tracks([fast], 12, 0.0) == []  # 0 turns the short ones off

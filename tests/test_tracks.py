@@ -151,6 +151,38 @@ def test_a_blobs_cover_is_the_renders_mean_alpha_over_its_pixels():
     assert math.isnan(plain.cover)
 
 
+def test_a_blob_widened_to_its_objects_pixels_is_centred_on_the_object():
+    """A red disc of radius 6 px over white, beside a red square 30 px away and a disc of
+    another hue touching it; the render draws the disc's right half (in its own colour), so
+    the unexplained blob is its left half, 2.5 px left of the centre on its own. Widened
+    (`widen_tol`), the blob's centroid is the disc's centre to 0.05 px and its colour the
+    disc's; the square (beyond the reach) and the other hue are left out; its area and cover
+    stay the left half's."""
+    cam = rig_camera(0, 96)
+    yy, xx = np.mgrid[0:96, 0:96] + 0.5
+    disc = (xx - 40.0) ** 2 + (yy - 50.0) ** 2 <= 36.0
+    other = ((xx - 52.0) ** 2 + (yy - 50.0) ** 2 <= 36.0) & ~disc
+    target = np.ones((96, 96, 3))
+    target[disc] = (0.8, 0.1, 0.1)
+    target[other] = (0.1, 0.1, 0.8)
+    target[45:55, 70:80] = (0.8, 0.1, 0.1)  # 30 px right of the disc's centre
+    drawn, drawn_alpha = np.ones_like(target), np.zeros((96, 96))
+    right = disc & (xx > 40.0)
+    drawn[right], drawn_alpha[right] = target[right], 1.0
+    drawn[other] = target[other]
+    drawn[45:55, 70:80] = target[45:55, 70:80]
+    plain, = find_blobs([cam], [0.5], [target], [None], [drawn], covers=[drawn_alpha])
+    wide, = find_blobs([cam], [0.5], [target], [None], [drawn], covers=[drawn_alpha],
+                       widen_tol=0.08)
+    assert plain.centre[0] < 40.0 - 2.0  # the left half's centroid
+    assert np.abs(wide.centre - [40.0, 50.0]).max() < 0.05
+    assert np.allclose(wide.colour, (0.8, 0.1, 0.1))
+    assert wide.area == plain.area == int((disc & ~right).sum())
+    assert wide.cover == plain.cover == 0.0
+    half_var = np.cov(np.stack([xx[disc], yy[disc]]), bias=True) + np.eye(2) / 12
+    assert np.allclose(wide.shape, half_var, atol=0.05)  # the whole disc's spread
+
+
 def test_blobs_with_no_common_path_make_no_track():
     """A sphere drawn nowhere that jumps to a random place at every time: one blob per view,
     but no smooth path through their rays, so no track (the same views with the loop's sphere
