@@ -226,12 +226,14 @@ def objects_from_tracks(tracks, cameras, spacing: float, time_range, members: in
 #: After the fit, the knots an object's track did not see are re-placed from its corrected path
 #: (`refit_unseen`): past each end along a quadratic fitted over the times of its END_BLOBS blobs
 #: nearest the end (the track's own end fit takes as many); across a gap along the track's own
-#: path or a cubic fitted over GAP_BLOBS blobs on either side, whichever the held-out views in
-#: the gap prefer. A gap is two of its blobs more than GAP_STEPS of its median step apart (a
-#: held-out block of times). No one choice serves every gap: on two occluder variants, the
-#: cubic over 5 blobs a side was the closest to the truth across 4 of 10 gaps, over 7 blobs
-#: across 3, the two level across 1, the track's own path across 2 (docs/training.md,
-#: "Objects carried along their tracks", step 6).
+#: path or a polynomial of each of GAP_DEGREES fitted over GAP_BLOBS blobs on either side (the
+#: knots within half a knot spacing of them), whichever the held-out views in the gap prefer. A
+#: gap is two of its blobs more than GAP_STEPS of its median step apart (a held-out block of
+#: times). No one choice serves every gap: on two occluder variants, the cubic over 5 blobs a
+#: side was the closest to the truth across 4 of 10 gaps, over 7 blobs across 3, the two level
+#: across 1, the track's own path across 2; across a fast ball's block in mid-flight, one blob
+#: after it, the quadratics were (docs/training.md, "Objects carried along their tracks",
+#: step 6).
 END_BLOBS = 7
 GAP_BLOBS = (5, 7)
 GAP_DEGREES = (3, 2)
@@ -243,9 +245,9 @@ def refit_unseen(obj: CarriedObject, choose=None) -> None:
     gaps, from its path as the fit corrected it (`path_fix`): a polynomial motion fitted, by
     least squares, to the corrected points at its knots about them (END_BLOBS, GAP_BLOBS), its
     place and velocity there taken. Across a gap `choose(obj, (a, b), options)` says which of
-    the options (the track's own path first, then a cubic per GAP_BLOBS; each an object with
-    those knots) to take; without it, or where it returns None, the first cubic. Without a
-    correction nothing changes.
+    the options (the track's own path first, then a polynomial per GAP_DEGREES and GAP_BLOBS,
+    the cubics first; each an object with those knots) to take; without it, or where it
+    returns None, the first cubic. Without a correction nothing changes.
 
     The track's own path there (`Track.smooth_at`) runs on along a quadratic through its end
     blobs and crosses a gap along a cubic through the two samples at its edges, and where an
