@@ -23,6 +23,7 @@ path's velocity (docs/training.md, "Objects that spin")."""
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -231,9 +232,9 @@ def objects_from_tracks(tracks, cameras, spacing: float, time_range, members: in
 #: gap is two of its blobs more than GAP_STEPS of its median step apart (a held-out block of
 #: times). No one choice serves every gap: on two occluder variants, the cubic over 5 blobs a
 #: side was the closest to the truth across 4 of 10 gaps, over 7 blobs across 3, the two level
-#: across 1, the track's own path across 2; across a fast ball's block in mid-flight, one blob
-#: after it, the quadratics were (docs/training.md, "Objects carried along their tracks",
-#: step 6).
+#: across 1, the track's own path across 2; across a fast ball's block in mid-flight, with one
+#: blob after it, the quadratics were the closest (docs/training.md, "Objects carried along
+#: their tracks", step 6).
 END_BLOBS = 7
 GAP_BLOBS = (5, 7)
 GAP_DEGREES = (3, 2)
@@ -278,7 +279,7 @@ def refit_unseen(obj: CarriedObject, choose=None) -> None:
     for i in np.nonzero(steps > GAP_STEPS * np.median(steps))[0]:
         a, b = seen[i], seen[i + 1]
         where, options = (times > a + eps) & (times < b - eps), [obj]
-        for degree, n in ((d, n) for d in GAP_DEGREES for n in GAP_BLOBS):
+        for degree, n in itertools.product(GAP_DEGREES, GAP_BLOBS):
             window = (inside(seen[max(i + 1 - n, 0)] - pad, a + pad)
                       | inside(b - pad, seen[min(i + n, len(seen) - 1)] + pad))
             points, velocities = _refit(obj, fix, fix_rate, window, where, 0.5 * (a + b), degree)

@@ -4,6 +4,7 @@ fit on ray-cast views of a sphere on a loop against the truth."""
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import replace
 
@@ -223,8 +224,7 @@ def test_a_gap_with_one_blob_past_it_is_bridged_from_both_sides():
     gap = (knots > 0.5) & (knots < 0.81)
     assert np.array_equal(options[0].points[gap], points[gap])
     poly = np.polynomial.polynomial
-    for option, (degree, n) in zip(options[1:], [(d, n) for d in GAP_DEGREES
-                                                 for n in GAP_BLOBS]):
+    for option, (degree, n) in zip(options[1:], itertools.product(GAP_DEGREES, GAP_BLOBS)):
         window = ((knots >= seen[-2 - (n - 1)] - 1e-9) & (knots <= 0.5)) | (knots == 0.8)
         coef = poly.polyfit(knots[window], points[window], degree)
         assert np.allclose(option.points[gap], poly.polyval(knots[gap], coef).T, atol=1e-6)

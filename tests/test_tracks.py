@@ -179,8 +179,8 @@ def test_a_blob_widened_to_its_objects_pixels_is_centred_on_the_object():
     assert np.allclose(wide.colour, (0.8, 0.1, 0.1))
     assert wide.area == plain.area == int((disc & ~right).sum())
     assert wide.cover == plain.cover == 0.0
-    half_var = np.cov(np.stack([xx[disc], yy[disc]]), bias=True) + np.eye(2) / 12
-    assert np.allclose(wide.shape, half_var, atol=0.05)  # the whole disc's spread
+    disc_var = np.cov(np.stack([xx[disc], yy[disc]]), bias=True) + np.eye(2) / 12
+    assert np.allclose(wide.shape, disc_var, atol=0.05)  # the whole disc's spread
 
 
 def test_blobs_with_no_common_path_make_no_track():
