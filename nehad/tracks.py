@@ -105,16 +105,22 @@ def widened(rows: np.ndarray, cols: np.ndarray, target: np.ndarray, alpha, tol: 
     foreground (alpha >= 0.5 where known) pixels whose chromaticity is within `tol` of the
     blob's mean, 8-connected to the blob, inside a square of WIDEN_REACH times the blob's
     radius (plus 2 px) about its centroid (so that a backdrop of a like colour does not
-    swallow it)."""
+    swallow it). A blob whose chromaticity is within 2 `tol` of grey's (1/3 each) is returned
+    as it is: pixels within `tol` of grey (white, grey and black floors, walls and
+    backdrops) would be taken as its own, and an object's edge blended with a white floor
+    is such a blob (the second occluder variant's sphere: its blobs taken for the floor's,
+    their colour with them, and its track broken; docs/results.md, 2026-12-02)."""
     import cv2
 
+    colour = _chroma(target[rows, cols].reshape(-1, 3).mean(axis=0))
+    if np.abs(colour - 1.0 / 3.0).max() <= 2.0 * tol:
+        return rows, cols
     h, w = target.shape[:2]
     reach = int(np.ceil(WIDEN_REACH * np.sqrt(len(rows) / np.pi) + 2))
     r0, c0 = int(rows.mean()), int(cols.mean())
     y0, y1 = max(r0 - reach, 0), min(r0 + reach + 1, h)
     x0, x1 = max(c0 - reach, 0), min(c0 + reach + 1, w)
     patch = target[y0:y1, x0:x1]
-    colour = _chroma(target[rows, cols].reshape(-1, 3).mean(axis=0))
     like = np.abs(_chroma(patch) - colour).max(axis=-1) <= tol
     if alpha is not None:
         like &= alpha.reshape(h, w)[y0:y1, x0:x1] >= 0.5

@@ -183,6 +183,28 @@ def test_a_blob_widened_to_its_objects_pixels_is_centred_on_the_object():
     assert np.allclose(wide.shape, disc_var, atol=0.05)  # the whole disc's spread
 
 
+def test_a_pale_blob_is_not_widened_into_a_white_floor():
+    """A pale lilac disc (an object's edge blended with the floor: the second occluder
+    variant's sphere, docs/results.md, 2026-12-02) on a white floor, a blue wall left of it,
+    all of it unexplained. Its chromaticity is within 2 `widen_tol` of grey's, so widening
+    would take the white floor for it (the blob's centroid pulled right onto the floor, its
+    colour white); it is left as it is."""
+    cam = rig_camera(0, 96)
+    yy, xx = np.mgrid[0:96, 0:96] + 0.5
+    disc = (xx - 40.0) ** 2 + (yy - 50.0) ** 2 <= 16.0
+    target = np.ones((96, 96, 3))
+    target[xx < 36.0] = (0.1, 0.1, 0.6)
+    target[disc] = (0.64, 0.55, 0.78)
+    drawn = target.copy()
+    drawn[disc] = 1.0
+    plain, = find_blobs([cam], [0.5], [target], [None], [drawn])
+    wide, = find_blobs([cam], [0.5], [target], [None], [drawn], widen_tol=0.08)
+    assert np.abs(plain.centre - [40.0, 50.0]).max() < 0.05
+    assert np.array_equal(wide.centre, plain.centre)
+    assert np.allclose(wide.colour, (0.64, 0.55, 0.78))
+    assert np.array_equal(wide.shape, plain.shape)
+
+
 def test_blobs_with_no_common_path_make_no_track():
     """A sphere drawn nowhere that jumps to a random place at every time: one blob per view,
     but no smooth path through their rays, so no track (the same views with the loop's sphere
