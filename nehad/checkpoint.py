@@ -17,6 +17,7 @@ run left behind are removed by the next save or ``--resume`` (:mod:`nehad.runtim
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import time
@@ -30,6 +31,9 @@ from nehad.runtime.tempfiles import STALE_SECONDS, make_temp, remove_stale_temps
 
 #: Keys every file of a run (checkpoint or model.pt) holds.
 REQUIRED_KEYS = ("gaussians", "field", "config")
+#: The `format` RUN/model.pt records (nehad.trainer.Trainer.model_state): the layout this
+#: loader reads. A file that names another is refused; a checkpoint names none.
+RUN_FORMAT = "nehad-run/1"
 # temporary names of atomic_torch_save before issue 15: tempfile.mkstemp(prefix=".NAME.")
 _OLD_TEMP = re.compile(r"^\.(step_\d+|model)\.pt\.[a-z0-9_]{8}$")
 
@@ -196,6 +200,7 @@ def _check_contents(state: dict, source: str) -> None:
                               f"{', '.join(absent)})")
     if not all(torch.is_tensor(v) for v in state["field"].values()):
         raise CheckpointError(f"{source}: not a nehad run file (its field holds non-tensors)")
+    _check_gaussian_shapes(GaussianParameters.with_defaults(g), source)
     for part in ("gaussians", "field"):
         bad = [k for k, v in state[part].items()
                if v.is_floating_point() and not bool(torch.isfinite(v).all())]
@@ -210,10 +215,45 @@ def _check_contents(state: dict, source: str) -> None:
                               f"({' '.join(str(e).split())})") from None
 
 
+def _row_shapes(shapes) -> str:
+    """`(N, 3)`, `(N,) or (N, 1)`: the shapes a Gaussian tensor may have, for a message."""
+    text = ["(" + ", ".join(["N"] + [str(d) for d in row]) + ("," if not row else "") + ")"
+            for row in shapes]
+    return " or ".join(text) if len(text) < 3 else ", ".join(text[:-1]) + " or " + text[-1]
+
+
+def _check_gaussian_shapes(g: dict, source: str) -> None:
+    """Every Gaussian tensor holds one row per Gaussian, of a shape
+    `GaussianParameters.ROW_SHAPES` allows, all with the same number N > 0 of rows, and every
+    quaternion is non-zero (a rotation is the quaternion divided by its length)."""
+    from nehad.gaussians import GaussianParameters
+
+    for name, rows in GaussianParameters.ROW_SHAPES.items():
+        shape = tuple(g[name].shape)
+        if not shape or shape[1:] not in rows:
+            raise CheckpointError(f"{source}: its Gaussians' {name} has shape "
+                                  f"{list(shape)}, expected {_row_shapes(rows)}")
+    counts = {name: g[name].shape[0] for name in GaussianParameters.ROW_SHAPES}
+    if len(set(counts.values())) > 1:
+        raise CheckpointError(f"{source}: its Gaussian tensors have different numbers of rows ("
+                              + ", ".join(f"{k} {v}" for k, v in counts.items()
+                                          if k == "means" or v != counts["means"]) + ")")
+    if counts["means"] == 0:
+        raise CheckpointError(f"{source}: holds no Gaussians (0 rows); there is nothing to "
+                              f"render")
+    zero = torch.nonzero(g["quats"].norm(dim=-1) == 0).reshape(-1).tolist()
+    if zero:
+        raise CheckpointError(f"{source}: its Gaussians' quats are all zero in {len(zero)} "
+                              f"rows ({', '.join(map(str, zero[:4]))}"
+                              f"{', ...' if len(zero) > 4 else ''}): such a quaternion is no "
+                              f"rotation")
+
+
 def _check_record(state: dict, source: str) -> None:
     """The plain values a run records beside its tensors (nehad.model.RunInfo reads them):
-    sh_degree 0..3 or absent, background three numbers in [0, 1], time_range two finite
-    numbers, the first not above the second."""
+    format :data:`RUN_FORMAT` or absent, sh_degree 0..3 or absent, background three numbers in
+    [0, 1], time_range two finite numbers, the first not above the second, extent (the record's
+    and the field's) a finite number above 0."""
     from nehad.data.common import DatasetError, vector
 
     def numbers(key, count):
@@ -222,6 +262,10 @@ def _check_record(state: dict, source: str) -> None:
             return vector(v.tolist() if torch.is_tensor(v) else v, count, source, key)
         except DatasetError as e:
             raise CheckpointError(str(e)) from None
+
+    if state.get("format", RUN_FORMAT) != RUN_FORMAT:
+        raise CheckpointError(f"{source}: its format is {state['format']!r}, not "
+                              f"{RUN_FORMAT!r} (the one this nehad reads)")
 
     degree = state.get("sh_degree")
     if degree is not None and (isinstance(degree, bool) or degree not in (0, 1, 2, 3)):
@@ -234,6 +278,13 @@ def _check_record(state: dict, source: str) -> None:
         lo, hi = numbers("time_range", 2)
         if lo > hi:
             raise CheckpointError(f"{source}: its time_range must not decrease, got [{lo}, {hi}]")
+    for part, value in (("extent", state.get("extent")),
+                        ("field's extent", state["field"].get("extent"))):
+        number = value.item() if torch.is_tensor(value) and value.numel() == 1 else value
+        if value is not None and (isinstance(number, bool) or not isinstance(number, (int, float))
+                                  or not math.isfinite(number) or number <= 0):
+            raise CheckpointError(f"{source}: its {part} must be a finite number above 0, "
+                                  f"got {number!r}")
 
 
 def checkpoint_dir(run: Path) -> Path:

@@ -46,6 +46,12 @@ class GaussianParameters(nn.Module):
 
     NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest", "mu_eq", "t_eq",
              "life_rate", "velocity")
+    #: The shapes one Gaussian's row of each parameter may have (the tensor is (N, *row)):
+    #: sh_rest holds the (degree + 1)^2 - 1 higher SH coefficients of degree 0..3.
+    ROW_SHAPES = {"means": ((3,),), "log_scales": ((3,),), "quats": ((4,),),
+                  "opacity_logits": ((), (1,)), "sh_dc": ((1, 3),),
+                  "sh_rest": tuple(((d + 1) ** 2 - 1, 3) for d in range(4)), "mu_eq": ((3,),),
+                  "t_eq": ((1,),), "life_rate": ((1,),), "velocity": ((3,),)}
 
     def __init__(self, means, log_scales, quats, opacity_logits, sh_dc, sh_rest, mu_eq=None,
                  t_eq=None, life_rate=None, velocity=None):
@@ -76,8 +82,8 @@ class GaussianParameters(nn.Module):
     @staticmethod
     def with_defaults(state: dict) -> dict:
         """`state` (a state dict of these parameters) with `life_rate` and `velocity` = 0 added
-        where absent (states saved before they existed)."""
-        if "means" not in state:
+        where absent (states saved before they existed); as given without a (N, ...) means."""
+        if not torch.is_tensor(state.get("means")) or state["means"].dim() == 0:
             return state
         n = state["means"].shape[0]
         extra = {name: torch.zeros(n, width) for name, width in (("life_rate", 1), ("velocity", 3))

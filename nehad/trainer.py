@@ -17,8 +17,8 @@ import numpy as np
 import torch
 
 from nehad.carve_pass import ResidualCarving, check_run_chains, free_offset_of, pin_mortal
-from nehad.checkpoint import (append_metrics, atomic_torch_save, list_checkpoints, load_state,
-                              prepare_run_dir, save_checkpoint)
+from nehad.checkpoint import (RUN_FORMAT, append_metrics, atomic_torch_save, list_checkpoints,
+                              load_state, prepare_run_dir, save_checkpoint)
 from nehad.config import Config
 from nehad.configtools import to_dict
 from nehad.curriculum import eligible_frames, resolution_factor
@@ -261,7 +261,7 @@ class Trainer:
 
     def model_state(self) -> dict:
         """RUN/model.pt (read back as `nehad.model.load_run`'s model and RunInfo)."""
-        return {"format": "nehad-run/1", "gaussians": self.model.gaussians.state_dict(),
+        return {"format": RUN_FORMAT, "gaussians": self.model.gaussians.state_dict(),
                 "field": self.model.field.state_dict(), "config": to_dict(self.cfg),
                 "aabb": torch.as_tensor(self.aabb), "extent": self.extent,
                 "background": list(self.background),

@@ -129,10 +129,25 @@ def _nan_field(state):
     state["field"][key] = state["field"][key] * float("nan")
 
 
+def _quats_cut(state):
+    state["gaussians"]["quats"] = state["gaussians"]["quats"][:10]
+
+
+def _no_gaussians(state):
+    state["gaussians"] = {k: v[:0] for k, v in state["gaussians"].items()}
+
+
+def _zero_quat(state):
+    state["gaussians"]["quats"][5] = 0.0
+
+
 _EDITS = {"nan_field": _nan_field,
           "background_word": lambda state: state.update(background="white"),
           "sh_degree_9": lambda state: state.update(sh_degree=9),
-          "time_range_nan": lambda state: state.update(time_range=[float("nan"), 1.0])}
+          "time_range_nan": lambda state: state.update(time_range=[float("nan"), 1.0]),
+          "quats_cut": _quats_cut, "no_gaussians": _no_gaussians, "zero_quat": _zero_quat,
+          "format_9": lambda state: state.update(format="nehad-run/9"),
+          "extent_negative": lambda state: state.update(extent=-1.0)}
 
 
 class _Evil:
@@ -141,7 +156,8 @@ class _Evil:
 
 
 BAD_MODELS = ("random", "truncated", "empty", "flipped", "code", "foreign", "nan_field",
-              "background_word", "sh_degree_9", "time_range_nan")
+              "background_word", "sh_degree_9", "time_range_nan", "quats_cut", "no_gaussians",
+              "zero_quat", "format_9", "extent_negative")
 
 
 @pytest.fixture(scope="module")
@@ -176,7 +192,9 @@ def test_damaged_model_pt_is_one_error_line(bad_runs, model, tmp_path, kind, com
             "empty": "empty", "flipped": "checksum", "code": "refused",
             "foreign": "not a nehad run file", "nan_field": "NaN or infinite",
             "background_word": "background", "sh_degree_9": "sh_degree",
-            "time_range_nan": "time_range"}[kind]
+            "time_range_nan": "time_range", "quats_cut": "different numbers of rows",
+            "no_gaussians": "holds no Gaussians", "zero_quat": "quats are all zero",
+            "format_9": "format", "extent_negative": "extent"}[kind]
     assert want in line
     assert _listing(out) == [] and _listing(run) == before
 
