@@ -102,15 +102,17 @@ class ModelInfo:
     @property
     def static_gaussians(self) -> int:
         """Gaussians written pre-deformed (metadata `static_gaussians`, export/static_split.py;
-        0 without)."""
+        0 without): a whole number from 0 to `num_gaussians`, else OnnxModelError naming the
+        file (checked when the file is read)."""
         text = self.metadata.get("static_gaussians") or "0"
         try:
             n = int(text)
         except ValueError:
             n = -1
-        if n < 0:
+        if not 0 <= n <= self.num_gaussians:
             raise OnnxModelError(f"{self.path}: metadata static_gaussians is not a whole number "
-                                 f">= 0: {text[:200]!r}")
+                                 f"from 0 to num_gaussians ({self.num_gaussians}): "
+                                 f"{text[:200]!r}")
         return n
 
 
@@ -181,6 +183,9 @@ def _read_model(path) -> tuple[ModelInfo, bytes]:
     if lo > hi:
         raise OnnxModelError(f"{source}: metadata time_range [{lo}, {hi}] is empty")
     bg = _floats(_json(md, "background", source), 3, "background", source)
+    if not all(0.0 <= c <= 1.0 for c in bg):
+        raise OnnxModelError(f"{source}: metadata 'background' must lie in [0, 1], got "
+                             f"{md['background']!r}")
     aabb = np.asarray(_floats(_json(md, "aabb", source), 6, "aabb", source)).reshape(2, 3)
     camera = None
     if "default_camera" in md:
@@ -192,8 +197,10 @@ def _read_model(path) -> tuple[ModelInfo, bytes]:
         except (CameraError, TypeError, AttributeError) as e:
             raise OnnxModelError(f"{source}: metadata default_camera: {e}") from None
     opset = int(s.opsets.get("", s.opsets.get("ai.onnx", 0)))
-    return ModelInfo(path, len(data), opset, dict(s.operators), dict(md), s, deg, n, (lo, hi),
-                     tuple(bg), aabb, camera, digest is not None), data
+    info = ModelInfo(path, len(data), opset, dict(s.operators), dict(md), s, deg, n, (lo, hi),
+                     tuple(bg), aabb, camera, digest is not None)
+    info.static_gaussians  # its range is checked here, when the file is read
+    return info, data
 
 
 def _dims(arg) -> list:

@@ -191,6 +191,32 @@ def test_validation_of_files(tmp_path):
         OnnxModel(fake_model(tmp_path / "nan.onnx", means=nan)).gaussians(0.5)
 
 
+@pytest.mark.parametrize("metadata, needle", [
+    ({"background": "[0, 0, 2]"}, "metadata 'background' must lie in [0, 1]"),
+    ({"background": "[-0.5, 0, 0]"}, "metadata 'background' must lie in [0, 1]"),
+    ({"static_gaussians": "5"}, "static_gaussians is not a whole number from 0 to num_gaussians"),
+])
+def test_out_of_range_metadata_is_refused_when_opened(tmp_path, metadata, needle):
+    """A background outside [0, 1] and more static Gaussians than the file holds (keys outside
+    the graph's digest) are refused when the file is read: `info` and `render` end with one
+    line naming the file and the key, and nothing is written."""
+    from clean_errors import one_error
+
+    from nehad.runtime.cameras import Camera, save_view
+
+    bad = fake_model(tmp_path / "bad.onnx", metadata=metadata)
+    w2c = np.eye(4)
+    w2c[2, 3] = 3.0
+    view = save_view(tmp_path / "cam.json", Camera(16, 16, 20.0, 20.0, 8.0, 8.0, w2c))
+    with pytest.raises(OnnxModelError, match=needle.replace("[", r"\[").replace("]", r"\]")):
+        read_model_info(bad)
+    runner = CliRunner()
+    one_error(runner.invoke(main, ["info", str(bad)]), str(bad), needle)
+    one_error(runner.invoke(main, ["render", str(bad), "--time", "0.5", "--view", str(view),
+                                   "-o", str(tmp_path / "o.png")]), str(bad), needle)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.onnx", "cam.json"]
+
+
 def test_cli_bad_inputs(exported, tmp_path):
     path, _, cam = exported
     foreign = fake_model(tmp_path / "foreign.onnx", metadata={"format": "something/else"})
