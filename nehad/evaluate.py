@@ -233,13 +233,19 @@ def object_warnings(result_or_objects, threshold: float = OBJECT_WARN_GAIN) -> l
     return lines
 
 
-def _object_masks(data: Path, split: str, frames) -> tuple[dict, list[Path]] | None:
-    """(names, mask path per frame) when the split has label masks, else None; a frame without
-    its mask is an error (a partial score would hide objects)."""
+def _object_masks(data: Path, split: str, frames) -> tuple[dict, list[tuple]] | None:
+    """(names, (ids, label map) per frame: `_label_map`) when the split has label masks, else
+    None. Every mask is read here, before anything is rendered: a frame without its mask, a mask
+    that cannot be read or does not fit its image, and a masks folder without a mask beside
+    class_mapping.json are errors (a partial score would hide objects)."""
     from nehad.viz import VizError
     from nehad.viz.masks import class_names, has_label_masks, mask_path
 
+    folder, mapping = data / split / "masks", data / "class_mapping.json"
     if not has_label_masks(data, split):
+        if folder.is_dir() and mapping.is_file():
+            raise RunError(f"{folder}: holds no label masks (*.png), but {mapping} names "
+                           f"objects; put the {split} frames' masks there or remove the folder")
         return None
     paths = [mask_path(f.path) for f in frames]
     missing = [p for p in paths if not p.is_file()]
@@ -250,10 +256,12 @@ def _object_masks(data: Path, split: str, frames) -> tuple[dict, list[Path]] | N
         names = class_names(data)
     except VizError as e:
         raise RunError(str(e)) from None
-    return names, paths
+    return names, [_label_map(path, frame) for path, frame in zip(paths, frames)]
 
 
-def _frame_object_record(path: Path, frame, rgb, background) -> dict:
+def _label_map(path: Path, frame) -> tuple[list[int], np.ndarray]:
+    """(the ids other than 0 in the label mask at `path`, its `object_label_map` at the frame's
+    size), else a RunError naming the mask."""
     from nehad.viz import VizError
     from nehad.viz.masks import read_label_mask
 
@@ -264,7 +272,12 @@ def _frame_object_record(path: Path, frame, rgb, background) -> dict:
     except (VizError, ValueError) as e:
         text = str(e)
         raise RunError(text if text.startswith(str(path)) else f"{path}: {text}") from None
-    ids = [int(i) for i in np.unique(labels) if i != 0]
+    return [int(i) for i in np.unique(labels) if i != 0], lab
+
+
+def _frame_object_record(mask: tuple[list[int], np.ndarray], frame, rgb, background) -> dict:
+    """One frame's object scores against its checked mask (`_label_map`)."""
+    ids, lab = mask
     rest = (None if frame.alpha is None
             else unlabelled_errors(lab, frame.alpha, rgb, frame.image, background))
     return {"time": frame.camera.time, "ids": ids,

@@ -283,6 +283,64 @@ def test_missing_object_is_flagged(tmp_path, monkeypatch):
     assert not math.isnan(red["psnr"])
 
 
+def _eval_without_a_model(tmp_path, monkeypatch):
+    """(dataset, run, result of `nehad eval RUN`) for _write_dataset's scene, with the run's
+    model faked (every render is the ground truth), as test_missing_object_is_flagged does;
+    the dataset's files may be changed before calling the returned function."""
+    from click.testing import CliRunner
+
+    import nehad.runtime.raster as raster
+    from nehad.cli.main import main
+    from nehad.config import build_config
+    from nehad.model import RunInfo
+
+    data, run = tmp_path / "data", tmp_path / "run"
+    _write_dataset(data)
+    run.mkdir()
+    (run / "model.pt").write_bytes(b"")  # the CLI checks that the file exists
+    meta = RunInfo(config_dict=dataclasses.asdict(build_config("test", None, [])),
+                   background=(1.0, 1.0, 1.0), sh_degree=0, time_range=(0.0, 1.0),
+                   data_dir=str(data))
+    monkeypatch.setattr(evaluate, "load_run", lambda r: (SimpleNamespace(gaussians=[0] * 7),
+                                                         meta))
+    monkeypatch.setattr(evaluate, "cloud_at", lambda model, t, degree: t)
+    monkeypatch.setattr(raster, "render", lambda t, camera, background: SimpleNamespace(
+        rgb=np.full((camera.height, camera.width, 3), 0.5, np.float32)))
+    return data, run, lambda: CliRunner().invoke(main, ["eval", str(run), "--quiet",
+                                                        "--no-lpips"])
+
+
+def test_bad_mask_is_refused_before_any_render(tmp_path, monkeypatch):
+    """An unreadable label mask (the last frame's) ends the eval with one line naming it, before
+    any frame is rendered: no RUN/eval_test/r_000.png is left behind."""
+    from clean_errors import one_error
+
+    data, run, invoke = _eval_without_a_model(tmp_path, monkeypatch)
+    mask = data / "test" / "masks" / "r_0007.png"
+    mask.write_bytes(b"not a png")
+    one_error(invoke(), str(mask), "cannot read the label mask")
+    assert sorted(p.name for p in run.iterdir()) == ["model.pt"]
+
+
+def test_empty_masks_folder_is_refused(tmp_path, monkeypatch):
+    """A masks folder without a mask beside class_mapping.json is an error naming the folder
+    (silently scoring no objects would hide them); the eval runs once the masks are back."""
+    from clean_errors import one_error
+
+    data, run, invoke = _eval_without_a_model(tmp_path, monkeypatch)
+    folder = data / "test" / "masks"
+    kept = tmp_path / "kept"
+    folder.rename(kept)
+    folder.mkdir()
+    one_error(invoke(), str(folder), "holds no label masks", "class_mapping.json")
+    assert sorted(p.name for p in run.iterdir()) == ["model.pt"]
+    folder.rmdir()
+    kept.rename(folder)
+    res = invoke()
+    assert res.exit_code == 0, res.output
+    assert json.loads((run / "eval_test" / "metrics.json").read_text())["objects"]
+
+
 def test_report_shows_objects_and_warnings(tmp_path):
     from nehad.viz.report import metrics_section
 
