@@ -1396,15 +1396,34 @@ def test_a_failed_sequence_keeps_the_files_it_did_not_create(tmp_path):
 
 
 def test_report_reads_a_log_with_values_of_other_types(model, tmp_path):
+    """Values of other types are shown as n/a; a torn last line (a kill during the append) is
+    skipped, as --resume drops it."""
     _, _, run = model
     copy = tmp_path / "run"
     shutil.copytree(run, copy)
     with open(copy / "metrics.jsonl", "a") as f:
-        f.write('{"step": "three"}\n{"step": 2, "psnr": [1], "loss": "x"}\n')
+        f.write('{"step": 2, "psnr": [1], "loss": "x"}\n{"step": 3, "lo')
     res = _invoke(["report", copy, "-o", tmp_path / "r.html", "--frames", "0", "--no-score",
                    "--max-side", "32"])
     assert res.exit_code == 0, res.output
     assert "No test renders: --frames 0" in (tmp_path / "r.html").read_text()
+
+
+@pytest.mark.parametrize("line, needle", [
+    ("{not json", "not valid JSON"), ('{"step": NaN}', "its step is not a whole number"),
+    ('{"step": "three"}', "its step is not a whole number"), ("[1, 2]", "not a JSON object")])
+def test_report_names_a_damaged_log_line(model, tmp_path, line, needle):
+    """A line of metrics.jsonl that is not a record nehad train writes, followed by another
+    line (so not a torn last one), is one error naming the file and the line."""
+    _, _, run = model
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    lines = (copy / "metrics.jsonl").read_text().splitlines()
+    lines.insert(1, line)
+    (copy / "metrics.jsonl").write_text("\n".join(lines) + "\n")
+    _one_error(_invoke(["report", copy, "-o", tmp_path / "r.html", "--frames", "0",
+                        "--no-score"]), f"{copy / 'metrics.jsonl'}: line 2: {needle}")
+    assert not (tmp_path / "r.html").exists()
 
 
 def test_a_dataset_image_with_nan_pixels_is_refused_naming_it(model, tmp_path):
@@ -1756,8 +1775,12 @@ def test_run_and_dataset_json_nested_too_deeply(model, tmp_path):
     shutil.copytree(scene, data)
     shutil.copytree(run, copy, ignore=shutil.ignore_patterns("eval_*"))
     deep = "[" * 100000 + "]" * 100000
+    log = (copy / "metrics.jsonl").read_text()
     with open(copy / "metrics.jsonl", "a") as f:
-        f.write(deep + "\n")  # a bad line of the log is skipped, as a torn one
+        f.write(deep + "\n")
+    _one_error(_invoke(["report", copy, "-o", tmp_path / "r.html", "--frames", "0",
+                        "--no-score"]), "metrics.jsonl: line", "nested too deeply")
+    (copy / "metrics.jsonl").write_text(log)
     (copy / "eval_test").mkdir()
     (copy / "eval_test" / "metrics.json").write_text(deep)
     _one_error(_invoke(["report", copy, "-o", tmp_path / "r.html", "--frames", "0",

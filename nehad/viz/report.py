@@ -133,20 +133,33 @@ def _number(v) -> float:
 
 
 def read_log(run: Path) -> list[dict]:
-    """The records of RUN/metrics.jsonl (bad lines, e.g. a torn last line, are skipped)."""
+    """The records of RUN/metrics.jsonl: a JSON object per line whose step is a whole number
+    >= 0 (its other values may be of any type: they are shown as n/a). Another line is a
+    VizError naming the file and the line, except a torn last line (no newline ends it: a run
+    killed while appending, which --resume drops), which is skipped."""
     path = Path(run) / "metrics.jsonl"
     if not path.is_file():
         return []
     out = []
     text = read_text(path, "metrics log", "JSON lines (one record per line)", VizError)
-    for line in text.splitlines():
+    lines = text.splitlines()
+    for number, line in enumerate(lines, 1):
         try:
             rec = json.loads(line)
-        except (ValueError, RecursionError):  # a torn line; one nested too deeply
-            continue
-        step = rec.get("step") if isinstance(rec, dict) else None
-        if isinstance(step, int) and not isinstance(step, bool):
+        except ValueError as e:
+            problem = f"not valid JSON ({getattr(e, 'msg', e)})"
+        except RecursionError:
+            problem = "not valid JSON (nested too deeply)"
+        else:
+            step = rec.get("step") if isinstance(rec, dict) else None
+            problem = (None if isinstance(step, int) and not isinstance(step, bool) and step >= 0
+                       else "not a JSON object" if not isinstance(rec, dict)
+                       else f"its step is not a whole number >= 0: {step!r}")
+        if problem is None:
             out.append(rec)
+        elif number < len(lines) or text.endswith("\n"):
+            raise VizError(f"{path}: line {number}: {problem}; not a record nehad train writes "
+                           f"(remove the line to make the report)")
     return out
 
 
