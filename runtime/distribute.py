@@ -50,8 +50,11 @@ __all__ = ["FrameTask", "FrameResult", "RenderError", "render_frame_task", "rend
 MAX_ATTEMPTS = 3
 #: zlib level of frame PNGs: 1 writes about twice as fast as the default for ~25% more bytes.
 PNG_COMPRESSION = 1
-#: Seconds to wait for a Dask scheduler and for at least one worker.
+#: Seconds to wait for at least one Dask worker.
 CONNECT_TIMEOUT = 30.0
+#: Seconds to wait for the Dask scheduler to answer (also the client's own timeout): one that
+#: is up answers in well under a second, so an address where none listens fails this soon.
+SCHEDULER_TIMEOUT = 10.0
 
 
 class RenderError(InputProblem, RuntimeError):
@@ -383,15 +386,18 @@ class DaskBackend:
     `address`: the scheduler (``tcp://HOST:8786``), or an existing ``distributed.Client`` as
     `client`. `threads` per frame (None: each server's cores shared out over the task threads of
     its workers, see :meth:`host_threads`; $NEHAD_THREADS set on a worker wins).
+    `connect_timeout`: seconds to wait for a worker; `scheduler_timeout`: for the scheduler.
     """
 
     def __init__(self, address: str | None = None, threads: int | None = None, client=None,
-                 connect_timeout: float = CONNECT_TIMEOUT):
+                 connect_timeout: float = CONNECT_TIMEOUT,
+                 scheduler_timeout: float = SCHEDULER_TIMEOUT):
         self.address = address
         self.threads = threads
         self._client = client
         self._own = client is None
         self.connect_timeout = connect_timeout
+        self.scheduler_timeout = scheduler_timeout
         self.name = f"Dask at {address}" if address else "Dask"
         self.resubmitted = 0
 
@@ -409,14 +415,27 @@ class DaskBackend:
             except ImportError:
                 raise RenderError("{scheduler} needs Dask distributed: pip install "
                                   "'dask[distributed]'") from None
+            # made in two steps so that a client whose connection failed can be closed here:
+            # left to its __del__ at exit, it waited 2 x its timeout for a loop that had
+            # stopped and printed a traceback
+            client = Client.__new__(Client)
             try:
-                self._client = Client(self.address, timeout=self.connect_timeout,
-                                      set_as_default=False)
-            except (OSError, TimeoutError) as e:
+                client.__init__(self.address, timeout=self.scheduler_timeout,
+                                set_as_default=False)
+            except Exception as e:
+                with contextlib.suppress(Exception):
+                    client.close(timeout=2)
+                why = " ".join(str(e).split())[:200]
+                if isinstance(e, ValueError):  # an address Dask cannot parse
+                    raise RenderError(f"{{scheduler}} {self.address}: {why}", "scheduler") \
+                        from None
+                # nothing listens there (OSError, TimeoutError), or something that is not a
+                # Dask scheduler answers (its bytes read as a message: MemoryError, ...)
+                if not isinstance(e, (OSError, TimeoutError)):
+                    why = f"not a Dask scheduler? ({type(e).__name__}: {why})"
                 raise RenderError(f"cannot reach the Dask scheduler at {self.address}: "
-                                  f"{' '.join(str(e).split())[:200]}") from None
-            except ValueError as e:
-                raise RenderError(f"{{scheduler}} {self.address}: {e}", "scheduler") from None
+                                  f"{why}") from None
+            self._client = client
         return self._client
 
     @property

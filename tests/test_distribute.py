@@ -5,6 +5,7 @@ and runs that survive a worker killed mid-run."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -228,6 +229,50 @@ def test_dask_task_errors_name_the_frame(model, cluster, tmp_path):
 
 def test_unreachable_scheduler_is_a_one_line_error():
     pytest.importorskip("distributed")
-    backend = DaskBackend("tcp://127.0.0.1:9", connect_timeout=1)
+    backend = DaskBackend("tcp://127.0.0.1:9", scheduler_timeout=1)
     with pytest.raises(RenderError, match="cannot reach the Dask scheduler at tcp://127.0.0.1:9"):
         backend.run([])
+
+
+@pytest.fixture
+def not_a_scheduler():
+    """tcp://127.0.0.1:PORT of a server that answers every connection with bytes that are no
+    Dask message."""
+    import socket
+    import threading
+
+    server = socket.create_server(("127.0.0.1", 0))
+
+    def answer():
+        with contextlib.suppress(OSError):
+            while True:
+                conn, _ = server.accept()
+                with conn:
+                    conn.sendall(b"\xff" * 64)
+
+    threading.Thread(target=answer, daemon=True).start()
+    yield f"tcp://127.0.0.1:{server.getsockname()[1]}"
+    server.close()
+
+
+@pytest.mark.parametrize("kind", ["unknown scheme", "not a scheduler"])
+def test_a_bad_scheduler_fails_at_once_without_a_traceback(model, not_a_scheduler, tmp_path,
+                                                           kind):
+    """--scheduler http://x (a scheme Dask does not know) and an address where something else
+    answers: one Error line within seconds. Before, the half-made Dask client's __del__ waited
+    60 s at exit for a stopped loop and printed a traceback."""
+    pytest.importorskip("distributed")
+    onnx, _ = model
+    address = {"unknown scheme": "http://x", "not a scheduler": not_a_scheduler}[kind]
+    start = time.monotonic()
+    proc = subprocess.run(
+        [sys.executable, "-m", "nehad.cli.main", "video", str(onnx), "-o", str(tmp_path / "v.mp4"),
+         "--frames", "2", "--size", "16x16", "--scheduler", address],
+        capture_output=True, text=True, timeout=120,
+        env={**os.environ, "OMP_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"})
+    assert proc.returncode == 1, proc.stderr
+    lines = [ln for ln in proc.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("Error: ") and address in lines[0], \
+        proc.stderr
+    assert time.monotonic() - start < 30
+    assert list(tmp_path.iterdir()) == []
