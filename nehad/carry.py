@@ -236,6 +236,10 @@ def objects_from_tracks(tracks, cameras, spacing: float, time_range, members: in
 #: blob after it, the quadratics were the closest (docs/training.md, "Objects carried along
 #: their tracks", step 6).
 END_BLOBS = 7
+#: The other ways past an end that the held-out views beyond it may prefer (`refit_unseen`),
+#: (degree, blobs): a quadratic over twice as many blobs and a straight line over END_BLOBS,
+#: steadier where the blobs nearest the end are slivers of an object an occluder hides.
+END_OTHERS = ((2, 2 * END_BLOBS), (1, END_BLOBS))
 GAP_BLOBS = (5, 7)
 GAP_DEGREES = (3, 2)
 GAP_STEPS = 2.5
@@ -248,7 +252,9 @@ def refit_unseen(obj: CarriedObject, choose=None) -> None:
     place and velocity there taken. Across a gap `choose(obj, (a, b), options)` says which of
     the options (the track's own path first, then a polynomial per GAP_DEGREES and GAP_BLOBS,
     the cubics first; each an object with those knots) to take; without it, or where it
-    returns None, the first cubic. Without a correction nothing changes.
+    returns None, the first cubic. Past each end it says the same of the quadratic over
+    END_BLOBS, the END_OTHERS and the track's own path, the span open on the far side; without
+    it, or with no held-out view there, the quadratic. Without a correction nothing changes.
 
     The track's own path there (`Track.smooth_at`) runs on along a quadratic through its end
     blobs and crosses a gap along a cubic through the two samples at its edges, and where an
@@ -270,10 +276,20 @@ def refit_unseen(obj: CarriedObject, choose=None) -> None:
         fix, fix_rate = (at @ obj.path_fix).numpy(), (rate @ obj.path_fix).numpy()
     times, seen, eps = obj.times, np.unique(obj.seen_times), 1e-9
     inside = lambda lo, hi: (times >= lo - eps) & (times <= hi + eps)  # noqa: E731
-    first, last = seen[:END_BLOBS], seen[-END_BLOBS:]
-    for window, where, origin in ((inside(first[0], first[-1]), times < seen[0] - eps, seen[0]),
-                                  (inside(last[0], last[-1]), times > seen[-1] + eps, seen[-1])):
-        obj.points, obj.velocities = _refit(obj, fix, fix_rate, window, where, origin, 2)
+    own = replace(obj, points=obj.points.copy(), velocities=obj.velocities.copy())
+    for where, origin, span, blobs in (
+            (times < seen[0] - eps, seen[0], (-np.inf, seen[0]), lambda n: seen[:n]),
+            (times > seen[-1] + eps, seen[-1], (seen[-1], np.inf), lambda n: seen[-n:])):
+        options = []
+        for degree, n in ((2, END_BLOBS),) + END_OTHERS:
+            window = inside(blobs(n).min(), blobs(n).max())
+            points, velocities = _refit(obj, fix, fix_rate, window, where, origin, degree)
+            options.append(replace(obj, points=points, velocities=velocities))
+        options.append(own)
+        pick = choose(obj, span, options) if choose is not None and where.any() else None
+        chosen = options[0 if pick is None else pick]
+        obj.points, obj.velocities = obj.points.copy(), obj.velocities.copy()
+        obj.points[where], obj.velocities[where] = chosen.points[where], chosen.velocities[where]
     steps = np.diff(seen)
     pad = 0.5 * float(np.median(np.diff(times))) if len(times) > 1 else 0.0
     for i in np.nonzero(steps > GAP_STEPS * np.median(steps))[0]:

@@ -187,7 +187,9 @@ def test_unseen_knots_are_placed_from_the_corrected_path():
     kept = replace(obj, points=obj.points.copy(), velocities=obj.velocities.copy())
     asked = []
     refit_unseen(kept, lambda o, span, options: asked.append((span, len(options))) or 0)
-    assert asked == [((0.35, 0.65), 5)]  # one gap; the track's path, two cubics, two quadratics
+    # each end: the quadratic over END_BLOBS, END_OTHERS, the track's path; one gap: the
+    # track's path, two cubics, two quadratics
+    assert asked == [((-np.inf, 0.0), 4), ((1.0, np.inf), 4), ((0.35, 0.65), 5)]
     assert np.array_equal(kept.points[gap], untouched[gap])  # the track's own path chosen
     ends = (knots < 0.0) | (knots > 1.0)
     assert not np.allclose(kept.points[ends], untouched[ends])  # the ends run on anew
@@ -219,7 +221,7 @@ def test_a_gap_with_one_blob_past_it_is_bridged_from_both_sides():
     obj.fix_times, obj.path_fix = np.array([0.0, 0.5, 0.81]), _leaf(np.zeros((3, 3)))
     offered = []
     refit_unseen(obj, lambda o, span, options: offered.append((span, options)) or 0)
-    (span, options), = offered
+    (span, options), = [o for o in offered if np.isfinite(o[0]).all()]  # the ends' left out
     assert span == (0.5, 0.81) and len(options) == 1 + len(GAP_DEGREES) * len(GAP_BLOBS)
     gap = (knots > 0.5) & (knots < 0.81)
     assert np.array_equal(options[0].points[gap], points[gap])
@@ -228,6 +230,48 @@ def test_a_gap_with_one_blob_past_it_is_bridged_from_both_sides():
         window = ((knots >= seen[-2 - (n - 1)] - 1e-9) & (knots <= 0.5)) | (knots == 0.8)
         coef = poly.polyfit(knots[window], points[window], degree)
         assert np.allclose(option.points[gap], poly.polyval(knots[gap], coef).T, atol=1e-6)
+
+
+def test_past_each_end_the_held_out_views_choose_the_way_on():
+    """Past each end of a track the options are the quadratic over END_BLOBS blobs (the
+    default), those of END_OTHERS (each numpy's least-squares polynomial of the corrected
+    points at the knots the blobs span) and the track's own path; the span asked about is
+    open on the far side. Choosing the track's own path at one end puts back its knots there
+    and leaves the other end's refit as it was; a chooser that has no view there (None) gets
+    the quadratic."""
+    from nehad.carry import END_BLOBS, END_OTHERS
+
+    knots = np.round(np.arange(-0.2, 1.201, 0.05), 9)
+    truth = lambda t: np.stack([np.sin(3.0 * t), np.cos(2.0 * t), t * t], axis=1)  # noqa: E731
+    seen = knots[(knots >= 0.0) & (knots <= 1.0)]
+    points = truth(knots)
+    points[knots > 1.0] += [0.3, -0.2, 0.1]  # the track's own run-on: off
+    base = _object(knots, points, np.zeros_like(points), np.zeros((2, 3)))
+    base.seen, base.seen_times = (0.0, 1.0), seen
+    base.fix_times, base.path_fix = np.array([0.0, 0.5, 1.0]), _leaf(np.zeros((3, 3)))
+    copy = lambda: replace(base, points=base.points.copy(),  # noqa: E731
+                           velocities=base.velocities.copy())
+    offered = []
+    obj = copy()
+    refit_unseen(obj, lambda o, span, options: offered.append((span, options)) or None)
+    (first_span, _), (last_span, options) = offered  # no gap
+    assert first_span == (-np.inf, 0.0) and last_span == (1.0, np.inf)
+    assert len(options) == 2 + len(END_OTHERS)
+    late, early = knots > 1.0, knots < 0.0
+    poly = np.polynomial.polynomial
+    for option, (degree, n) in zip(options, ((2, END_BLOBS),) + END_OTHERS):
+        window = knots >= seen[-n] - 1e-9
+        window &= knots <= 1.0 + 1e-9
+        coef = poly.polyfit(knots[window], points[window], degree)
+        assert np.allclose(option.points[late], poly.polyval(knots[late], coef).T, atol=1e-6)
+    assert np.array_equal(options[-1].points[late], points[late])
+    assert np.allclose(obj.points[late], options[0].points[late])  # None: the quadratic
+    refitted_early = obj.points[early].copy()
+    assert not np.allclose(refitted_early, points[early])
+    own = copy()
+    refit_unseen(own, lambda o, span, options: len(options) - 1 if span[1] == np.inf else 0)
+    assert np.array_equal(own.points[late], points[late])  # the track's path past the end
+    assert np.allclose(own.points[early], refitted_early)  # the first end's refit kept
 
 
 def test_fit_on_the_views_draws_the_object():
