@@ -192,15 +192,14 @@ def _check_contents(state: dict, source: str) -> None:
     from nehad.configtools import ConfigError
     from nehad.gaussians import GaussianParameters
 
-    g = state["gaussians"]
-    absent = [n for n in GaussianParameters.NAMES
-              if not torch.is_tensor(GaussianParameters.with_defaults(g).get(n))]
+    g = GaussianParameters.with_defaults(state["gaussians"])
+    absent = [n for n in GaussianParameters.NAMES if not torch.is_tensor(g.get(n))]
     if absent:
         raise CheckpointError(f"{source}: not a nehad run file (its Gaussians lack "
                               f"{', '.join(absent)})")
     if not all(torch.is_tensor(v) for v in state["field"].values()):
         raise CheckpointError(f"{source}: not a nehad run file (its field holds non-tensors)")
-    _check_gaussian_shapes(GaussianParameters.with_defaults(g), source)
+    _check_gaussian_shapes(g, source)
     for part in ("gaussians", "field"):
         bad = [k for k, v in state[part].items()
                if v.is_floating_point() and not bool(torch.isfinite(v).all())]
