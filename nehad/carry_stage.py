@@ -51,6 +51,10 @@ ABSENT_BLOBS = 3
 #: what the object replaces.
 NEAR_RADII = 2.0
 
+#: The field's Gaussians within the object's radius of its path at this many of its seen knots
+#: draw it there (`field_rows_on_path`).
+FIELD_DRAWN_KNOTS = 2
+
 
 def undrawn_tracks(model, views, degree: int, background, carve_cfg, hidden_rows):
     """The tracks (`nehad.tracks.fit_tracks`) of what the training `views` show and the model
@@ -106,6 +110,24 @@ def near_rows(obj, means_at_own_time: np.ndarray, t_eq: np.ndarray, rows: np.nda
     return rows[inside & close]
 
 
+def field_rows_on_path(model, obj, field_rows: np.ndarray) -> np.ndarray:
+    """The field's moving `field_rows` that draw the object: within its radius of its path at
+    FIELD_DRAWN_KNOTS or more of the knots its track saw. Where the field draws an object over
+    part of its path and parks the same Gaussians out of sight elsewhere (inside an occluder),
+    they cross open space on their way at held-out times: a second sphere a sphere's width
+    from the carried one (an occluder variant; docs/results.md, 2026-12-02)."""
+    if not len(field_rows):
+        return field_rows
+    seen = obj.seen or (obj.times[0], obj.times[-1])
+    knots = np.nonzero((obj.times >= seen[0] - 1e-9) & (obj.times <= seen[1] + 1e-9))[0]
+    index, count = torch.as_tensor(field_rows), np.zeros(len(field_rows), np.int64)
+    with torch.no_grad():
+        for k in knots:
+            at = model.means_at(float(obj.times[k]), index).numpy()
+            count += np.linalg.norm(at - obj.points[k], axis=1) <= obj.radius
+    return field_rows[count >= FIELD_DRAWN_KNOTS]
+
+
 def carry_stage(model, train_views, val_views, carve_cfg, degree: int, background,
                 spacing: float, time_range, seed: int = 0) -> dict:
     """Find, fit and judge the carried objects of a trained model (module docstring): what it
@@ -151,13 +173,15 @@ def carry_stage(model, train_views, val_views, carve_cfg, degree: int, backgroun
     judge = _Judge(model, val_views, degree, background, train_views)
     did = {"carry_tracks": len(tracks), "carry_spinning": len(spun), "carry_kept": 0,
            "carry_gaussians": 0, "carry_knots_trimmed": 0, "carry_kept_beside_chains": 0,
-           "carry_placement_radii": 0.0, "carry_unplaced": 0, "carry_replaced_wider": 0}
+           "carry_placement_radii": 0.0, "carry_unplaced": 0, "carry_replaced_wider": 0,
+           "carry_replaced_field": 0}
     for obj, extras, life in zip(objects, along, lives):
         options = [  # each: the rows knots a..b replace, one way
             lambda a, b, o=obj, extra=extra, life=life: np.union1d(
                 near_rows(_knots(o, a, b), own, t_eq, mortal, life), extra) for extra in extras]
-        _write_in(model, obj, judge, options, life, did, field_rows,
-                  any(len(extra) for extra in extras))
+        spins = any(len(extra) for extra in extras)
+        drawn = np.zeros(0, np.int64) if spins else field_rows_on_path(model, obj, field_rows)
+        _write_in(model, obj, judge, options, life, did, field_rows, spins, drawn)
     did["carry_placement_radii"] = round(did["carry_placement_radii"], 4)
     did["carry_fit_l1"] = [round(v, 6) for v in log]
     return did
@@ -206,12 +230,14 @@ def _spinning_objects(model, views, degree, background, carve_cfg, spacing, time
 
 
 def _write_in(model, obj, judge, options, sigma: float, did: dict, field_rows,
-              everywhere: bool = False) -> None:
+              everywhere: bool = False, drawn=()) -> None:
     """Append the object's members (`materialise`, from the places of the field's moving
     `field_rows` too; those the field cannot place left out), judge them (`_kept_knots`), and
     keep the knots judged good, the rows they replace (one of `options`) made transparent when
     that was judged better (`everywhere`: they include rows that draw at every time, the
-    field's, judged on every held-out view); `did` counts what was done."""
+    field's, judged on every held-out view; `drawn`: the field's rows that draw the object
+    over part of its path, which it may replace everywhere, `_in_place_of_field`); `did` counts
+    what was done."""
     from nehad.densify import append_gaussians, keep_gaussians
 
     g = model.gaussians
@@ -229,6 +255,10 @@ def _write_in(model, obj, judge, options, sigma: float, did: dict, field_rows,
     judge.forget()
     rows = np.arange(start, len(g))
     knots = _kept_knots(obj, judge, rows, knot_of, options, sigma, everywhere)
+    if len(drawn):
+        knots, options, replaced = _in_place_of_field(obj, judge, rows, knot_of, options, sigma,
+                                                      drawn, knots)
+        did["carry_replaced_field"] += int(replaced)
     keep = torch.ones(len(g), dtype=torch.bool)
     if knots is None:
         keep[start:] = False
@@ -245,6 +275,35 @@ def _write_in(model, obj, judge, options, sigma: float, did: dict, field_rows,
         did["carry_knots_trimmed"] += len(obj.times) - (hi - lo + 1)
     keep_gaussians(g, no_optimizer, keep)
     judge.forget()
+
+
+def _in_place_of_field(obj, judge, rows, knot_of, options, sigma: float, drawn, knots):
+    """(knots, options, whether the field's `drawn` rows are replaced): `knots` (kept with one
+    of `options`, `_kept_knots`) or the knots kept when the object also replaces `drawn` at
+    every time, whichever brings every view, held-out and training, closer to its target.
+
+    The field may draw an object over part of its path (its track then has a gap there, or
+    ends) and keep the same Gaussians out of sight at other times, inside an occluder; between
+    the two they cross open space, and at the held-out times there they are a second object
+    beside the carried one. Hidden, the object is drawn where they drew it only if its knots
+    reach there (`_kept_knots`, outwards from its seen span), so the choice is judged on the
+    training views as well, which see the object there."""
+    wider = [lambda a, b: np.union1d(options[0](a, b), drawn)]
+    other = _kept_knots(obj, judge, rows, knot_of, wider, sigma, everywhere=True)
+    if other is None or other[2] is None:
+        return knots, options, False
+
+    def hidden(kept, ways):
+        if kept is None:
+            return rows
+        lo, hi, swap = kept
+        out = rows[(knot_of < lo) | (knot_of > hi)]
+        return out if swap is None else np.concatenate([out, ways[swap](lo, hi)])
+
+    views = judge.every_view()
+    if judge.error(views, hidden(other, wider)) < judge.error(views, hidden(knots, options)):
+        return other, wider, True
+    return knots, options, False
 
 
 def _knots(obj, lo: int, hi: int):
@@ -331,6 +390,10 @@ class _Judge:
         object's fit did not see)."""
         return [self.held_out + k for k, t in enumerate(self.views.times[self.held_out:])
                 if span[0] <= t <= span[1] and not fitted[0] <= t <= fitted[1]]
+
+    def every_view(self) -> list:
+        """Every view, held-out and trained."""
+        return list(range(len(self.views.times)))
 
     def forget(self) -> None:
         self.clouds = {}

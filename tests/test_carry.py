@@ -432,3 +432,87 @@ def test_a_short_track_is_carried_only_where_nothing_is_drawn_over_it():
     assert [len(t.blobs) for t in kept] == [12, 7, 7]
     assert kept[1] is fast and kept[2] is before_box
     assert carried_tracks([fast], 12, 0.0) == []  # 0 turns the short ones off
+
+
+class _FieldDrawsPart(_CountingJudge):
+    """A judge of an object present at every time whose later part (0.125-0.195) the field's
+    rows 40-41 draw, as a stage that found its track only where the field did not draw it
+    would see it: per view, 1 where nothing draws the object, 1 where a copy drawn is off it
+    (`good` False), 1 where a copy and the field draw it twice, and 1 at the `ghost` times
+    while the field's rows are drawn (they cross open space there)."""
+
+    def __init__(self, view_times, knot_times, good, ghost, train_times=()):
+        super().__init__(view_times, knot_times, np.ones(len(knot_times), bool), 2, train_times)
+        self.good, self.ghost = good, ghost
+
+    def every_view(self):
+        return self._views.every_view()
+
+    def error(self, views, hide):
+        hide = np.asarray(hide, np.int64)
+        hidden = np.bincount(hide[hide < 40] // 2, minlength=len(self.knots)) == 2
+        field = 40 not in hide
+        total = 0
+        for k in views:
+            t = self.times[k]
+            near = (np.abs(self.knots - t) <= 0.0100001) & ~hidden
+            on, off = bool((near & self.good).any()), bool((near & ~self.good).any())
+            by_field = field and 0.125 <= t <= 0.195
+            total += (not (on or by_field)) + off + (on and by_field)
+            total += field and any(abs(t - g) < 1e-9 for g in self.ghost)
+        return total
+
+
+def test_the_fields_rows_that_draw_part_of_the_path_are_replaced_only_where_all_views_agree():
+    """`_in_place_of_field`: an object seen by its track over 0.05-0.12 (knots every 0.01 over
+    0-0.19) whose later part the field draws with rows that stand in open space at the
+    held-out time 0.02 (a second object there). Kept as `_kept_knots` keeps it, the knots stop
+    at 0.12 (past it they would draw it twice) and the ghost stays; replacing the field's rows,
+    the knots run on to 0.19 and every view is right: chosen. With no ghost, both are right and
+    the field's rows stay. With the knots past 0.12 off the object, hiding the field's rows
+    would lose it in the training views at 0.14 and 0.18: they stay."""
+    from nehad.carry_stage import _in_place_of_field, _kept_knots
+
+    knots = np.round(np.arange(20) * 0.01, 6)
+    obj = _object(knots, np.zeros((20, 3)), np.zeros((20, 3)), np.zeros((2, 3)))
+    obj.seen = (0.05, 0.12)
+    rows, knot_of = np.arange(40), np.repeat(np.arange(20), 2)
+    none = lambda a, b: np.zeros(0, np.int64)  # noqa: E731
+    field = np.array([40, 41])
+    held_out, trained = [0.02, 0.08, 0.165], [0.03, 0.06, 0.1, 0.14, 0.18]
+    good, off_later = np.ones(20, bool), knots < 0.125
+    for ghost, right, replaced, kept in (([0.02], good, True, (0, 19, 0)),
+                                         ([], good, False, (0, 12, 0)),
+                                         ([0.02], off_later, False, (0, 12, 0))):
+        judge = _FieldDrawsPart(held_out, knots, right, ghost, trained)
+        first = _kept_knots(obj, judge, rows, knot_of, [none], 0.01)
+        assert first == (0, 12, 0)
+        got, ways, swapped = _in_place_of_field(obj, judge, rows, knot_of, [none], 0.01, field,
+                                                first)
+        assert (got, swapped) == (kept, replaced)
+        assert list(ways[got[2]](*got[:2])) == ([40, 41] if replaced else [])
+
+
+def test_the_fields_rows_on_an_objects_path_are_those_at_two_of_its_seen_knots():
+    """`field_rows_on_path` against a stand-in model whose rows move by hand: on the path at
+    every knot, at two seen knots, at one, at none, and at two knots its track did not see;
+    elsewhere just outside the object's radius from it."""
+    from types import SimpleNamespace
+
+    from nehad.carry_stage import FIELD_DRAWN_KNOTS, field_rows_on_path
+
+    assert FIELD_DRAWN_KNOTS == 2
+    knots = np.round(np.arange(10) * 0.1, 6)
+    points = np.stack([[t, 0.0, 0.0] for t in knots])
+    obj = _object(knots, points, np.zeros((10, 3)), np.zeros((2, 3)))
+    obj.seen = (0.2, 0.7)
+    on = {10: knots, 11: [0.3, 0.5], 12: [0.4], 13: [], 14: [0.0, 0.9]}
+
+    def means_at(t, index):  # off the path, just outside the object's radius
+        return torch.as_tensor([[t, 0.0 if np.isclose(on[int(r)], t).any() else 1.01 * RADIUS,
+                                 0.0] for r in index], dtype=torch.float64)
+
+    model = SimpleNamespace(means_at=means_at)
+    rows = np.array([10, 11, 12, 13, 14])
+    assert list(field_rows_on_path(model, obj, rows)) == [10, 11]
+    assert len(field_rows_on_path(model, obj, np.zeros(0, np.int64))) == 0
