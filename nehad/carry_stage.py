@@ -140,7 +140,9 @@ def carry_stage(model, train_views, val_views, carve_cfg, degree: int, backgroun
     if val_views is None or not len(val_views.times) or spacing <= 0:
         return {}
     rng = np.random.default_rng(seed)
-    tracks, cams = undrawn_tracks(model, train_views, degree, background, carve_cfg, mortal)
+    tracks, cams, found, moving, whole = _tracks_to_carry(model, train_views, degree, background,
+                                                          carve_cfg, mortal)
+    spun, field_rows = [], np.setdiff1d(moving, mortal)
     knot = spacing * carve_cfg.carry_knots
     sigma = carve_cfg.life * knot
     objects = objects_from_tracks(tracks, cams, knot, time_range, carve_cfg.carry_members, rng,
@@ -148,19 +150,13 @@ def carry_stage(model, train_views, val_views, carve_cfg, degree: int, backgroun
     log = fit_objects(objects, model, train_views, degree, background, sigma,
                       carve_cfg.carry_steps, mortal, rng)
     along, lives = [[np.zeros(0, np.int64)]] * len(objects), [sigma] * len(objects)
-    spun, field_rows = [], np.zeros(0, np.int64)
-    if carve_cfg.carry_spin or objects:
-        from nehad.spin_tracks import moving_rows
-
-        moving = moving_rows(model)
-        field_rows = np.setdiff1d(moving, mortal)
     if carve_cfg.carry_spin:
         spun, spun_along, spun_lives = _spinning_objects(
             model, train_views, degree, background, carve_cfg, spacing, time_range, mortal,
-            moving, field_rows, rng)
+            moving, field_rows, rng, whole)
         objects, along, lives = objects + spun, along + spun_along, lives + spun_lives
     if not objects:
-        return {"carry_tracks": len(tracks), "carry_spinning": 0}
+        return {"carry_tracks": len(found), "carry_spinning": 0}
     choose = _gap_chooser(model, val_views, degree, background, mortal, sigma)
     for obj in objects:
         refit_unseen(obj, choose)
@@ -171,7 +167,9 @@ def carry_stage(model, train_views, val_views, carve_cfg, degree: int, backgroun
             rows = mortal[t_eq[mortal] == t]
             own[rows] = model.means_at(float(t), torch.as_tensor(rows)).numpy()
     judge = _Judge(model, val_views, degree, background, train_views)
-    did = {"carry_tracks": len(tracks), "carry_spinning": len(spun), "carry_kept": 0,
+    did = {"carry_tracks": len(found), "carry_completed": sum(
+               all(t is not f for f in found) for t in tracks),
+           "carry_spinning": len(spun), "carry_kept": 0,
            "carry_gaussians": 0, "carry_knots_trimmed": 0, "carry_kept_beside_chains": 0,
            "carry_placement_radii": 0.0, "carry_unplaced": 0, "carry_replaced_wider": 0,
            "carry_replaced_field": 0}
@@ -185,6 +183,24 @@ def carry_stage(model, train_views, val_views, carve_cfg, degree: int, backgroun
     did["carry_placement_radii"] = round(did["carry_placement_radii"], 4)
     did["carry_fit_l1"] = [round(v, 6) for v in log]
     return did
+
+
+def _tracks_to_carry(model, views, degree: int, background, carve_cfg, mortal):
+    """(tracks, cameras, the tracks `undrawn_tracks` found, the moving rows, the moving
+    objects' tracks (`nehad.spin_tracks.moving_tracks`; None when not looked for)): what the
+    model draws only with its chains, each completed by the moving object's whole track it is
+    part of (`nehad.tracks.completed`); moving rows and whole tracks are looked for where
+    there is a track or `carve.carry_spin` asks for them (`_spinning_objects` takes them)."""
+    tracks, cams = undrawn_tracks(model, views, degree, background, carve_cfg, mortal)
+    found, moving, whole = list(tracks), np.asarray(mortal, np.int64), None
+    if carve_cfg.carry_spin or tracks:
+        from nehad.spin_tracks import moving_rows, moving_tracks
+        from nehad.tracks import TrackSettings, completed
+
+        moving = moving_rows(model)
+        whole = moving_tracks(model, views, degree, background, carve_cfg, moving)
+        tracks = completed(tracks, whole[0], cams, TrackSettings(max_tracks=carve_cfg.max_tracks))
+    return tracks, cams, found, moving, whole
 
 
 def _gap_chooser(model, views, degree: int, background, hidden_rows, sigma: float):
@@ -201,18 +217,19 @@ def _gap_chooser(model, views, degree: int, background, hidden_rows, sigma: floa
 
 
 def _spinning_objects(model, views, degree, background, carve_cfg, spacing, time_range,
-                      mortal, moving, field_rows, rng):
+                      mortal, moving, field_rows, rng, found=None):
     """The spinning objects (`nehad.spin_tracks`; `moving`: the rows the field moves and the
     mortal ones, `field_rows`: the former only), each fitted with the field's Gaussians about
     its path and the chains transparent; (objects, per object the field's rows it may replace
     (those within its radius of its path, and those within WIDE_RADII radii: `_kept_knots`
     chooses), each one's life sigma). A spinning object's knots are at most MAX_TURN of its
     turn apart: a copy moves in a straight line over its life, and the tip of a body turning a
-    radian over it would leave the body's place by a quarter of its radius."""
+    radian over it would leave the body's place by a quarter of its radius. `found`: the
+    moving objects' tracks, `nehad.spin_tracks.moving_tracks`, when already found."""
     from nehad.spin_tracks import rows_along, spinning_tracks
 
     tracks, spins, cams = spinning_tracks(model, views, degree, background, carve_cfg, spacing,
-                                          moving)
+                                          moving, found)
     objects, along, lives = [], [], []
     for track, spin in zip(tracks, spins):
         knot = min(spacing * carve_cfg.carry_knots,

@@ -47,11 +47,9 @@ def moving_rows(model) -> np.ndarray:
     return np.nonzero(moving | g.mortal().numpy())[0]
 
 
-def spinning_tracks(model, views, degree: int, background, carve_cfg, spacing: float,
-                    moving: np.ndarray):
-    """(tracks, spins, cameras) of the training `views`' moving objects (the `moving` rows
-    transparent) of at least `carve.carry_min_blobs` blobs whose shapes show a spin, the pieces
-    of one spinning body joined (`join_spinning`)."""
+def moving_tracks(model, views, degree: int, background, carve_cfg, moving: np.ndarray):
+    """(tracks, cameras) of the training `views`' moving objects, whole: what is unexplained
+    with the `moving` rows transparent, closed (`CLOSE_FRACTION`), followed as tracks."""
     from nehad.tracks import TrackSettings, find_blobs, fit_tracks
     from nehad.views import render_views, transparent
 
@@ -62,8 +60,18 @@ def spinning_tracks(model, views, degree: int, background, carve_cfg, spacing: f
     blobs = find_blobs(cams, np.asarray(views.times, np.float64), targets, alphas,
                        [d.rgb for d in drawn], residual=carve_cfg.residual,
                        close_px=close + 1 - close % 2)
-    settings = TrackSettings(max_tracks=carve_cfg.max_tracks)
-    pieces = join_spinning(fit_tracks(cams, blobs, settings), cams, spacing, settings.max_gap)
+    return fit_tracks(cams, blobs, TrackSettings(max_tracks=carve_cfg.max_tracks)), cams
+
+
+def spinning_tracks(model, views, degree: int, background, carve_cfg, spacing: float,
+                    moving: np.ndarray, found=None):
+    """(tracks, spins, cameras) of the training `views`' moving objects (`moving_tracks`, or
+    `found`, what it returned) of at least `carve.carry_min_blobs` blobs whose shapes show a
+    spin, the pieces of one spinning body joined (`join_spinning`)."""
+    from nehad.tracks import TrackSettings
+
+    tracks, cams = found or moving_tracks(model, views, degree, background, carve_cfg, moving)
+    pieces = join_spinning(tracks, cams, spacing, TrackSettings().max_gap)
     kept = [(track, spin) for track, spin in pieces
             if spin.spins and len(track.blobs) >= carve_cfg.carry_min_blobs]
     return [k[0] for k in kept], [k[1] for k in kept], cams
@@ -203,5 +211,5 @@ def rows_along(model, obj, rows: np.ndarray, sigma: float, reaches=(1.0,),
     return [rows[2 * n >= samples] for n in near]
 
 
-__all__ = ["MOVING_EXTENT", "PATH_WINDOW", "join_spinning", "moving_rows", "rows_along",
-           "smooth_path", "spinning_tracks"]
+__all__ = ["MOVING_EXTENT", "PATH_WINDOW", "join_spinning", "moving_rows", "moving_tracks",
+           "rows_along", "smooth_path", "spinning_tracks"]

@@ -446,6 +446,48 @@ def _samples(cameras, track: Track, s: TrackSettings) -> Track:
                  np.array(vels).reshape(-1, 3), ends)
 
 
+def completed(tracks: list, wholes: list, cameras, s: TrackSettings) -> list:
+    """The `tracks` with the blobs of the whole track they are part of (`wholes`: the tracks of
+    the same views with every moving Gaussian transparent, `nehad.spin_tracks.moving_tracks`)
+    in the views where they have none; the tracks part of one whole track become one.
+
+    A track of what a model does not draw has a hole, or ends, where the model's field does
+    draw the object; with every moving Gaussian hidden, the object is unexplained in every view
+    that sees it. An occluder variant's sphere: two tracks over 0.00-0.45 and 0.67-0.95, the
+    field drawing it over 0.50-0.61 (training views) with Gaussians it parks inside the
+    occluder at every other time; its whole track, 74 blobs over 0.00-0.95 (docs/results.md,
+    2026-12-02 afternoon). A track is part of a whole one when half of its blobs or more are
+    that one's blobs of their view, within its gate and its colour."""
+    parts: dict[int, list] = {}
+    out = []
+    for track in tracks:
+        whole = _containing(track, wholes, s)
+        if whole is None:
+            out.append(track)
+        else:
+            parts.setdefault(whole, []).append(track)
+    for whole, pieces in parts.items():
+        blobs = [b for piece in pieces for b in piece.blobs]
+        seen = {b.view for b in blobs}
+        blobs += [b for b in wholes[whole].blobs if b.view not in seen]
+        out.append(_samples(cameras, Track(sorted(blobs, key=lambda o: o.time)), s))
+    return out
+
+
+def _containing(track: Track, wholes: list, s: TrackSettings) -> int | None:
+    """The index of the whole track that half of `track`'s blobs or more lie on (`completed`),
+    the one with most; None when none does."""
+    best, most = None, 0
+    for i, whole in enumerate(wholes):
+        of_view = {b.view: b for b in whole.blobs}
+        on = sum(1 for b in track.blobs if (o := of_view.get(b.view)) is not None
+                 and float(np.linalg.norm(b.centre - o.centre)) <= _gate(s, o)
+                 and _compatible(b, o, s.colour_tol))
+        if on > most:
+            best, most = i, on
+    return best if 2 * most >= len(track.blobs) > 0 else None
+
+
 def _join(cameras, tracks: list, s: TrackSettings) -> list:
     """Join tracks that are one object seen across a stretch of time with no view (a gap in
     the training times) or where it was hidden: a track that ends within `max_gap` of another's

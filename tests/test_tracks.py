@@ -577,3 +577,39 @@ def test_a_thrown_balls_path_runs_on_with_its_acceleration():
     assert tr.smooth_at(np.array([landed]))[0][0, 2] < -0.15  # under the floor, as the ball
     straight = tr.at(np.array([landed]))[0][0, 2]
     assert straight - centre(landed)[2] > 0.2 and straight > -0.15
+
+
+def test_tracks_with_a_hole_where_the_field_draws_are_completed_by_the_whole_track():
+    """`completed`: a sphere on a loop over 60 views; what the model does not draw is two
+    tracks, over t < 0.4 and t > 0.6 (the field draws it between), the moving objects' track
+    all 60 views. The two become one track of every blob, on the path. A track of another
+    object, and one over the same views whose blobs lie 12 pixels off the whole track's (past
+    its gate) or are another colour, stay as they were."""
+    from nehad.tracks import Track, _samples, completed
+
+    def centre(t):
+        a = 2.0 * math.pi * t
+        return np.array([math.cos(a), 1.45 * math.sin(a), 0.4 + 0.25 * math.sin(2.0 * a)])
+
+    def still(t):
+        return np.array([0.0, 0.0, 0.5])
+
+    s = TrackSettings()
+    times = [k / 60 for k in range(60)]
+    cams = [_rig_view(i, 7) for i in range(60)]
+    blobs = [_exact_blob(i, t, c, centre) for i, (t, c) in enumerate(zip(times, cams))]
+    whole = _samples(cams, Track(blobs), s)
+    before = _samples(cams, Track([b for b in blobs if b.time < 0.4]), s)
+    after = _samples(cams, Track([b for b in blobs if b.time > 0.6]), s)
+    other = _samples(cams, Track([_exact_blob(i, t, c, still)
+                                  for i, (t, c) in enumerate(zip(times, cams)) if t < 0.3]), s)
+    off = Track([dataclasses.replace(b, centre=b.centre + [12.0, 0.0]) for b in before.blobs])
+    blue = Track([dataclasses.replace(b, colour=np.array([0.1, 0.3, 0.9])) for b in after.blobs])
+    assert len(whole.blobs) == 60 and len(before.blobs) == 24 and len(after.blobs) == 23
+    out = completed([before, other, off, blue, after], [whole], cams, s)
+    assert out[:3] == [other, off, blue]
+    assert len(out) == 4 and len(out[3].blobs) == 60
+    assert sorted(b.time for b in out[3].blobs) == times
+    err = [np.linalg.norm(p - centre(t)) for t, p in zip(out[3].times, out[3].points)]
+    assert max(err) < 0.01, max(err)
+    assert completed([before], [], cams, s) == [before]
