@@ -14,7 +14,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from nehad.chain_check import DROPPED, HALO, chain_lives, fill_untrained, trained_rows
+from nehad.chain_check import (DROPPED, HALO, chain_lives, fill_untrained, trained_away,
+                                trained_rows)
 from nehad.config import CarveConfig
 from nehad.curriculum import TimeWindow, eligible_frames
 from nehad.densify import DensifySchedule, DensifyState, append_gaussians, keep_gaussians
@@ -290,6 +291,10 @@ class ResidualCarving:
             finally:
                 g.life_rate[torch.as_tensor(mortal), 0] = torch.as_tensor(
                     rates[mortal], dtype=g.life_rate.dtype)
+            opacity = torch.sigmoid(g.opacity_logits).reshape(-1).numpy()
+            away = trained_away(chains, trained, opacity)
+            for c in away:
+                choice[chains[c]] = DROPPED
             rows = torch.as_tensor(np.nonzero(choice == DROPPED)[0])
             g.opacity_logits[rows] = -30.0
             longer = torch.as_tensor(np.nonzero(choice > 1.0)[0])
@@ -301,7 +306,8 @@ class ResidualCarving:
                 "chain_gaussians_longer": int((choice > 1.0).sum()),
                 "chains_cut": sum(1 for rows in chains
                                   if 0 < (choice[rows] == DROPPED).sum() < len(rows)),
-                "halo_gaussians_shrunk": int(grown.sum()), "untrained_filled": filled}
+                "halo_gaussians_shrunk": int(grown.sum()), "untrained_filled": filled,
+                "chains_trained_away": len(away)}
 
     @staticmethod
     def _fill(g, chains, t_all, trained) -> int:

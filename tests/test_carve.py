@@ -455,3 +455,17 @@ def test_a_chain_splits_into_its_trained_core_and_its_two_ends():
     alone = core_and_ends(np.array([0, 2, 4]), t_eq, trained)
     assert len(alone) == 1 and alone[0][1] is None
     np.testing.assert_array_equal(alone[0][0], [0, 2, 4])
+
+
+def test_a_chain_its_training_views_made_transparent_is_trained_away():
+    """`trained_away` against hand-made chains: one whose trained members are all under
+    AWAY_OPACITY (its untrained member opaque) is; one with a trained member at the bound, one
+    with no trained member and one fully transparent but untrained are not."""
+    from nehad.chain_check import AWAY_OPACITY, trained_away
+
+    assert AWAY_OPACITY == 0.05
+    chains = [np.array([0, 1, 2]), np.array([3, 4]), np.array([5, 6]), np.array([7])]
+    trained = np.array([True, True, False, True, False, False, False, False])
+    opacity = np.array([0.01, 0.049, 0.98, 0.05, 0.9, 0.9, 0.9, 0.0])
+    assert trained_away(chains, trained, opacity) == [0]
+    assert trained_away(chains, np.ones(8, bool), opacity) == [3]
