@@ -266,17 +266,7 @@ class ResidualCarving:
             t_eq = g.t_eq.detach().reshape(-1).numpy()[mortal]
             reach = 2.0 * np.exp(g.log_scales.detach().numpy()[mortal]).max(axis=1)
         labels = chains_of(means, vel, t_eq, spacing, reach)
-        grown = np.zeros(len(mortal), bool)  # a halo: a member grown far past its chain's size
-        size = np.zeros(len(mortal))
-        for c in range(labels.max() + 1):
-            rows = labels == c
-            if rows.sum() >= 3:
-                size[rows] = 0.5 * np.median(reach[rows])
-                grown[rows] = reach[rows] > HALO * 2.0 * size[rows]
-        with torch.no_grad():  # shrunk back to the chain's size (it still draws the object)
-            rows = torch.as_tensor(mortal[grown])
-            cap = torch.log(torch.as_tensor(size[grown], dtype=g.log_scales.dtype))[:, None]
-            g.log_scales[rows] = torch.minimum(g.log_scales[rows], cap)
+        grown = self._shrink_halos(g, mortal, labels, reach)
         chains = [mortal[labels == c] for c in range(labels.max() + 1)]
         rates = g.life_rate.detach().reshape(-1).numpy().astype(np.float64)
         t_all = g.t_eq.detach().reshape(-1).numpy()  # every row's, as chain_lives indexes
@@ -308,6 +298,23 @@ class ResidualCarving:
                                   if 0 < (choice[rows] == DROPPED).sum() < len(rows)),
                 "halo_gaussians_shrunk": int(grown.sum()), "untrained_filled": filled,
                 "chains_trained_away": len(away)}
+
+    @staticmethod
+    def _shrink_halos(g, mortal, labels, reach) -> np.ndarray:
+        """Each member of a chain of 3 or more (`labels` over the `mortal` rows) whose `reach`
+        is more than HALO times its chain's median (a halo) shrunk back to that median (it
+        still draws the object); which members were, one flag per mortal row."""
+        grown, size = np.zeros(len(mortal), bool), np.zeros(len(mortal))
+        for c in range(labels.max() + 1):
+            rows = labels == c
+            if rows.sum() >= 3:
+                size[rows] = 0.5 * np.median(reach[rows])
+                grown[rows] = reach[rows] > HALO * 2.0 * size[rows]
+        with torch.no_grad():
+            rows = torch.as_tensor(mortal[grown])
+            cap = torch.log(torch.as_tensor(size[grown], dtype=g.log_scales.dtype))[:, None]
+            g.log_scales[rows] = torch.minimum(g.log_scales[rows], cap)
+        return grown
 
     @staticmethod
     def _fill(g, chains, t_all, trained) -> int:
