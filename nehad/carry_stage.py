@@ -115,7 +115,7 @@ def field_rows_on_path(model, obj, field_rows: np.ndarray) -> np.ndarray:
     FIELD_DRAWN_KNOTS or more of the knots its track saw. Where the field draws an object over
     part of its path and parks the same Gaussians out of sight elsewhere (inside an occluder),
     they cross open space on their way at held-out times: a second sphere a sphere's width
-    from the carried one (an occluder variant; docs/results.md, 2026-12-02)."""
+    from the carried one (an occluder variant; docs/results.md, 2026-12-02 afternoon)."""
     if not len(field_rows):
         return field_rows
     seen = obj.seen or (obj.times[0], obj.times[-1])

@@ -28,12 +28,12 @@ def trained_away(chains, trained: np.ndarray, opacities: np.ndarray) -> list[int
     """The indices of the `chains` (row arrays) that have trained members (`trained`, one flag
     per row) and whose trained members' `opacities` are all under AWAY_OPACITY: the training
     views around their times drove them transparent, so nothing there is theirs to draw, and
-    their untrained members (at held-out times, still opaque as seeded) are junk. On four
-    models (occluder variants 2, 10 and 13, fast ball 5; docs/results.md, 2026-12-02
-    afternoon) one chain each but one, seeded on a track 66-90 units a unit of time fast, with
-    trained members at opacity 0.006-0.018 and untrained ones up to 0.65-0.98: a smudge at
-    one or two test times. The views' check (`chain_lives`) keeps such a chain where the
-    validation views do not reach its opaque members."""
+    their untrained members (at held-out times, still opaque as seeded) are junk. On the
+    occluder variants 2 and 10 and the fast ball variant 5 one chain each (none on occluder
+    13; docs/results.md, 2026-12-02 afternoon), seeded on a track 66-90 units a unit of time
+    fast, with trained members at opacity 0.006-0.018 and untrained ones up to 0.65-0.98: a
+    smudge at one or two test times. The views' check (`chain_lives`) keeps such a chain
+    where the validation views do not reach its opaque members."""
     out = []
     for c, rows in enumerate(chains):
         seen = np.asarray(trained, bool)[rows]
