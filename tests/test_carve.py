@@ -460,7 +460,8 @@ def test_a_chain_splits_into_its_trained_core_and_its_two_ends():
 def test_a_chain_its_training_views_made_transparent_is_trained_away():
     """`trained_away` against hand-made chains: one whose trained members are all under
     AWAY_OPACITY (its untrained member opaque) is; one with a trained member at the bound, one
-    with no trained member and one fully transparent but untrained are not."""
+    with no trained member and one fully transparent but untrained are not; with every row
+    trained, the fully transparent one is, and the first is not (its member at 0.98)."""
     from nehad.chain_check import AWAY_OPACITY, trained_away
 
     assert AWAY_OPACITY == 0.05
