@@ -116,16 +116,13 @@ def field_rows_on_path(model, obj, field_rows: np.ndarray) -> np.ndarray:
     part of its path and parks the same Gaussians out of sight elsewhere (inside an occluder),
     they cross open space on their way at held-out times: a second sphere a sphere's width
     from the carried one (an occluder variant; docs/results.md, 2026-12-02 afternoon)."""
+    from nehad.spin_tracks import times_near_path
+
     if not len(field_rows):
         return field_rows
     seen = obj.seen or (obj.times[0], obj.times[-1])
-    knots = np.nonzero((obj.times >= seen[0] - 1e-9) & (obj.times <= seen[1] + 1e-9))[0]
-    index, count = torch.as_tensor(field_rows), np.zeros(len(field_rows), np.int64)
-    with torch.no_grad():
-        for k in knots:
-            at = model.means_at(float(obj.times[k]), index).numpy()
-            count += np.linalg.norm(at - obj.points[k], axis=1) <= obj.radius
-    return field_rows[count >= FIELD_DRAWN_KNOTS]
+    knots = obj.times[(obj.times >= seen[0] - 1e-9) & (obj.times <= seen[1] + 1e-9)]
+    return field_rows[times_near_path(model, obj, field_rows, knots)[0] >= FIELD_DRAWN_KNOTS]
 
 
 def carry_stage(model, train_views, val_views, carve_cfg, degree: int, background,

@@ -34,10 +34,11 @@ def trained_away(chains, trained: np.ndarray, opacities: np.ndarray) -> list[int
     fast, with trained members at opacity 0.006-0.018 and untrained ones up to 0.65-0.98: a
     smudge at one or two test times. The views' check (`chain_lives`) keeps such a chain
     where the validation views do not reach its opaque members."""
+    trained, opacities = np.asarray(trained, bool), np.asarray(opacities)
     out = []
     for c, rows in enumerate(chains):
-        seen = np.asarray(trained, bool)[rows]
-        if seen.any() and float(np.asarray(opacities)[rows][seen].max()) < AWAY_OPACITY:
+        seen = trained[rows]
+        if seen.any() and float(opacities[rows][seen].max()) < AWAY_OPACITY:
             out.append(c)
     return out
 

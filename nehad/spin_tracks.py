@@ -200,6 +200,13 @@ def rows_along(model, obj, rows: np.ndarray, sigma: float, reaches=(1.0,),
     field is evaluated once for all of them."""
     lo, hi = obj.span(sigma)
     times = np.linspace(max(lo, float(obj.times[0])), min(hi, float(obj.times[-1])), samples)
+    return [rows[2 * n >= samples] for n in times_near_path(model, obj, rows, times, reaches)]
+
+
+def times_near_path(model, obj, rows: np.ndarray, times, reaches=(1.0,)) -> np.ndarray:
+    """(len(reaches), len(rows)) at how many of `times` each of the `rows` is within that reach
+    times the object's radius of its path (linear between its knots); the field is evaluated
+    once a time for all of them."""
     limits = np.asarray(reaches, np.float64)[:, None] * obj.radius
     near = np.zeros((len(limits), len(rows)), np.int64)
     index = torch.as_tensor(rows)
@@ -208,8 +215,8 @@ def rows_along(model, obj, rows: np.ndarray, sigma: float, reaches=(1.0,),
             path = np.array([np.interp(t, obj.times, obj.points[:, j]) for j in range(3)])
             at = model.means_at(float(t), index).numpy()
             near += np.linalg.norm(at - path, axis=1)[None] <= limits
-    return [rows[2 * n >= samples] for n in near]
+    return near
 
 
 __all__ = ["MOVING_EXTENT", "PATH_WINDOW", "join_spinning", "moving_rows", "moving_tracks",
-           "rows_along", "smooth_path", "spinning_tracks"]
+           "rows_along", "smooth_path", "spinning_tracks", "times_near_path"]
