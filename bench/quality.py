@@ -10,8 +10,9 @@ Scenes are looked up in ../shared/data/mujoco (400x400 with the cpu preset's dow
 (scene, decoder): test PSNR beside the PSNR of a blank image (the background colour everywhere)
 on the same views, the gain, the worst quarter of the time range (its gain over blank), the
 worst object-quarter (on scenes with label masks: the object, the quarter's start and the gain
-over blank on the object's own pixels), the unlabelled foreground's gain (where the images
-have alpha: the floor and the shadows on it, nehad/evaluate.py), SSIM,
+over blank on the object's own pixels), the unlabelled foreground's gain and its worst quarter
+(where the images have alpha: the floor and the shadows on it, nehad/evaluate.py; an object
+drawn where it is gone shows only there), SSIM,
 LPIPS-vgg, training minutes, Gaussians and render FPS; then the means and the issue's targets.
 Writes the rows to OUT/results_*.json (one file per invocation, so several invocations, e.g. one
 per core with OMP_NUM_THREADS=1, can share OUT). Runs already finished are reused, and their
@@ -99,13 +100,18 @@ def train_and_eval(data: Path, run: Path, preset: str, sets: list[str]) -> dict:
                worst_object_gain=wo["gain"] if wo else None)
     rest = result.get("unlabelled")  # the floor and its shadows (nehad/evaluate.py)
     row["floor_gain"] = rest["gain"] if rest else None
+    # its worst quarter: a copy of an object drawn where the object is gone shows only there
+    # (docs/results.md, 2026-12-02, the fast ball that sinks into the floor)
+    bins = [b["gain"] for b in (rest or {}).get("time_bins", [])
+            if b.get("gain") is not None and b.get("pixels", 0) >= 16]
+    row["floor_worst"] = min(bins) if bins else None
     row_file.write_text(json.dumps(row, indent=1))
     return row
 
 
 def print_rows(rows: list[dict]) -> None:
     print(f"{'scene':<24} {'variant':<22} {'PSNR':>6} {'blank':>6} {'gain':>6} {'worst t':>9} "
-          f"{'worst object, t':>22} {'floor':>6} "
+          f"{'worst object, t':>22} {'floor/worst':>11} "
           f"{'SSIM':>6} {'LPIPSvgg':>8} {'min':>5} {'Gaussians':>9} {'FPS':>6}")
     for r in rows:
         f = lambda v, d: "n/a" if v is None else f"{v:.{d}f}"
@@ -115,7 +121,8 @@ def print_rows(rows: list[dict]) -> None:
                 f"{r['worst_object_gain']:+.1f}" if r.get("worst_object") else "n/a")
         print(f"{r['scene']:<24} {r['variant']:<22} {f(r['psnr'], 2):>6} "
               f"{f(r.get('blank_psnr'), 2):>6} {f(r.get('gain'), 2):>6} {worst:>9} {wobj:>22} "
-              f"{f(r.get('floor_gain'), 1):>6} {f(r['ssim'], 4):>6} {f(r['lpips_vgg'], 4):>8} "
+              f"{f(r.get('floor_gain'), 1) + '/' + f(r.get('floor_worst'), 1):>11} "
+              f"{f(r['ssim'], 4):>6} {f(r['lpips_vgg'], 4):>8} "
               f"{f(r['minutes'], 1):>5} "
               f"{r['gaussians']:>9} {f(r['fps'], 1):>6}")
 
