@@ -364,39 +364,17 @@ def _kept_knots(obj, judge, rows, knot_of, options, sigma: float, everywhere: bo
         if not min(errors) < judge.error(views, hide=rows):
             return None
         swap = choices[int(np.argmin(errors))]
-    lo, hi = _extended(obj, judge, lambda views, a, b: error(views, a, b, swap), lo, hi, sigma)
-    return lo, hi, swap
-
-
-def _extended(obj, judge, error, lo: int, hi: int, sigma: float) -> tuple[int, int]:
-    """Knots lo..hi grown knot by knot outwards (`_kept_knots`), `error(views, a, b)` the views'
-    error with knots a..b kept. A knot that no view judges is kept on trust; when the next
-    judged knot is refused, those kept on trust go on only to halfway between the last knot
-    the views (or the track) accepted and the refused one: each time takes the state of its
-    nearest evidence. On a fast ball variant (seed 24) that sinks into the white floor inside a
-    held-out block, whose test times come before its validation times, the path run on
-    through the test times drew the ball whole after it had gone (docs/results.md,
-    2026-12-02)."""
     reach, fitted = sigma * (1.0 + 1e-6), obj.fitted_span(sigma)
-    times = obj.times
     for step in (-1, 1):
-        judged = lo if step < 0 else hi  # the last knot kept on evidence
-        while 0 <= (nxt := (lo if step < 0 else hi) + step) < len(times):
-            t = float(times[nxt])
+        while 0 <= (nxt := (lo if step < 0 else hi) + step) < len(obj.times):
+            t = float(obj.times[nxt])
             window = (t - reach, t + reach)
             views = judge.views_in(window) + judge.unfitted_in(window, fitted)
             a, b = (nxt, hi) if step < 0 else (lo, nxt)
-            if views and error(views, a, b) > error(views, lo, hi):
-                end = lo if step < 0 else hi  # trust only halfway to the refusal
-                while end != judged and (abs(float(times[end]) - float(times[judged]))
-                                         >= abs(t - float(times[end]))):
-                    end -= step
-                lo, hi = (end, hi) if step < 0 else (lo, end)
+            if views and error(views, a, b, swap) > error(views, lo, hi, swap):
                 break
             lo, hi = a, b
-            if views:
-                judged = nxt
-    return lo, hi
+    return lo, hi, swap
 
 
 class _Judge:
