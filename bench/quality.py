@@ -101,9 +101,9 @@ def train_and_eval(data: Path, run: Path, preset: str, sets: list[str]) -> dict:
     rest = result.get("unlabelled")  # the floor and its shadows (nehad/evaluate.py)
     row["floor_gain"] = rest["gain"] if rest else None
     # its worst quarter: a copy of an object drawn where the object is gone shows only there
-    # (docs/results.md, 2026-12-02, the fast ball that sinks into the floor)
-    bins = [b["gain"] for b in (rest or {}).get("time_bins", [])
-            if b.get("gain") is not None and b.get("pixels", 0) >= 16]
+    # (docs/results.md, 2026-12-02, the fast ball that sinks into the floor); a quarter with
+    # too few pixels has no gain (nehad/evaluate.py, OBJECT_MIN_PIXELS)
+    bins = [b["gain"] for b in (rest or {}).get("time_bins", []) if b.get("gain") is not None]
     row["floor_worst"] = min(bins) if bins else None
     row_file.write_text(json.dumps(row, indent=1))
     return row
