@@ -334,13 +334,23 @@ def _kept_knots(obj, judge, rows, knot_of, options, sigma: float, everywhere: bo
     whichever is closest
     (where the field cannot place many of an object's copies, the chains still draw part of
     it: `nehad demo`'s bouncing ball); kept where no held-out view falls there, as a chain is.
-    Then knot by knot outwards, each kept while the views within one spacing of it (where its
-    life window is over 0.6) that the fit did not see get no further from their targets: a
-    path extrapolated past its track's ends runs on where the object is gone (the stress fast
-    ball after its landing, hidden under the floor). Those views are the held-out ones and the
-    training views past the object's fitted span (`CarriedObject.fitted_span`): on a fast ball
-    variant whose held-out views all lay elsewhere, the copies past its landing were kept and
-    drew it at a test time where it was gone, though three training views there showed nothing
+    Then, from each end inwards, a knot that no held-out view within one spacing of it judges
+    is dropped while the training views there get closer to their targets without it, the
+    rows the seen knots replace hidden either way (the chains and the field were fitted to
+    the training views, so those views favour these rows over any carried copy; with the rows
+    hidden, a knot where the object is fills the hole and a knot where it is gone draws on
+    empty background): where
+    colliding spheres merge into one blob, scene3's blue sphere's track ran on past it, the
+    copies over its last 0.015 of time drew it beside the cluster at those training views,
+    and its path, run on past them, drew a second blue sphere at the test times after
+    (docs/results.md, 2026-12-02 night). Then knot by knot outwards, each kept while the
+    views within one spacing of it (where its life window is over 0.6) get no further from
+    their targets: a path extrapolated past its track's ends runs on where the object is gone
+    (the stress fast ball after its landing, hidden under the floor). Those views are the
+    held-out ones and the training ones (before 2026-12-02 night only those past the span
+    the object was fitted on, `CarriedObject.fitted_span`): on a fast ball variant whose
+    held-out views all lay elsewhere, the copies past its landing were kept and drew it at a
+    test time where it was gone, though three training views there showed nothing
     (docs/results.md, 2026-12-01). With `everywhere` the rows replaced draw at
     every time (the field's Gaussians about a spinning object), so the first choice is judged
     on every held-out view: on a variant of the stress thin rod whose track was seen from t =
@@ -352,10 +362,10 @@ def _kept_knots(obj, judge, rows, knot_of, options, sigma: float, everywhere: bo
         inside = [int(np.abs(obj.times - 0.5 * (seen[0] + seen[1])).argmin())]
     lo, hi = int(inside[0]), int(inside[-1])
 
-    def error(views, a, b, swap):  # the views' error with knots a..b kept
-        out = rows[(knot_of < a) | (knot_of > b)]
+    def error(views, a, b, swap, about=None):  # the views' error with knots a..b kept and
+        out = rows[(knot_of < a) | (knot_of > b)]  # the rows about knots `about` (a..b) hidden
         return judge.error(views, hide=out if swap is None else
-                           np.concatenate([out, options[swap](a, b)]))
+                           np.concatenate([out, options[swap](*(about or (a, b)))]))
 
     views, swap = judge.views_in((-np.inf, np.inf) if everywhere else seen), 0
     if views:
@@ -364,12 +374,22 @@ def _kept_knots(obj, judge, rows, knot_of, options, sigma: float, everywhere: bo
         if not min(errors) < judge.error(views, hide=rows):
             return None
         swap = choices[int(np.argmin(errors))]
-    reach, fitted = sigma * (1.0 + 1e-6), obj.fitted_span(sigma)
-    for step in (-1, 1):
+    reach, seen_knots = sigma * (1.0 + 1e-6), (lo, hi)
+    for step in (-1, 1):  # seen knots no held-out view judges, from the ends inwards, the
+        while lo < hi:    # rows they replace hidden either way (`about`)
+            t = float(obj.times[lo if step < 0 else hi])
+            window = (t - reach, t + reach)
+            views = [] if judge.views_in(window) else judge.trained_in(window)
+            a, b = (lo + 1, hi) if step < 0 else (lo, hi - 1)
+            if not views or not (error(views, a, b, swap, seen_knots)
+                                 < error(views, lo, hi, swap, seen_knots)):
+                break
+            lo, hi = a, b
+    for step in (-1, 1):  # then outwards
         while 0 <= (nxt := (lo if step < 0 else hi) + step) < len(obj.times):
             t = float(obj.times[nxt])
             window = (t - reach, t + reach)
-            views = judge.views_in(window) + judge.unfitted_in(window, fitted)
+            views = judge.views_in(window) + judge.trained_in(window)
             a, b = (nxt, hi) if step < 0 else (lo, nxt)
             if views and error(views, a, b, swap) > error(views, lo, hi, swap):
                 break
@@ -379,10 +399,9 @@ def _kept_knots(obj, judge, rows, knot_of, options, sigma: float, everywhere: bo
 
 class _Judge:
     """Summed squared error of views with some rows made transparent: the held-out `views`
-    and, after them, the `trained` ones (for the views a carried object's fit did not see,
-    `unfitted_in`). Each view's Gaussians at its time are evaluated once (the deformation
-    field) and kept until `forget` (the model's rows changed); a judgement zeroes the hidden
-    rows' opacities in a copy."""
+    and, after them, the `trained` ones (`trained_in`). Each view's Gaussians at its time are
+    evaluated once (the deformation field) and kept until `forget` (the model's rows changed);
+    a judgement zeroes the hidden rows' opacities in a copy."""
 
     def __init__(self, model, views, degree, background, trained=None):
         self.model, self.degree, self.background = model, degree, background
@@ -399,11 +418,10 @@ class _Judge:
         return [k for k, t in enumerate(self.views.times[:self.held_out])
                 if span[0] <= t <= span[1]]
 
-    def unfitted_in(self, span, fitted) -> list:
-        """The training views whose times are in `span` and outside `fitted` (those a carried
-        object's fit did not see)."""
+    def trained_in(self, span) -> list:
+        """The training views whose times are in `span`."""
         return [self.held_out + k for k, t in enumerate(self.views.times[self.held_out:])
-                if span[0] <= t <= span[1] and not fitted[0] <= t <= fitted[1]]
+                if span[0] <= t <= span[1]]
 
     def every_view(self) -> list:
         """Every view, held-out and trained."""

@@ -337,7 +337,7 @@ class _CountingJudge:
         from nehad.carry_stage import _Judge
 
         self._views = _Judge(None, _times_only(view_times), 0, None, _times_only(train_times))
-        self.views_in, self.unfitted_in = self._views.views_in, self._views.unfitted_in
+        self.views_in, self.trained_in = self._views.views_in, self._views.trained_in
         self.times, self.knots = self._views.views.times, knot_times
         self.present, self.per_knot = present, per_knot
 
@@ -390,6 +390,29 @@ def test_an_objects_ends_are_kept_only_as_far_as_the_held_out_views_agree():
     wider = lambda a, b: np.array([42, 43])  # noqa: E731
     assert _kept_knots(obj, judge, rows, knot_of, [none, wider], 0.01) == (5, 15, 1)
     assert _kept_knots(obj, judge, rows, knot_of, [none], 0.01) == (5, 15, 0)
+
+
+def test_seen_knots_no_held_out_view_judges_are_dropped_where_the_training_views_disagree():
+    """Knots every 0.01 over 0-0.19, its track seeing it over 0.05-0.15 but the object there
+    over 0.05-0.12 only (the track ran on past it, as where spheres merge into one blob). A
+    held-out view at 0.08 keeps the seen span; the knots 0.13-0.15, which no held-out view
+    judges, are dropped from the end inwards because the training views at 0.13 and 0.14 are
+    closer to their targets without them, and the way on past 0.12 is refused by the same
+    views; a held-out view at 0.035 refuses the knots before 0.05."""
+    from nehad.carry_stage import _kept_knots
+
+    knots = np.round(np.arange(20) * 0.01, 6)
+    obj = _object(knots, np.zeros((20, 3)), np.zeros((20, 3)), np.zeros((2, 3)))
+    obj.seen = (0.05, 0.15)
+    rows, knot_of = np.arange(40), np.repeat(np.arange(20), 2)
+    none = lambda a, b: np.zeros(0, np.int64)  # noqa: E731
+    present = (knots >= 0.05 - 1e-9) & (knots <= 0.12 + 1e-9)
+    judge = _CountingJudge([0.035, 0.08], knots, present, 2, train_times=[0.13, 0.14])
+    assert _kept_knots(obj, judge, rows, knot_of, [none], 0.01) == (5, 12, 0)
+    # the same training views where the object is there: nothing is dropped
+    judge = _CountingJudge([0.035, 0.08], knots, knots >= 0.05 - 1e-9, 2,
+                           train_times=[0.13, 0.14])
+    assert _kept_knots(obj, judge, rows, knot_of, [none], 0.01) == (5, 19, 0)
 
 
 class _CutByRows(_CountingJudge):
