@@ -372,14 +372,16 @@ def _render_and_score(model, info, split: str, frames, masks, render_dir: Path |
 
 def _frame_record(i: int, frame, rgb, blank_image, lpips: bool) -> dict:
     """The metrics of one frame's render and of the blank image (``blank_`` keys) against it
-    (LPIPS of both in one network pass per net: `nehad.metrics.lpips_scores`)."""
+    (LPIPS of both in one network pass per net, the blank image's features kept from the
+    first frame: `nehad.metrics.lpips_scores`)."""
     from nehad.metrics import image_metrics, lpips_scores
 
     nets = ("alex", "vgg") if lpips else ()
     scores = image_metrics(rgb, frame.image, lpips_nets=())
     blank = image_metrics(blank_image, frame.image, lpips_nets=())
     if nets:
-        both = lpips_scores([rgb, blank_image], frame.image, nets, require_lpips=True)
+        both = lpips_scores([rgb, blank_image], frame.image, nets, require_lpips=True,
+                            recurring=(1,))
         for out, lp in zip((scores, blank), both):
             out.update(lp)
     record = {"frame": i, "file": frame.path.name, "time": frame.camera.time}

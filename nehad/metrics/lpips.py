@@ -136,14 +136,22 @@ class LPIPS(nn.Module):
     def layer_distances(self, x: torch.Tensor, n: int, normalize: bool) -> list[torch.Tensor]:
         """Per tap, (N, 1, 1, 1) distances of the images x[:n] to x[n:] (as many, or one that
         all of them are compared with), in one pass of the backbone over x."""
+        feats = self.unit_features(x, normalize)
+        return self.tap_distances([f[:n] for f in feats], [f[n:] for f in feats])
+
+    def unit_features(self, x: torch.Tensor, normalize: bool) -> list[torch.Tensor]:
+        """The tapped features of images x (N, 3, H, W), each normalised over its channels."""
         if normalize:
             x = 2 * x - 1
         x = (x - self.shift.to(x.dtype)) / self.scale.to(x.dtype)
-        res = []
-        for feat, lin in zip(self.tapped(x), self.lins):
-            f = feat / (torch.sqrt(torch.sum(feat ** 2, dim=1, keepdim=True)) + 1e-10)
-            res.append(lin((f[:n] - f[n:]) ** 2).mean((2, 3), keepdim=True))
-        return res
+        return [feat / (torch.sqrt(torch.sum(feat ** 2, dim=1, keepdim=True)) + 1e-10)
+                for feat in self.tapped(x)]
+
+    def tap_distances(self, a: list, b: list) -> list[torch.Tensor]:
+        """Per tap, the (N, 1, 1, 1) distances of `unit_features` a to b (b may hold one image
+        that every image of a is compared with)."""
+        return [lin((fa - fb) ** 2).mean((2, 3), keepdim=True)
+                for fa, fb, lin in zip(a, b, self.lins)]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -279,17 +287,45 @@ def lpips_per_image(img, ref, net: str = "vgg", normalize: bool = True) -> torch
         return model(a, b, normalize=normalize).reshape(-1)
 
 
-def lpips_against(ref, imgs, net: str = "vgg", normalize: bool = True) -> list[float]:
+def lpips_against(ref, imgs, net: str = "vgg", normalize: bool = True,
+                  recurring=()) -> list[float]:
     """LPIPS distance of each image of `imgs` (K of them, (H, W, 3) each) to the one reference
     `ref`, as `lpips(img, ref)` gives it, with the reference's features computed once: one
     network pass over K + 1 images where K pairs take 2K (`nehad eval` scores each render and
-    the blank image against the same target)."""
-    x = torch.cat([_to_nchw(i) for i in imgs] + [_to_nchw(ref)], 0)
-    if len({tuple(t.shape) for t in x}) != 1 or x.shape[1] != 3:
-        raise ValueError(f"LPIPS needs RGB images of one size, got {tuple(x.shape)}")
+    the blank image against the same target). The images at the indices `recurring` are ones
+    the caller passes again and again (`nehad eval`'s blank image, the same for every frame):
+    their features are kept, keyed by their pixels (`_recurring_features`), and the network
+    runs over the others and the reference only."""
+    images = [_to_nchw(i) for i in imgs] + [_to_nchw(ref)]
+    if len({tuple(t.shape) for t in images}) != 1 or images[0].shape[1] != 3:
+        raise ValueError(f"LPIPS needs RGB images of one size, got "
+                         f"{sorted({tuple(t.shape) for t in images})}")
+    model = get_model(net)
+    fresh = [k for k in range(len(images)) if k not in set(recurring)]
     with torch.inference_mode():
-        total = sum(get_model(net).layer_distances(x, x.shape[0] - 1, normalize))
+        feats = model.unit_features(torch.cat([images[k] for k in fresh], 0), normalize)
+        rows = {k: [f[j:j + 1] for f in feats] for j, k in enumerate(fresh)}
+        for k in recurring:
+            rows[k] = _recurring_features(model, net, images[k], normalize)
+        a = [torch.cat([rows[k][tap] for k in range(len(imgs))], 0) for tap in range(len(feats))]
+        total = sum(model.tap_distances(a, rows[len(imgs)]))
     return [float(v) for v in total.reshape(-1)]
+
+
+_RECURRING: dict = {}  # (net, normalize, shape, digest of the pixels) -> unit features
+_RECURRING_MAX = 4
+
+
+def _recurring_features(model: LPIPS, net: str, image: torch.Tensor, normalize: bool) -> list:
+    """`model.unit_features` of one image (1, 3, H, W), kept for the next call with the same
+    pixels (the few most recent images only)."""
+    pixels = image.contiguous().numpy()
+    key = (net, normalize, pixels.shape, hashlib.blake2b(pixels.tobytes(), digest_size=16).digest())
+    if key not in _RECURRING:
+        while len(_RECURRING) >= _RECURRING_MAX:
+            _RECURRING.pop(next(iter(_RECURRING)))
+        _RECURRING[key] = model.unit_features(image, normalize)
+    return _RECURRING[key]
 
 
 def lpips(img, ref, net: str = "vgg", normalize: bool = True) -> float:
