@@ -71,6 +71,43 @@ def test_a_spinning_rods_blobs_give_its_spin(rod):
     assert abs(longest - 1.0 / 12.0) < 0.15 / 12.0, longest
 
 
+def test_the_misfit_matches_its_matrix_form_and_candidates_refine_as_if_alone(rod):
+    """`_misfit`'s design, written element by element, against J R E_ab R^T J^T formed as
+    matrix products (E_ab the symmetric unit matrix of each of the spread's six numbers),
+    solved by numpy's least squares; and `_refine` of four candidates at once against each
+    refined on its own, on the spinning rod's blobs (each its own Gauss-Newton steps: the
+    same omegas to 1e-9)."""
+    from nehad.spin import _PAIRS, _misfit, _refine, rotations
+
+    blobs, cams = rod
+    points = np.repeat(CENTRE[None], len(blobs), 0)
+    times = np.array([b.time for b in blobs])
+    jac = projection_jacobians([cams[b.view] for b in blobs], points)
+    observed = np.array([[b.shape[0, 0], b.shape[1, 1], b.shape[0, 1]] for b in blobs])
+    weights = 1.0 / np.array([np.trace(b.shape) for b in blobs])
+    dts = times - times.mean()
+    omegas = np.random.default_rng(0).normal(0.0, 6.0, (5, 3))
+    err, six = _misfit(omegas, jac, dts, observed, weights)
+    for k, omega in enumerate(omegas):
+        m = jac @ rotations(omega[None] * dts[:, None])
+        cols = []
+        for a, b in _PAIRS:
+            unit = np.zeros((3, 3))
+            unit[a, b] = unit[b, a] = 1.0
+            c = m @ unit @ np.swapaxes(m, 1, 2)
+            cols.append(np.stack([c[:, 0, 0], c[:, 1, 1], c[:, 0, 1]], 1).reshape(-1))
+        design = np.stack(cols, 1) * np.repeat(weights, 3)[:, None]
+        rhs = (observed * weights[:, None]).reshape(-1)
+        want = np.linalg.lstsq(design, rhs, rcond=None)[0]
+        assert np.allclose(six[k], want, rtol=1e-6, atol=1e-9 * np.abs(want).max())
+        assert err[k] == pytest.approx(np.sqrt(np.mean((design @ want - rhs) ** 2)), rel=1e-6)
+    starts = np.array([[0.3, 0.2, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.5, 0.5, 0.5]]) * 11.0
+    together, errs = _refine(starts, jac, dts, observed, weights)
+    for start, omega, e in zip(starts, together, errs):
+        alone, e_alone = _refine(start[None], jac, dts, observed, weights)
+        assert np.allclose(omega, alone[0], rtol=0, atol=1e-9) and e == pytest.approx(e_alone[0])
+
+
 def test_a_round_object_reports_no_spin():
     """A sphere on a path: every turn fits its round blobs alike, so no spin is reported."""
     def ball(t):
