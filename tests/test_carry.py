@@ -351,22 +351,29 @@ class _CountingJudge:
         return total
 
 
+def _twenty_knots(seen):
+    """A carried object with knots every 0.01 over 0-0.19, two rows a knot, its track seeing
+    it over `seen`: (object, knot times, rows, each row's knot, an option that replaces no
+    rows)."""
+    knots = np.round(np.arange(20) * 0.01, 6)
+    obj = _object(knots, np.zeros((20, 3)), np.zeros((20, 3)), np.zeros((2, 3)))
+    obj.seen = seen
+    none = lambda a, b: np.zeros(0, np.int64)  # noqa: E731
+    return obj, knots, np.arange(40), np.repeat(np.arange(20), 2), none
+
+
 def test_an_objects_ends_are_kept_only_as_far_as_the_held_out_views_agree():
     """Knots every 0.01 over 0-0.19, its track seeing it over 0.05-0.12, the object there over
     0.05-0.15 (it runs on past its last blob, then is gone). With held-out views at 0.035 (none
     there), 0.08 (there) and 0.165 (gone): the knots kept are 0.05-0.15, those of the seen span
     and the three after it that no view contradicts, not 0.04 or 0.16. A training view past
-    the span its fit saw judges as a held-out one does. With the object nowhere,
+    the seen span judges as a held-out one does. With the object nowhere,
     the view inside its seen span rejects it whole; with no view, every knot is kept; where
     hiding the chains it would replace costs more than it gains, it is kept beside them; of
     two sets of rows it may replace, the one whose hiding the views prefer is chosen."""
     from nehad.carry_stage import _kept_knots
 
-    knots = np.round(np.arange(20) * 0.01, 6)
-    obj = _object(knots, np.zeros((20, 3)), np.zeros((20, 3)), np.zeros((2, 3)))
-    obj.seen = (0.05, 0.12)
-    rows, knot_of = np.arange(40), np.repeat(np.arange(20), 2)
-    none = lambda a, b: np.zeros(0, np.int64)  # noqa: E731
+    obj, knots, rows, knot_of, none = _twenty_knots(seen=(0.05, 0.12))
     present = (knots >= 0.05 - 1e-9) & (knots <= 0.15 + 1e-9)
     judge = _CountingJudge([0.035, 0.08, 0.165], knots, present, 2)
     assert _kept_knots(obj, judge, rows, knot_of, [none], 0.01) == (5, 15, 0)
@@ -374,9 +381,8 @@ def test_an_objects_ends_are_kept_only_as_far_as_the_held_out_views_agree():
     assert _kept_knots(obj, judge, rows, knot_of, [none], 0.01) is None
     judge = _CountingJudge([], knots, present, 2)
     assert _kept_knots(obj, judge, rows, knot_of, [none], 0.01) == (0, 19, 0)
-    # no held-out view past its end, but training views there that its fit (0.04-0.13) did not
-    # see: the one at 0.165 (gone) trims the knots past 0.15 as a held-out view would; one at
-    # 0.125, inside the fitted span, says nothing
+    # no held-out view past its end, but training views there: the one at 0.165 (gone) trims
+    # the knots past 0.15 as a held-out view would; one at 0.125, where the object is, agrees
     judge = _CountingJudge([0.08], knots, present, 2, train_times=[0.125, 0.165])
     assert _kept_knots(obj, judge, rows, knot_of, [none], 0.01) == (0, 15, 0)
     judge = _CountingJudge([0.08], knots, present, 2, train_times=[0.125])
@@ -401,11 +407,7 @@ def test_seen_knots_no_held_out_view_judges_are_dropped_where_the_training_views
     views; a held-out view at 0.035 refuses the knots before 0.05."""
     from nehad.carry_stage import _kept_knots
 
-    knots = np.round(np.arange(20) * 0.01, 6)
-    obj = _object(knots, np.zeros((20, 3)), np.zeros((20, 3)), np.zeros((2, 3)))
-    obj.seen = (0.05, 0.15)
-    rows, knot_of = np.arange(40), np.repeat(np.arange(20), 2)
-    none = lambda a, b: np.zeros(0, np.int64)  # noqa: E731
+    obj, knots, rows, knot_of, none = _twenty_knots(seen=(0.05, 0.15))
     present = (knots >= 0.05 - 1e-9) & (knots <= 0.12 + 1e-9)
     judge = _CountingJudge([0.035, 0.08], knots, present, 2, train_times=[0.13, 0.14])
     assert _kept_knots(obj, judge, rows, knot_of, [none], 0.01) == (5, 12, 0)
