@@ -339,11 +339,10 @@ def _kept_knots(obj, judge, rows, knot_of, options, sigma: float, everywhere: bo
     rows the seen knots replace hidden either way (the chains and the field were fitted to
     the training views, so those views favour these rows over any carried copy; with the rows
     hidden, a knot where the object is fills the hole and a knot where it is gone draws on
-    empty background): where
-    colliding spheres merge into one blob, scene3's blue sphere's track ran on past it, the
-    copies over its last 0.015 of time drew it beside the cluster at those training views,
-    and its path, run on past them, drew a second blue sphere at the test times after
-    (docs/results.md, 2026-12-02 night). Then knot by knot outwards, each kept while the
+    empty background): where colliding spheres merge into one blob, scene3's blue sphere's
+    track ran on past it, the copies over its last 0.015 of time drew it beside the cluster
+    at those training views, and its path, run on past them, drew a second blue sphere at
+    the test times after (docs/results.md, 2026-12-02 night). Then knot by knot outwards, each kept while the
     views within one spacing of it (where its life window is over 0.6) get no further from
     their targets: a path extrapolated past its track's ends runs on where the object is gone
     (the stress fast ball after its landing, hidden under the floor). Those views are the

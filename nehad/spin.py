@@ -149,11 +149,10 @@ def _refine(omegas, jac, dts, observed, weights, iterations: int = 15):
     err = _misfit(omegas, jac, dts, observed, weights)[0]
     damping = np.full(k, 1e-3)
     for _ in range(iterations):
-        h = 1e-4 * np.maximum(1.0, np.linalg.norm(omegas, axis=1))[:, None, None]
-        probes = np.concatenate([omegas[:, None], omegas[:, None] + h * eye,
-                                 omegas[:, None] - h * eye], axis=1)  # (k, 7, 3)
+        h = 1e-4 * np.maximum(1.0, np.linalg.norm(omegas, axis=1))[:, None]  # (k, 1)
+        probes = np.concatenate([omegas[:, None], omegas[:, None] + h[:, :, None] * eye,
+                                 omegas[:, None] - h[:, :, None] * eye], axis=1)  # (k, 7, 3)
         e = _misfit(probes.reshape(-1, 3), jac, dts, observed, weights)[0].reshape(k, 7)
-        h = h[:, :, 0]
         grad = (e[:, 1:4] - e[:, 4:7]) / (2 * h)
         curv = np.abs(e[:, 1:4] - 2 * e[:, :1] + e[:, 4:7]) / h ** 2
         trial = omegas - grad / (curv + damping[:, None])

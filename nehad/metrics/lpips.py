@@ -301,7 +301,8 @@ def lpips_against(ref, imgs, net: str = "vgg", normalize: bool = True,
         raise ValueError(f"LPIPS needs RGB images of one size, got "
                          f"{sorted({tuple(t.shape) for t in images})}")
     model = get_model(net)
-    fresh = [k for k in range(len(images)) if k not in set(recurring)]
+    kept = set(recurring)
+    fresh = [k for k in range(len(images)) if k not in kept]
     with torch.inference_mode():
         feats = model.unit_features(torch.cat([images[k] for k in fresh], 0), normalize)
         rows = {k: [f[j:j + 1] for f in feats] for j, k in enumerate(fresh)}
