@@ -334,27 +334,12 @@ def _kept_knots(obj, judge, rows, knot_of, options, sigma: float, everywhere: bo
     whichever is closest
     (where the field cannot place many of an object's copies, the chains still draw part of
     it: `nehad demo`'s bouncing ball); kept where no held-out view falls there, as a chain is.
-    Then, from each end inwards, a knot that no held-out view within one spacing of it judges
-    is dropped while the training views there get closer to their targets without it, the
-    rows the seen knots replace hidden either way (the chains and the field were fitted to
-    the training views, so those views favour these rows over any carried copy; with the rows
-    hidden, a knot where the object is fills the hole and a knot where it is gone draws on
-    empty background): where colliding spheres merge into one blob, scene3's blue sphere's
-    track ran on past it, the copies over its last 0.015 of time drew it beside the cluster
-    at those training views, and its path, run on past them, drew a second blue sphere at
-    the test times after (docs/results.md, 2026-12-02 night). Then knot by knot outwards, each kept while the
-    views within one spacing of it (where its life window is over 0.6) get no further from
-    their targets: a path extrapolated past its track's ends runs on where the object is gone
-    (the stress fast ball after its landing, hidden under the floor). Those views are the
-    held-out ones and the training ones (before 2026-12-02 night only those past the span
-    the object was fitted on, `CarriedObject.fitted_span`): on a fast ball variant whose
-    held-out views all lay elsewhere, the copies past its landing were kept and drew it at a
-    test time where it was gone, though three training views there showed nothing
-    (docs/results.md, 2026-12-01). With `everywhere` the rows replaced draw at
-    every time (the field's Gaussians about a spinning object), so the first choice is judged
-    on every held-out view: on a variant of the stress thin rod whose track was seen from t =
-    0.17 on, judged on the views of that span, the object replaced the field's rod and the rod
-    was gone before it (+6.9 -> +0.0 dB over blank in the first quarter)."""
+    Then the seen span's ends are trimmed (`_trimmed_inwards`) and the knots past them added
+    while the views there agree (`_extended_outwards`). With `everywhere` the rows replaced
+    draw at every time (the field's Gaussians about a spinning object), so the first choice
+    is judged on every held-out view: on a variant of the stress thin rod whose track was seen
+    from t = 0.17 on, judged on the views of that span, the object replaced the field's rod
+    and the rod was gone before it (+6.9 -> +0.0 dB over blank in the first quarter)."""
     seen = obj.seen or (obj.times[0], obj.times[-1])
     inside = np.nonzero((obj.times >= seen[0] - 1e-9) & (obj.times <= seen[1] + 1e-9))[0]
     if not len(inside):
@@ -373,10 +358,25 @@ def _kept_knots(obj, judge, rows, knot_of, options, sigma: float, everywhere: bo
         if not min(errors) < judge.error(views, hide=rows):
             return None
         swap = choices[int(np.argmin(errors))]
-    reach, seen_knots = sigma * (1.0 + 1e-6), (lo, hi)
-    for step in (-1, 1):  # seen knots no held-out view judges, from the ends inwards, the
-        while lo < hi:    # rows they replace hidden either way (`about`)
-            t = float(obj.times[lo if step < 0 else hi])
+    reach = sigma * (1.0 + 1e-6)
+    lo, hi = _trimmed_inwards(obj.times, judge, error, lo, hi, swap, reach)
+    return (*_extended_outwards(obj.times, judge, error, lo, hi, swap, reach), swap)
+
+
+def _trimmed_inwards(times, judge, error, lo, hi, swap, reach):
+    """The seen knots lo..hi less those, from each end inwards, that no held-out view within
+    `reach` of them judges and without which the training views there get closer to their
+    targets, the rows the seen knots replace hidden either way (the chains and the field were
+    fitted to the training views, so those views favour these rows over any carried copy;
+    with the rows hidden, a knot where the object is fills the hole and a knot where it is
+    gone draws on empty background). Where colliding spheres merge into one blob, scene3's
+    blue sphere's track ran on past it, the copies over its last 0.015 of time drew it beside
+    the cluster at those training views, and its path, run on past them, drew a second blue
+    sphere at the test times after (docs/results.md, 2026-12-02 night)."""
+    seen_knots = (lo, hi)
+    for step in (-1, 1):
+        while lo < hi:
+            t = float(times[lo if step < 0 else hi])
             window = (t - reach, t + reach)
             views = [] if judge.views_in(window) else judge.trained_in(window)
             a, b = (lo + 1, hi) if step < 0 else (lo, hi - 1)
@@ -384,16 +384,28 @@ def _kept_knots(obj, judge, rows, knot_of, options, sigma: float, everywhere: bo
                                  < error(views, lo, hi, swap, seen_knots)):
                 break
             lo, hi = a, b
-    for step in (-1, 1):  # then outwards
-        while 0 <= (nxt := (lo if step < 0 else hi) + step) < len(obj.times):
-            t = float(obj.times[nxt])
+    return lo, hi
+
+
+def _extended_outwards(times, judge, error, lo, hi, swap, reach):
+    """The knots lo..hi grown knot by knot outwards, each kept while the views within `reach`
+    of it (where its life window is over 0.6) get no further from their targets: a path
+    extrapolated past its track's ends runs on where the object is gone (the stress fast ball
+    after its landing, hidden under the floor). Those views are the held-out ones and the
+    training ones (before 2026-12-02 night only those past the span the object was fitted on,
+    `CarriedObject.fitted_span`): on a fast ball variant whose held-out views all lay
+    elsewhere, the copies past its landing were kept and drew it at a test time where it was
+    gone, though three training views there showed nothing (docs/results.md, 2026-12-01)."""
+    for step in (-1, 1):
+        while 0 <= (nxt := (lo if step < 0 else hi) + step) < len(times):
+            t = float(times[nxt])
             window = (t - reach, t + reach)
             views = judge.views_in(window) + judge.trained_in(window)
             a, b = (nxt, hi) if step < 0 else (lo, nxt)
             if views and error(views, a, b, swap) > error(views, lo, hi, swap):
                 break
             lo, hi = a, b
-    return lo, hi, swap
+    return lo, hi
 
 
 class _Judge:
