@@ -5,7 +5,9 @@
 KIND is ``occluder`` (a small sphere on a loop that a large static box hides from part of the
 rig: a wall, a pillar or a long low block, the loop's size, turns, direction, height and the
 sphere's radius drawn from SEED) or ``fast`` (a ball that rises out of the floor, flies an arc
-within 12-18% of the time range and sinks again, beside a still box). The scenes are written
+within 12-18% of the time range and sinks again, beside a still box) or ``spinning`` (a
+checkered or striped sphere that spins on a bouncing or gliding path, and a patterned box that
+spins in place, each with its own axis and rate). The scenes are written
 like the stress suite's (``nehad synth --stress``: the MuJoCo protocol, label masks), so
 ``nehad train OUT -o RUN && nehad eval RUN`` scores each object per time quarter. The recipe is
 meant to be checked on these, not tuned to them: a new seed is a scene it has not seen.
@@ -91,7 +93,45 @@ def fast_variant(seed: int):
     return (lambda t: [FLOOR, box, Sphere("ball", ball(t), r, colour)]), params
 
 
-KINDS = {"occluder": occluder_variant, "fast": fast_variant}
+def spinning_variant(seed: int):
+    """A patterned sphere that spins on a path (bouncing or gliding) and a patterned box that
+    spins in place, their patterns, colours, axes and rates drawn from the seed."""
+    from nehad.data.synth import Surface
+
+    rng = np.random.default_rng([seed, 7919])
+    r = rng.uniform(0.25, 0.4)
+    axis = rng.normal(size=3)
+    rate = float(rng.choice([-1, 1])) * 2 * math.pi * rng.uniform(1.0, 3.0)
+    start, end = rng.uniform(-0.8, 0.8, 2), rng.uniform(-0.8, 0.8, 2)
+    bounces, hop = int(rng.integers(0, 4)), rng.uniform(0.3, 0.8)
+    sphere_surface = Surface(str(rng.choice(["checker", "stripes"])), _colour(rng),
+                             cells=int(rng.integers(3, 6)) * 2)
+    colour = _colour(rng)
+    half = np.array([rng.uniform(0.2, 0.35), rng.uniform(0.15, 0.3), rng.uniform(0.2, 0.35)])
+    box_axis, box_rate = rng.normal(size=3), 2 * math.pi * rng.uniform(0.5, 2.0)
+    box_at = np.array([*(-(start + end) / 2 + rng.uniform(-0.2, 0.2, 2)), half[2] + 0.05])
+    box_surface = Surface(str(rng.choice(["checker", "stripes"])), _colour(rng),
+                          cells=int(rng.integers(3, 7)))
+    box_colour = _colour(rng)
+
+    def centre(t):
+        xy = start + (end - start) * t
+        return np.array([*xy, r + hop * abs(math.sin(math.pi * bounces * t))])
+
+    def objects(t):
+        return [FLOOR,
+                Sphere("sphere", centre(t), r, colour, rotation=_axis_angle(axis, rate * t),
+                       surface=sphere_surface),
+                Box("box", box_at, half, _axis_angle(box_axis, box_rate * t), box_colour,
+                    surface=box_surface)]
+
+    params = {"radius": round(r, 3), "rate": round(rate, 3), "bounces": bounces,
+              "sphere_pattern": sphere_surface.pattern, "cells": sphere_surface.cells,
+              "box_rate": round(box_rate, 3), "box_pattern": box_surface.pattern}
+    return objects, params
+
+
+KINDS = {"occluder": occluder_variant, "fast": fast_variant, "spinning": spinning_variant}
 
 
 def main() -> None:

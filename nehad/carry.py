@@ -68,6 +68,7 @@ class CarriedObject:
     # point it turns about; None: no correction)
     fix_times: np.ndarray | None = None  # (c,)
     seen_times: np.ndarray | None = None  # its track's blobs' times (`refit_unseen`)
+    round_spin: bool = False  # a round body whose spin its texture showed (`nehad.texture_spin`)
 
     def turns(self, times: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
         """The body's rotation at `times` (the knots' times) since `spin_time`, as (m, 3, 3)
@@ -143,6 +144,41 @@ class CarriedObject:
                 self.sh_dc.repeat(rep, 1, 1))
 
 
+#: A round spinning body's members start on a sphere this fraction of its radius about its
+#: centre (what shows its texture is its surface), each as wide as SURFACE_WIDTH of the
+#: spacing of K points spread evenly over its surface.
+SURFACE = 0.8
+SURFACE_WIDTH = 0.5
+
+
+def _members_start(spin, radius: float, normal: np.ndarray, rng: np.random.Generator):
+    """(offsets (K, 3), width, the body's largest variance) of a carried object's members at
+    the start of its fit (`objects_from_tracks`), from K `normal` draws: without a spin uniform
+    in a ball of MEMBER_SPREAD `radius`; a round body's on its surface (`_on_surface`; its
+    spread is its blobs', nehad.spin_tracks.ball_radius); another spinning body's a normal of
+    its spread, as thin as its thinnest spread."""
+    if spin is None:
+        k = len(normal)
+        ball = normal * (MEMBER_SPREAD * radius * rng.random(k) ** (1 / 3)
+                         / np.linalg.norm(normal, axis=1))[:, None]
+        return ball, MEMBER_WIDTH * radius, 0.0
+    if spin.round:
+        return (*_on_surface(normal, 2.0 * float(np.sqrt(spin.spread[0, 0]))),
+                float(spin.spread[0, 0]))
+    values, axes = np.linalg.eigh(spin.spread)
+    values = np.clip(values, (0.05 * radius) ** 2, None)
+    return (normal @ (axes * np.sqrt(values)).T,
+            min(0.5 * radius, float(np.sqrt(values[0]))), float(values[-1]))
+
+
+def _on_surface(normal: np.ndarray, radius: float) -> tuple[np.ndarray, float]:
+    """(members' offsets (K, 3) on the sphere of SURFACE `radius`, in the directions of the
+    `normal` draws (K, 3); their width)."""
+    k = len(normal)
+    dirs = normal / np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    return SURFACE * radius * dirs, SURFACE_WIDTH * radius * float(np.sqrt(4.0 * np.pi / k))
+
+
 def _linear_weights(knots: np.ndarray, times: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
     """(m, c) weights of the values at `knots` (c,) that give their piecewise-linear
     interpolation at `times` (m,) (constant past the ends), and (m, c) those of its slope."""
@@ -187,29 +223,20 @@ def objects_from_tracks(tracks, cameras, spacing: float, time_range, members: in
     for i, track in enumerate(tracks):
         _, _, taus, cols, widths, _ = seeds_along(track, cameras, spacing, lo, hi, 1.0)
         spin = spins[i] if spins is not None else None
-        if spin is None:
+        if spin is None or spin.round:
             pts, vel = track.smooth_at(taus)
         else:
             from nehad.spin_tracks import smooth_path
 
             pts, vel = smooth_path(track, taus)
-        radius = float(widths[0])
-        ball = rng.normal(size=(members, 3))
-        if spin is None:
-            ball *= (MEMBER_SPREAD * radius * rng.random(members) ** (1 / 3)
-                     / np.linalg.norm(ball, axis=1))[:, None]
-            width = MEMBER_WIDTH * radius
-        else:
-            values, axes = np.linalg.eigh(spin.spread)
-            values = np.clip(values, (0.05 * radius) ** 2, None)
-            ball = ball @ (axes * np.sqrt(values)).T
-            width = min(0.5 * radius, float(np.sqrt(values[0])))  # as thin as the body
+        radius, (ball, width, largest) = float(widths[0]), _members_start(
+            spin, float(widths[0]), rng.normal(size=(members, 3)), rng)
         colour = torch.as_tensor(np.clip(cols[0], 0.0, 1.0), dtype=torch.float32)
         leaf = lambda x: x.detach().clone().requires_grad_(True)  # noqa: E731
         out.append(CarriedObject(
             np.asarray(taus, np.float64), np.asarray(pts, np.float64),
             np.asarray(vel, np.float64),
-            radius if spin is None else max(radius, float(np.sqrt(3 * values[-1]))),
+            radius if spin is None else max(radius, float(np.sqrt(3 * largest))),
             leaf(torch.as_tensor(ball, dtype=torch.float32)),
             leaf(torch.full((members, 3), float(np.log(width)))),
             leaf(torch.tensor([[1.0, 0.0, 0.0, 0.0]]).repeat(members, 1)),
@@ -220,7 +247,7 @@ def objects_from_tracks(tracks, cameras, spacing: float, time_range, members: in
             0.0 if spin is None else spin.centre_time,
             *((None, None) if fix_every <= 0 else
               _path_fix(np.array([b.time for b in track.blobs]), fix_every)),
-            np.sort([b.time for b in track.blobs])))
+            np.sort([b.time for b in track.blobs]), spin is not None and spin.round))
     return out
 
 

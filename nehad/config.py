@@ -200,6 +200,9 @@ class CarveConfig:
     # lives as many spacings)
     carry_spin: bool = True  # also carry the moving objects whose blobs turn with a spin the
     # field does not follow (nehad.spin_tracks; docs/training.md, "Objects that spin")
+    carry_texture_members: int = 128  # Gaussians of a carried round body whose spin is found in
+    # its texture (nehad.texture_spin; written out at every copy): its texture is what shows
+    # its turn (docs/training.md, "Round bodies: the spin in the texture")
     anchor_weight: float = 0.0  # "tracks": > 0 teaches the field each long track's path from a
     # point at its canonical-time place and adds Gaussians there (nehad.track_anchors); 0 off
     anchor_samples: int = 512  # (anchor, time) pairs of that loss a step
@@ -546,7 +549,7 @@ class Config:
         ("carve.anchor_samples", 1, None), ("carve.anchor_cover", 0.0, 1.0),
         ("carve.anchor_min_blobs", 1, None), ("carve.carry_steps", 0, None),
         ("carve.carry_members", 1, None), ("carve.carry_min_blobs", 1, None),
-        ("carve.carry_knots", 1, None),
+        ("carve.carry_knots", 1, None), ("carve.carry_texture_members", 1, None),
         ("train.sh_degree_interval", 0, None), ("train.init_random_points", 1, None),
         ("train.init_max_points", 0, None), ("train.fit_box_padding", 0.0, None),
         ("train.checkpoint_interval", 1, None), ("train.log_interval", 1, None),

@@ -49,13 +49,15 @@ WINDOWS = (0.06, 0.15, 0.3, 0.6, float("inf"))
 class Spin:
     """`omega` (3,) rad per unit of time about the tracked point, at time `centre_time` the body
     spread `spread` (3, 3); `fit` and `fit_still` the relative rms misfit of the blobs'
-    covariances with it and with none."""
+    covariances with it and with none; `round`: a round body's, found from its texture
+    (`nehad.texture_spin`; the misfits are its texture's)."""
 
     omega: np.ndarray
     centre_time: float
     spread: np.ndarray
     fit: float
     fit_still: float
+    round: bool = False
 
     @property
     def spins(self) -> bool:

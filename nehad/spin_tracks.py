@@ -72,9 +72,145 @@ def spinning_tracks(model, views, degree: int, background, carve_cfg, spacing: f
 
     tracks, cams = found or moving_tracks(model, views, degree, background, carve_cfg, moving)
     pieces = join_spinning(tracks, cams, spacing, TrackSettings().max_gap)
+    field_rows = np.setdiff1d(moving, np.nonzero(model.gaussians.mortal().numpy())[0])
+    pieces = [(track, spin) if spin.spins or len(track.blobs) < carve_cfg.carry_min_blobs
+              else _round_spin(model, track, cams, views, spacing, spin, field_rows)
+              for track, spin in pieces]
+    pieces = join_round(pieces, cams, views, spacing, TrackSettings().max_gap)
     kept = [(track, spin) for track, spin in pieces
             if spin.spins and len(track.blobs) >= carve_cfg.carry_min_blobs]
     return [k[0] for k in kept], [k[1] for k in kept], cams
+
+
+#: A body whose blobs' shapes show no spin is searched for one in its texture
+#: (`texture_spin`) when its spread's least variance is at least this fraction of its largest:
+#: a round body, which `nehad.texture_spin` takes as a ball.
+ROUND = 0.5
+
+
+def _round_spin(model, track, cams, views, spacing: float, shape_spin, field_rows):
+    """(track, spin) of a body whose shape shows no spin: where it is round, its track on the
+    field's path of it (`field_path`) and its spin from its texture (`texture_spin`)."""
+    radius = ball_radius(shape_spin)
+    if radius is None:
+        return track, shape_spin
+    on_field = field_path(model, track, radius, field_rows, spacing)
+    return on_field, texture_spin(on_field, cams, views, spacing, shape_spin)
+
+
+def join_round(pieces, cams, views, spacing: float, max_gap: float) -> list:
+    """`pieces` ((track, spin) each) with the pieces of one round spinning body joined: a piece
+    that starts before another ends (or within `max_gap` after), spinning alike (within a
+    tenth), whose path at the start of the later one (the field's, `field_path`) is within
+    half its radius of the earlier one's. The tracker may follow a body twice, or hand it from
+    one track to another where another object passes: the stress checkered sphere was two
+    tracks, over 0.01-0.78 and 0.67-0.95 of time, and carried as two it would be drawn twice
+    where they overlap. The joined track has the blobs of both (the earlier one's where both
+    saw a view) and its spin is found again from them."""
+    from nehad.tracks import Track
+
+    out = []
+    for track, spin in sorted(pieces, key=lambda p: p[0].times[0]):
+        for i, (prev, prev_spin) in enumerate(out):
+            if not (spin.round and prev_spin.round and spin.spins and prev_spin.spins
+                    and _same_spin(spin, prev_spin)
+                    and track.times[0] <= prev.times[-1] + max_gap):
+                continue
+            at = track.times[:1]
+            if np.linalg.norm(prev.smooth_at(at)[0] - track.smooth_at(at)[0]) > (
+                    0.5 * ball_radius(spin)):
+                continue
+            views_seen = {b.view for b in prev.blobs}
+            later = [k for k, b in enumerate(track.blobs) if b.view not in views_seen]
+            order = np.argsort(np.concatenate([prev.times, track.times[later]]), kind="stable")
+            both = Track([(prev.blobs + [track.blobs[k] for k in later])[k] for k in order],
+                         np.concatenate([prev.times, track.times[later]])[order],
+                         np.concatenate([prev.points, track.points[later]])[order],
+                         np.concatenate([prev.velocities, track.velocities[later]])[order])
+            out[i] = (both, texture_spin(both, cams, views, spacing, prev_spin))
+            break
+        else:
+            out.append((track, spin))
+    return out
+
+
+def ball_radius(shape_spin) -> float | None:
+    """The radius of the ball a round body's blobs show (discs of a ball of radius r fit a
+    spread of r^2/4 each way), or None where its spread's least variance is under ROUND of its
+    largest."""
+    values = np.linalg.eigvalsh(shape_spin.spread)
+    if not values[0] > ROUND * values[-1] > 0.0:
+        return None
+    return 2.0 * float(np.sqrt(values.mean()))
+
+
+#: The field's Gaussians that draw a round body (`field_path`) are those within its radius of
+#: its track's path at half or more of this many times across the track, and there must be at
+#: least FIELD_PATH_ROWS of them.
+FIELD_PATH_TIMES = 24
+FIELD_PATH_ROWS = 16
+
+
+def field_path(model, track, radius: float, rows: np.ndarray, spacing: float):
+    """The track with its samples on the path the field draws the body along: at each sample's
+    time, the opacity-weighted centroid of the field's `rows` that draw it (those within
+    `radius` of the track's path at half of FIELD_PATH_TIMES times or more), its velocity their
+    centroid's over a frame `spacing`; the track itself where fewer than FIELD_PATH_ROWS draw
+    it. One view a time fixes a blob's ray, not its depth, and the tracker's path, fitted to a
+    few rays at a time, cuts the corners of a bounce and follows blobs of other objects merged
+    with it: on the stress checkered sphere it was 0.08 off the sphere's centre at its blobs'
+    times (median; 0.9 at the 90th percentile, radius 0.35), the field's centroid 0.03 (0.08;
+    docs/results.md, 2026-12-03)."""
+    from dataclasses import replace
+    from types import SimpleNamespace
+
+    times = np.linspace(float(track.times[0]), float(track.times[-1]), FIELD_PATH_TIMES)
+    stub = SimpleNamespace(times=times, points=track.smooth_at(times)[0], radius=radius)
+    near = times_near_path(model, stub, rows, times)[0]
+    body = rows[2 * near >= len(times)]
+    if len(body) < FIELD_PATH_ROWS:
+        return track
+    index = torch.as_tensor(body)
+    with torch.no_grad():
+        weights = torch.sigmoid(model.gaussians.opacity_logits[index]).reshape(-1, 1)
+
+        def centroid(t: float) -> np.ndarray:
+            return ((model.means_at(float(t), index) * weights).sum(0) / weights.sum()).numpy()
+
+        points = np.stack([centroid(t) for t in track.times])
+        velocities = np.stack([centroid(t + 0.5 * spacing) - centroid(t - 0.5 * spacing)
+                               for t in track.times]) / spacing
+    return replace(track, points=points, velocities=velocities, end_accelerations=None)
+
+
+#: A blob whose ray misses the body's path by more than this many radii is not its view
+#: (`texture_spin`).
+RAY_MISS = 0.25
+
+
+def texture_spin(track, cams, views, spacing: float, shape_spin):
+    """A round body's spin from its texture (`nehad.texture_spin`) where its blobs' shapes
+    found none (`shape_spin`, whose spread says how round it is and how large:
+    `ball_radius`); `shape_spin` itself for a body that is not round. Its centre at each view
+    is on the ray through its blob's centroid, at the depth of the track's path there (the
+    field's, `field_path`), and a blob whose ray misses the path by more than RAY_MISS radii
+    is left out (a blob of another object, or of two merged). On the stress checkered
+    sphere, the tracker's own path (0.08 off its centre at its blobs' times, median, radius
+    0.35) showed no spin (0.98 of no spin's misfit); on the rays, its rate within 1% and
+    its axis within 3 degrees (docs/results.md, 2026-12-03)."""
+    from nehad.texture_spin import estimate_texture_spin, surface_samples
+
+    radius = ball_radius(shape_spin)
+    if radius is None:
+        return shape_spin
+    path, _ = track.smooth_at(np.array([b.time for b in track.blobs]))
+    centres, seen = [], []
+    for b, point in zip(track.blobs, path):
+        on_ray = b.origin + b.direction * float((point - b.origin) @ b.direction)
+        if np.linalg.norm(point - on_ray) <= RAY_MISS * radius:
+            centres.append(on_ray)
+            seen.append((cams[b.view], b.time, views.images[b.view].numpy()))
+    return estimate_texture_spin(surface_samples(seen, centres, radius), spacing, radius)
 
 
 def _spin_of(track, cams, spacing: float):
@@ -218,5 +354,7 @@ def times_near_path(model, obj, rows: np.ndarray, times, reaches=(1.0,)) -> np.n
     return near
 
 
-__all__ = ["MOVING_EXTENT", "PATH_WINDOW", "join_spinning", "moving_rows", "moving_tracks",
-           "rows_along", "smooth_path", "spinning_tracks", "times_near_path"]
+__all__ = ["MOVING_EXTENT", "PATH_WINDOW", "ROUND", "ball_radius", "field_path", "join_round",
+           "join_spinning",
+           "moving_rows", "moving_tracks", "rows_along", "smooth_path", "spinning_tracks",
+           "texture_spin", "times_near_path"]
