@@ -170,3 +170,38 @@ def test_two_tracks_of_one_round_spinning_body_are_joined(spinning):
     assert abs(np.linalg.norm(spin.omega) - RATE) < 0.02 * RATE
     far = piece(blobs[30:], np.array([0.0, 0.5, 0.0]))
     assert len(join_round([first, (far[0], second[1])], cams, views, SPACING, 0.05)) == 2
+
+
+def test_the_field_path_is_the_centroid_of_what_the_field_draws_there():
+    """A stand-in field: 40 Gaussians about a bouncing centre (symmetric pairs, so their
+    centroid is the centre), 30 still ones far off; a track that cuts the bounce's corner by
+    a tenth. The field's path is the centre at the track's times and its velocity the
+    centre's over a frame; with the ball's Gaussians elsewhere the track is kept."""
+    from nehad.spin_tracks import field_path
+    from nehad.tracks import Track
+
+    rng = np.random.default_rng(5)
+    half = rng.normal(size=(20, 3)) * 0.1
+    offsets = np.concatenate([half, -half])
+    still = rng.normal(size=(30, 3)) + np.array([3.0, 0.0, 0.0])
+
+    def centre(t):
+        return np.array([t, 0.0, 0.4 + 0.5 * abs(math.sin(2 * math.pi * t))])
+
+    def means_at(t, index):
+        every = np.concatenate([centre(float(t)) + offsets, still])
+        return torch.as_tensor(every[np.asarray(index)], dtype=torch.float32)
+
+    model = SimpleNamespace(means_at=means_at, gaussians=SimpleNamespace(
+        opacity_logits=torch.zeros((70, 1))))
+    times = np.linspace(0.1, 0.9, 30)
+    cut = np.stack([centre(t) - np.array([0.0, 0.0, 0.1]) for t in times])
+    track = Track([None] * len(times), times, cut, np.zeros_like(cut))
+    spacing = 0.01
+    got = field_path(model, track, 0.3, np.arange(70), spacing)
+    assert np.allclose(got.points, np.stack([centre(t) for t in times]), atol=1e-5)
+    slope = np.stack([(centre(t + spacing / 2) - centre(t - spacing / 2)) / spacing
+                      for t in times])
+    assert np.allclose(got.velocities, slope, atol=1e-3)
+    far = Track([None] * len(times), times, cut + 2.0, np.zeros_like(cut))
+    assert field_path(model, far, 0.3, np.arange(70), spacing) is far
