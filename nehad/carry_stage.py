@@ -29,9 +29,9 @@ MISS_RADII = 0.1
 #: `carve.carry_texture_members`, at most MAX_TURN_ROUND. The stress suite's checkered sphere,
 #: carried on its true path and spin, scored +14.9 dB over blank on its pixels at the test
 #: times with 96 members at 0.1 rad (18k Gaussians), +14.8 with 128 at 0.25 (9.7k), +16.2 with
-#: 256 at 0.1 (48k); the field's sphere +10.7. The stress thin rod with 128 members: +8.2 in
-#: its worst quarter at 0.1 rad, +4.0 at 0.25 (+8.8 with 24 at 0.1; docs/results.md,
-#: 2026-12-03).
+#: 256 at 0.1 (48k); the field's sphere +10.7. The stress thin rod with 128 members (and the
+#: round bodies' choice of what to replace): +8.2 in its worst quarter at 0.1 rad, +4.0 at
+#: 0.25 (+8.8 with 24 at 0.1; docs/results.md, 2026-12-03).
 MAX_TURN = 0.1
 MAX_TURN_ROUND = 0.25
 
@@ -387,8 +387,8 @@ def _kept_everywhere(times, judge, error, views, lo, hi, choices, reach, none: f
     through (+12.46 dB over blank on its pixels), though in place of it, its knots grown past
     the span, it brought the held-out views 11% closer to their targets than beside it
     (+13.26). The bodies whose shapes show their spin keep the choice on the seen span: so
-    judged, the stress thin rod's worst quarter fell +8.8 -> +8.2 and the striped box's +8.4
-    -> +7.4 (docs/results.md, 2026-12-03)."""
+    judged, with 128 members, the stress thin rod's worst quarter fell +8.8 -> +8.2; with 24,
+    the striped box's +8.4 -> +7.4 (docs/results.md, 2026-12-03)."""
     best, best_error = None, none
     for choice in choices:
         a, b = _trimmed_inwards(times, judge, error, lo, hi, choice, reach)
