@@ -49,8 +49,10 @@ MAX_TURN_PER_FRAME = 0.5
 #: outline a pixel covers much of the surface and the tracked point's error moves it most.
 FACING = 0.3
 
-#: At most this many surface samples a view (`surface_samples`, evenly thinned).
+#: At most this many surface samples a view (`surface_samples`, evenly thinned); a window of
+#: time with fewer than MIN_SAMPLES is skipped.
 SAMPLES_PER_VIEW = 400
+MIN_SAMPLES = 50
 
 
 @dataclass(frozen=True)
@@ -218,12 +220,16 @@ def estimate_texture_spin(samples: SurfaceSamples, spacing: float, radius: float
     best = None
     for window in WINDOWS:
         inside = np.abs(times - centre) <= window
+        if inside.sum() < MIN_SAMPLES:  # a track with a gap about its middle
+            continue
         part = SurfaceSamples(times[inside], samples.directions[inside], samples.chroma[inside])
         if best is None:
             best = _search(part, centre, MAX_TURN_PER_FRAME / spacing, min(window, 1.0))
         span = max(float(np.abs(part.times - centre).max()), spacing)
         refined, errs = _refine(np.stack(best), part, centre, 0.06 / span)
         best = list(refined[np.argsort(errs, kind="stable")])
+    if best is None:
+        return Spin(np.zeros(3), centre, spread, 0.0, 0.0, round=True)
     fit, still = texture_misfit(np.stack([best[0], np.zeros(3)]), samples, centre)
     return Spin(best[0], centre, spread, float(fit), float(still), round=True)
 

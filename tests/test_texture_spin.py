@@ -69,6 +69,17 @@ def test_a_spinning_checkered_spheres_texture_gives_its_spin(spinning):
     assert spin.fit < 0.6 * spin.fit_still
 
 
+def test_a_track_seen_only_at_its_ends_gives_its_spin(spinning):
+    """No view within 0.15 of the track's middle time: the search starts on the first window
+    that has samples."""
+    ends = [v for v in spinning if abs(v[1] - 0.5) > 0.15]
+    samples = surface_samples(ends, [_centre(t) for _, t, _ in ends], RADIUS)
+    spin = estimate_texture_spin(samples, SPACING, RADIUS)
+    assert spin.spins and abs(np.linalg.norm(spin.omega) - RATE) < 0.02 * RATE
+    assert not estimate_texture_spin(SurfaceSamples(np.zeros(0), np.zeros((0, 3)),
+                                                    np.zeros((0, 3))), SPACING, RADIUS).spins
+
+
 def test_a_still_checkered_sphere_reports_no_spin():
     views = _views(0.0)
     samples = surface_samples(views, [_centre(t) for _, t, _ in views], RADIUS)
