@@ -95,7 +95,7 @@ def fast_variant(seed: int):
 
 def spinning_variant(seed: int):
     """A patterned sphere that spins on a path (bouncing or gliding) and a patterned box that
-    spins in place, their patterns, colours, axes and rates drawn from the seed."""
+    spins in place clear of it, their patterns, colours, axes and rates drawn from the seed."""
     from nehad.data.synth import Surface
 
     rng = np.random.default_rng([seed, 7919])
@@ -117,6 +117,10 @@ def spinning_variant(seed: int):
     def centre(t):
         xy = start + (end - start) * t
         return np.array([*xy, r + hop * abs(math.sin(math.pi * bounces * t))])
+
+    reach = r + float(np.linalg.norm(half)) + 0.1  # the turning box never meets the sphere
+    while not all(np.linalg.norm(centre(t) - box_at) > reach for t in np.linspace(0, 1, 200)):
+        box_at = np.array([*rng.uniform(-1.0, 1.0, 2), half[2] + 0.05])
 
     def objects(t):
         return [FLOOR,
