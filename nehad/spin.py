@@ -117,7 +117,8 @@ def _misfit(omegas, jac, dts, observed, weights):
     return np.sqrt((resid ** 2).mean(-1)), six
 
 
-def _sphere_directions(n: int) -> np.ndarray:
+def sphere_directions(n: int) -> np.ndarray:
+    """(n, 3) unit directions spread evenly over the sphere (a Fibonacci lattice)."""
     i = np.arange(n) + 0.5
     polar, azimuth = np.arccos(1.0 - 2.0 * i / n), np.pi * (1.0 + 5 ** 0.5) * i
     return np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar),
@@ -128,7 +129,7 @@ def _search(jac, dts, observed, weights, max_rate: float, window: float, keep: i
     """The `keep` best distinct candidates of a grid of directions (200, 15 degrees apart) x
     rates (steps that turn the body 0.06 rad more across the window), and no spin."""
     rates = np.arange(0.5, max_rate, 0.06 / window)
-    cands = np.concatenate([np.zeros((1, 3)), (_sphere_directions(200)[:, None]
+    cands = np.concatenate([np.zeros((1, 3)), (sphere_directions(200)[:, None]
                                                * rates[None, :, None]).reshape(-1, 3)])
     errs = np.concatenate([_misfit(cands[i:i + 4000], jac, dts, observed, weights)[0]
                            for i in range(0, len(cands), 4000)])
@@ -201,4 +202,4 @@ def estimate_spin(blobs, cameras, points: np.ndarray, spacing: float) -> Spin:
 
 
 __all__ = ["LIKELY_GAIN", "SEARCH_VIEWS", "SPIN_GAIN", "Spin", "estimate_spin",
-           "projection_jacobians", "rotations"]
+           "projection_jacobians", "rotations", "sphere_directions"]

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from nehad.spin import Spin
+from nehad.spin import Spin, sphere_directions
 
 #: Patches of the ball: the cells of a grid of this many a side over the cube about it that
 #: its surface crosses; coarse for the search, whose grid must land in the minimum's basin,
@@ -163,19 +163,12 @@ def _misfits(omegas, dts, dirs, chroma, patches):
     return out
 
 
-def _directions(n: int) -> np.ndarray:
-    i = np.arange(n) + 0.5
-    polar, azimuth = np.arccos(1.0 - 2.0 * i / n), np.pi * (1.0 + 5 ** 0.5) * i
-    return np.stack([np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar),
-                     np.cos(polar)], 1)
-
-
 def _search(samples: SurfaceSamples, centre_time: float, max_rate: float, window: float,
             keep: int = 4) -> list[np.ndarray]:
     """The `keep` best distinct candidates of a grid of 300 directions (12 degrees apart) x
     rates (steps that turn the body 0.12 rad more across the window) on the coarse patches."""
     rates = np.arange(0.12 / window, max_rate, 0.12 / window)
-    cands = (_directions(300)[:, None] * rates[None, :, None]).reshape(-1, 3)
+    cands = (sphere_directions(300)[:, None] * rates[None, :, None]).reshape(-1, 3)
     errs = texture_misfit(cands, samples, centre_time, SEARCH_PATCHES)
     picks: list[int] = []
     for i in np.argsort(errs):
