@@ -11,11 +11,10 @@ is meant to change what training computes, record anew and say so in the commit:
 
     python tests/test_fingerprint.py --record
 
-The trainings run in a child process with an empty Numba cache: the rasterizer's backward gives
-other last bits when its kernels are loaded from Numba's cache than when they are compiled in
-the process (measured 2026-11-25: the forward is identical, the gradients of means, scales and
-quaternions are not; docs/development.md), and a clean clone, CI and every first run compile
-them, so that is the result pinned here.
+The trainings run in a child process with an empty Numba cache, as a clean clone, CI and every
+first run do. Until 2026-12-03 the rasterizer's backward gave other last bits when its kernel
+was loaded from Numba's cache than when it was compiled in the process (docs/development.md);
+tests/test_trainer.py now holds the two equal.
 """
 
 from __future__ import annotations

@@ -121,6 +121,31 @@ def test_resume_after_sigkill_reproduces_the_uninterrupted_run(tmp_path, tiny_sc
             assert torch.equal(a[part][key], b[part][key]), (part, key)
 
 
+@pytest.mark.slow  # two CLI trainings, the first compiling every kernel
+def test_kernels_loaded_from_numbas_cache_train_what_compiled_ones_do(tmp_path, tiny_scene):
+    """The first run after an install compiles the Numba kernels, every later one loads them
+    from numba's cache: both must compute the same bits (with 'contract' or 'reassoc' in the
+    rasterizer's backward they did not, and a run resumed with a warm cache differed from its
+    uninterrupted twin; runtime/raster/kernels.py). Two hex-plane scales take the field's
+    per-scale and per-plane passes both."""
+    cache = tmp_path / "numba_cache"
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "OMP_NUM_THREADS": "2",
+           "NUMBA_NUM_THREADS": "2"}
+    models = []
+    for name in ("compiled", "cached"):
+        cmd = [sys.executable, "-m", "nehad.cli.main", "train", str(tiny_scene), "-o",
+               str(tmp_path / name), "--preset", "test", "--quiet", "--set",
+               "coarse.iterations=3", "--set", "fine.iterations=4", "--set", "field.multires=[1,2]"]
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
+        assert done.returncode == 0, done.stderr
+        assert any(cache.rglob("*.nbi")), "numba wrote no cache"
+        models.append(torch.load(tmp_path / name / "model.pt", weights_only=True))
+    a, b = models
+    for part in ("gaussians", "field"):
+        for key in a[part]:
+            assert torch.equal(a[part][key], b[part][key]), (part, key)
+
+
 @pytest.mark.slow  # two CLI trainings
 def test_resume_with_another_config_is_refused(tmp_path, tiny_scene):
     first = _train_cli(tiny_scene, tmp_path / "r", "--set", "fine.iterations=5")

@@ -63,6 +63,12 @@ _PREFETCH_AHEAD = 2
 #: 24-frame video between a single-process render and a render by worker processes). Without
 #: it, every process computes bit-identical frames.
 _FORWARD_FASTMATH = {"nnan", "ninf", "nsz", "arcp", "afn", "reassoc"}
+#: Fast-math flags of the backward kernel: neither 'contract' nor 'reassoc'. With either, the
+#: backward JIT-compiled in a process and the same kernel loaded from numba's cache gave other
+#: last bits of the conic gradients (measured 2026-12-03: a run's first training after a clean
+#: install differed from every later one, and a run resumed with a warm cache from its
+#: uninterrupted twin); the multiply-adds are explicit (`fma32`), as in the forward kernel.
+_EXACT_FASTMATH = {"nnan", "ninf", "nsz", "arcp", "afn"}
 
 
 def interleaved_tiles(tiles_x: int, tiles_y: int, threads: int) -> np.ndarray:
@@ -185,7 +191,7 @@ def forward_kernel(tile_order, tile_offsets, gauss_ids, packed, width, height, b
                 out_stop[y, x] = np.int32(st[r, _STOP, j])
 
 
-@numba.njit(parallel=True, fastmath=True, cache=True)
+@numba.njit(parallel=True, fastmath=_EXACT_FASTMATH, cache=True)
 def backward_kernel(tile_order, tile_offsets, gauss_ids, packed, width, height, out_rgb,
                     out_final_t, out_stop, grad_rgb, grad_alpha, entry_grads):
     ntx = (width + TILE - 1) // TILE
@@ -234,15 +240,19 @@ def backward_kernel(tile_order, tile_offsets, gauss_ids, packed, width, height, 
             acc[:, :] = _F0
             r0, r1 = _rows_in_tile(rec, y0)
             dx0 = np.float32(x0) + _HALF - mx
+            half_ca = _HALF * ca
             for r in range(r0, r1 + 1):
                 if local >= row_last[r]:
                     continue
                 dy = np.float32(y0 + r) + _HALF - my
-                qyy = _HALF * cc * dy * dy
+                minus_qyy = -(_HALF * cc * dy * dy)
+                half_dy2 = _HALF * dy * dy
                 cbdy = cb * dy
+                ccdy = cc * dy
                 for jj in range(TILE):
                     dx = dx0 + lanes[jj]
-                    power = -(_HALF * ca * dx * dx + qyy) - cbdy * dx
+                    # the forward kernel's exponent, rounded the same way
+                    power = fma32(fma32(half_ca, dx, cbdy), -dx, minus_qyy)
                     gauss = fast_exp(power)
                     raw = op * gauss
                     alpha = min(_ALPHA_MAX, raw)
@@ -254,23 +264,25 @@ def backward_kernel(tile_order, tile_offsets, gauss_ids, packed, width, height, 
                     gr = st[r, _GR, jj]
                     gg = st[r, _GG, jj]
                     gb = st[r, _GB, jj]
-                    rr = st[r, _REST_R, jj] - w * cr
-                    rg = st[r, _REST_G, jj] - w * cg
-                    rb = st[r, _REST_B, jj] - w * cbl
-                    d_alpha = (gr * (cr * t - rr * inv) + gg * (cg * t - rg * inv)
-                               + gb * (cbl * t - rb * inv)
-                               + st[r, _GA, jj] * st[r, _TFIN, jj] * inv)
-                    acc[_D_R, jj] += gr * w
-                    acc[_D_G, jj] += gg * w
-                    acc[_D_B, jj] += gb * w
+                    rr = fma32(-w, cr, st[r, _REST_R, jj])
+                    rg = fma32(-w, cg, st[r, _REST_G, jj])
+                    rb = fma32(-w, cbl, st[r, _REST_B, jj])
+                    # sum_c g_c (c t - rest_c / (1 - alpha)) + g_alpha T_final / (1 - alpha)
+                    d_alpha = fma32(gr, fma32(cr, t, -(rr * inv)),
+                                    fma32(gg, fma32(cg, t, -(rg * inv)),
+                                          fma32(gb, fma32(cbl, t, -(rb * inv)),
+                                                st[r, _GA, jj] * st[r, _TFIN, jj] * inv)))
+                    acc[_D_R, jj] = fma32(gr, w, acc[_D_R, jj])
+                    acc[_D_G, jj] = fma32(gg, w, acc[_D_G, jj])
+                    acc[_D_B, jj] = fma32(gb, w, acc[_D_B, jj])
                     d_raw = d_alpha if (live and raw < _ALPHA_MAX) else _F0
-                    acc[_D_OP, jj] += d_raw * gauss
+                    acc[_D_OP, jj] = fma32(d_raw, gauss, acc[_D_OP, jj])
                     d_pow = d_raw * raw
-                    acc[_D_CA, jj] -= _HALF * d_pow * dx * dx
-                    acc[_D_CB, jj] -= d_pow * dx * dy
-                    acc[_D_CC, jj] -= _HALF * d_pow * dy * dy
-                    acc[_D_MX, jj] += d_pow * (ca * dx + cb * dy)
-                    acc[_D_MY, jj] += d_pow * (cc * dy + cb * dx)
+                    acc[_D_CA, jj] = fma32(-(_HALF * d_pow * dx), dx, acc[_D_CA, jj])
+                    acc[_D_CB, jj] = fma32(-(d_pow * dx), dy, acc[_D_CB, jj])
+                    acc[_D_CC, jj] = fma32(-d_pow, half_dy2, acc[_D_CC, jj])
+                    acc[_D_MX, jj] = fma32(d_pow, fma32(ca, dx, cbdy), acc[_D_MX, jj])
+                    acc[_D_MY, jj] = fma32(d_pow, fma32(cb, dx, ccdy), acc[_D_MY, jj])
                     st[r, _REST_R, jj] = rr
                     st[r, _REST_G, jj] = rg
                     st[r, _REST_B, jj] = rb
