@@ -126,8 +126,8 @@ def test_kernels_loaded_from_numbas_cache_train_what_compiled_ones_do(tmp_path, 
     """The first run after an install compiles the Numba kernels, every later one loads them
     from numba's cache: both must compute the same bits (with 'contract' or 'reassoc' in the
     rasterizer's backward they did not, and a run resumed with a warm cache differed from its
-    uninterrupted twin; runtime/raster/kernels.py). Two hex-plane scales take the field's
-    per-scale and per-plane passes both."""
+    uninterrupted twin; runtime/raster/kernels.py), nor the hex-plane lookup's passes (with 32
+    channels, as the presets have, they did not either; nehad/field/hexplane_kernel.py)."""
     cache = tmp_path / "numba_cache"
     env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "OMP_NUM_THREADS": "2",
            "NUMBA_NUM_THREADS": "2"}
@@ -135,7 +135,8 @@ def test_kernels_loaded_from_numbas_cache_train_what_compiled_ones_do(tmp_path, 
     for name in ("compiled", "cached"):
         cmd = [sys.executable, "-m", "nehad.cli.main", "train", str(tiny_scene), "-o",
                str(tmp_path / name), "--preset", "test", "--quiet", "--set",
-               "coarse.iterations=3", "--set", "fine.iterations=4", "--set", "field.multires=[1,2]"]
+               "coarse.iterations=3", "--set", "fine.iterations=4", "--set", "field.multires=[1,2]",
+               "--set", "field.out_dim=32"]
         done = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
         assert done.returncode == 0, done.stderr
         assert any(cache.rglob("*.nbi")), "numba wrote no cache"

@@ -40,6 +40,13 @@ import torch
 from torch.autograd.function import once_differentiable
 
 from nehad.field.hnn_kernels import live_rows
+from nehad.runtime.raster.intrinsics import fma32
+
+#: Fast-math flags of the lookup's passes: neither 'contract' nor 'reassoc'. With them a pass
+#: compiled in the process and the same pass loaded from numba's cache gave other last bits of
+#: the first plane's gradient and of dL/du (measured 2026-12-03, docs/development.md); the
+#: multiply-adds are explicit (`fma32`) and the channel sums run in a fixed order instead.
+_EXACT = {"nnan", "ninf", "nsz", "arcp", "afn"}
 
 _ONE = np.float32(1.0)
 _ZERO = np.float32(0.0)
@@ -49,8 +56,8 @@ _HALF = np.float32(0.5)
 @numba.njit(inline="always")
 def _cell(coord, size):
     """(index of the cell's first texel, fraction, d pixel / d coord or 0 where clamped)."""
-    p = (coord + _ONE) * (_HALF * np.float32(size - 1))
     slope = _HALF * np.float32(size - 1)
+    p = fma32(coord, slope, slope)  # (coord + 1) slope, rounded once: the pixel to 1/2 ulp
     if p <= _ZERO:
         p = _ZERO
         slope = _ZERO
@@ -76,8 +83,8 @@ def _corners(u, n, p, k, offsets, heights, widths, axis_a, axis_b, channels):
 @numba.njit(inline="always")
 def _bilinear(a, b, d, e, fx, fy):
     """The bilinear sample of texels a (corner), b (right), d (below), e (below right)."""
-    top = a + fx * (b - a)
-    return top + fy * (d + fx * (e - d) - top)
+    top = fma32(fx, b - a, a)
+    return fma32(fy, fma32(fx, e - d, d) - top, top)
 
 
 @numba.njit(inline="always")
@@ -89,31 +96,50 @@ def _spread(grad_tables, base, dx, dy, fx, fy, gk, channels):
     w11 = fx * fy
     g00 = grad_tables[base:base + channels]
     for c in range(channels):
-        g00[c] += w00 * gk[c]
+        g00[c] = fma32(w00, gk[c], g00[c])
     g01 = grad_tables[base + dx:base + dx + channels]
     for c in range(channels):
-        g01[c] += w01 * gk[c]
+        g01[c] = fma32(w01, gk[c], g01[c])
     g10 = grad_tables[base + dy:base + dy + channels]
     for c in range(channels):
-        g10[c] += w10 * gk[c]
+        g10[c] = fma32(w10, gk[c], g10[c])
     g11 = grad_tables[base + dy + dx:base + dy + dx + channels]
     for c in range(channels):
-        g11[c] += w11 * gk[c]
+        g11[c] = fma32(w11, gk[c], g11[c])
+
+
+#: Lanes of the slope sums' partial sums (`_slope_sums`): a vector of float32s.
+_LANES = 8
 
 
 @numba.njit(inline="always")
-def _slope_sums(gk, slope_a, slope_b, channels):
-    """(sum_c gk_c slope_a_c, sum_c gk_c slope_b_c): dL/d pixel along the plane's two axes."""
-    ax = _ZERO
-    ay = _ZERO
-    for c in range(channels):
-        v = gk[c]
-        ax += v * slope_a[c]
-        ay += v * slope_b[c]
+def _slope_sums(gk, slope_a, slope_b, channels, terms):
+    """(sum_c gk_c slope_a_c, sum_c gk_c slope_b_c): dL/d pixel along the plane's two axes.
+    Channel c is added into lane c % 8 of `terms` (2 x 8 partial sums, an order fixed by the
+    code: one vector multiply-add per 8 channels) and the lanes are then summed pairwise;
+    channels past the last multiple of 8 are added one by one at the end."""
+    pa = terms[:_LANES]
+    pb = terms[_LANES:2 * _LANES]
+    for j in range(_LANES):
+        pa[j] = _ZERO
+        pb[j] = _ZERO
+    full = channels - channels % _LANES
+    for c0 in range(0, full, _LANES):
+        va = gk[c0:c0 + _LANES]
+        sa = slope_a[c0:c0 + _LANES]
+        sb = slope_b[c0:c0 + _LANES]
+        for j in range(_LANES):
+            pa[j] = fma32(va[j], sa[j], pa[j])
+            pb[j] = fma32(va[j], sb[j], pb[j])
+    ax = ((pa[0] + pa[4]) + (pa[2] + pa[6])) + ((pa[1] + pa[5]) + (pa[3] + pa[7]))
+    ay = ((pb[0] + pb[4]) + (pb[2] + pb[6])) + ((pb[1] + pb[5]) + (pb[3] + pb[7]))
+    for c in range(full, channels):
+        ax = fma32(gk[c], slope_a[c], ax)
+        ay = fma32(gk[c], slope_b[c], ay)
     return ax, ay
 
 
-@numba.njit(fastmath=True, cache=True)
+@numba.njit(fastmath=_EXACT, cache=True)
 def _forward_points(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
                     out, order, start, stop):
     """out's rows order[start:stop] (u in the lookup's spatial order: u[i] is point order[i];
@@ -185,10 +211,10 @@ def _taps_with_slopes(u, n, s, tables, offsets, heights, widths, axis_a, axis_b,
         gy = _ONE - fy
         for c in range(channels):
             a, b, d, e = t00[c], t01[c], t10[c], t11[c]
-            top = a + fx * (b - a)
-            bottom = d + fx * (e - d)
-            sample[c] = top + fy * (bottom - top)
-            slope_a[c] = gy * (b - a) + fy * (e - d)
+            top = fma32(fx, b - a, a)
+            bottom = fma32(fx, e - d, d)
+            sample[c] = fma32(fy, bottom - top, top)
+            slope_a[c] = fma32(gy, b - a, fy * (e - d))
             slope_b[c] = bottom - top
 
 
@@ -208,7 +234,7 @@ def _products_of_the_others(g, samples, others, channels):
             r *= samples[k * channels + c]
 
 
-@numba.njit(fastmath=True, cache=True)
+@numba.njit(fastmath=_EXACT, cache=True)
 def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
                        grad_out, grad_samples, grad_u, start, stop):
     """dL/ds_k (into `grad_samples`) and dL/du per scale (grad_u (S, points, 4)) of the points
@@ -223,6 +249,7 @@ def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_sc
     sy = np.empty(6 * channels, np.float32)
     others = np.empty(6 * channels, np.float32)  # prod_{j != k} s_j
     slopes = np.empty((6, 2), np.float32)
+    terms = np.empty(2 * _LANES, np.float32)  # the slope sums' lanes (`_slope_sums`)
     for n in range(start, stop):
         for s in range(n_scales):
             _taps_with_slopes(u, n, s, tables, offsets, heights, widths, axis_a, axis_b,
@@ -233,9 +260,10 @@ def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_sc
                 o = k * channels
                 other = others[o:o + channels]
                 grad_samples[s * 6 + k, n] = other
-                ax, ay = _slope_sums(other, sx[o:o + channels], sy[o:o + channels], channels)
-                grad_u[s, n, axis_a[k]] += ax * slopes[k, 0]
-                grad_u[s, n, axis_b[k]] += ay * slopes[k, 1]
+                ax, ay = _slope_sums(other, sx[o:o + channels], sy[o:o + channels], channels,
+                                    terms)
+                grad_u[s, n, axis_a[k]] = fma32(ax, slopes[k, 0], grad_u[s, n, axis_a[k]])
+                grad_u[s, n, axis_b[k]] = fma32(ay, slopes[k, 1], grad_u[s, n, axis_b[k]])
 
 
 @numba.njit(parallel=True, cache=True)
@@ -248,7 +276,7 @@ def _point_grads(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, 
                            (j + 1) * n // chunks)
 
 
-@numba.njit(fastmath=True, cache=True)
+@numba.njit(fastmath=_EXACT, cache=True)
 def _scale_grads(u, tables, offsets, heights, widths, axis_a, axis_b, s, channels, grad_out,
                  grad_u, grad_tables):
     """Every point's dL/du share and the six planes' gradients of scale s in one pass (u and
@@ -259,6 +287,7 @@ def _scale_grads(u, tables, offsets, heights, widths, axis_a, axis_b, s, channel
     sy = np.empty(6 * channels, np.float32)
     others = np.empty(6 * channels, np.float32)  # g prod_{j != k} s_j = dL/ds_k
     slopes = np.empty((6, 2), np.float32)
+    terms = np.empty(2 * _LANES, np.float32)  # the slope sums' lanes (`_slope_sums`)
     for n in range(u.shape[0]):
         _taps_with_slopes(u, n, s, tables, offsets, heights, widths, axis_a, axis_b, channels,
                           samples, sx, sy, slopes)
@@ -267,9 +296,10 @@ def _scale_grads(u, tables, offsets, heights, widths, axis_a, axis_b, s, channel
         for k in range(6):
             o = k * channels
             other = others[o:o + channels]
-            ax, ay = _slope_sums(other, sx[o:o + channels], sy[o:o + channels], channels)
-            grad_u[n, axis_a[k]] += ax * slopes[k, 0]
-            grad_u[n, axis_b[k]] += ay * slopes[k, 1]
+            ax, ay = _slope_sums(other, sx[o:o + channels], sy[o:o + channels], channels,
+                                    terms)
+            grad_u[n, axis_a[k]] = fma32(ax, slopes[k, 0], grad_u[n, axis_a[k]])
+            grad_u[n, axis_b[k]] = fma32(ay, slopes[k, 1], grad_u[n, axis_b[k]])
             base, dx, dy, fx, fy, _, _ = _corners(u, n, s * 6 + k, k, offsets, heights, widths,
                                                   axis_a, axis_b, channels)
             _spread(grad_tables, base, dx, dy, fx, fy, other, channels)
@@ -285,7 +315,7 @@ def _grads_by_scale(u, tables, offsets, heights, widths, axis_a, axis_b, n_scale
                      grad_u_scales[s], grad_tables)
 
 
-@numba.njit(fastmath=True, cache=True)
+@numba.njit(fastmath=_EXACT, cache=True)
 def _scatter_plane(u, p, k, offsets, heights, widths, axis_a, axis_b, channels, grad_samples,
                    grad_tables):
     for n in range(u.shape[0]):
