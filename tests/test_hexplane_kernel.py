@@ -65,7 +65,7 @@ def test_the_two_backward_schedules_agree(monkeypatch):
     float32 gradients. dL/du is summed per scale and each texel gets its points' shares in the
     same order in both, so they have given the same bits in every run but two, both the first
     run after an edit of the kernels' module (some kernels from Numba's cache, others just
-    compiled, whose code can round differently: tests/test_fingerprint.py); so the test asks
+    compiled, which rounded differently until 2026-12-03: docs/development.md); the test asks
     for agreement to float32 rounding, which a missing or doubled share would break."""
     from nehad.field import hexplane_kernel
 
