@@ -88,12 +88,23 @@ def test_training_lowers_the_loss_and_writes_the_run(tmp_path, tiny_scene):
     assert state["format"] == "nehad-run/1"
 
 
-def _train_cli(data, run, *extra, wait=True):
+def _train_cli(data, run, *extra, wait=True, env=None, timeout=300):
     cmd = [sys.executable, "-m", "nehad.cli.main", "train", str(data), "-o", str(run),
            "--preset", "test", "--quiet", *extra]
     if wait:
-        return subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
+    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            env=env)
+
+
+def _assert_same_models(run_a, run_b):
+    """The two runs' model.pt hold bit-identical Gaussians and fields."""
+    a = torch.load(run_a / "model.pt", weights_only=True)
+    b = torch.load(run_b / "model.pt", weights_only=True)
+    for part in ("gaussians", "field"):
+        assert a[part].keys() == b[part].keys()
+        for key in a[part]:
+            assert torch.equal(a[part][key], b[part][key]), (part, key)
 
 
 @pytest.mark.slow  # three CLI trainings
@@ -113,12 +124,7 @@ def test_resume_after_sigkill_reproduces_the_uninterrupted_run(tmp_path, tiny_sc
     assert not (tmp_path / "killed" / "model.pt").exists()
     resumed = _train_cli(tiny_scene, tmp_path / "killed", "--resume")
     assert resumed.returncode == 0, resumed.stderr
-    a = torch.load(tmp_path / "full" / "model.pt", weights_only=True)
-    b = torch.load(tmp_path / "killed" / "model.pt", weights_only=True)
-    for part in ("gaussians", "field"):
-        assert a[part].keys() == b[part].keys()
-        for key in a[part]:
-            assert torch.equal(a[part][key], b[part][key]), (part, key)
+    _assert_same_models(tmp_path / "full", tmp_path / "killed")
 
 
 @pytest.mark.slow  # two CLI trainings, the first compiling every kernel
@@ -131,20 +137,13 @@ def test_kernels_loaded_from_numbas_cache_train_what_compiled_ones_do(tmp_path, 
     cache = tmp_path / "numba_cache"
     env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "OMP_NUM_THREADS": "2",
            "NUMBA_NUM_THREADS": "2"}
-    models = []
     for name in ("compiled", "cached"):
-        cmd = [sys.executable, "-m", "nehad.cli.main", "train", str(tiny_scene), "-o",
-               str(tmp_path / name), "--preset", "test", "--quiet", "--set",
-               "coarse.iterations=3", "--set", "fine.iterations=4", "--set", "field.multires=[1,2]",
-               "--set", "field.out_dim=32"]
-        done = subprocess.run(cmd, capture_output=True, text=True, timeout=600, env=env)
+        done = _train_cli(tiny_scene, tmp_path / name, "--set", "coarse.iterations=3", "--set",
+                          "fine.iterations=4", "--set", "field.multires=[1,2]", "--set",
+                          "field.out_dim=32", env=env, timeout=600)
         assert done.returncode == 0, done.stderr
         assert any(cache.rglob("*.nbi")), "numba wrote no cache"
-        models.append(torch.load(tmp_path / name / "model.pt", weights_only=True))
-    a, b = models
-    for part in ("gaussians", "field"):
-        for key in a[part]:
-            assert torch.equal(a[part][key], b[part][key]), (part, key)
+    _assert_same_models(tmp_path / "compiled", tmp_path / "cached")
 
 
 @pytest.mark.slow  # two CLI trainings

@@ -40,13 +40,7 @@ import torch
 from torch.autograd.function import once_differentiable
 
 from nehad.field.hnn_kernels import live_rows
-from nehad.runtime.raster.intrinsics import fma32
-
-#: Fast-math flags of the lookup's passes: neither 'contract' nor 'reassoc'. With them a pass
-#: compiled in the process and the same pass loaded from numba's cache gave other last bits of
-#: the first plane's gradient and of dL/du (measured 2026-12-03, docs/development.md); the
-#: multiply-adds are explicit (`fma32`) and the channel sums run in a fixed order instead.
-_EXACT = {"nnan", "ninf", "nsz", "arcp", "afn"}
+from nehad.runtime.raster.intrinsics import EXACT_FASTMATH, fma32
 
 _ONE = np.float32(1.0)
 _ZERO = np.float32(0.0)
@@ -139,7 +133,7 @@ def _slope_sums(gk, slope_a, slope_b, channels, terms):
     return ax, ay
 
 
-@numba.njit(fastmath=_EXACT, cache=True)
+@numba.njit(fastmath=EXACT_FASTMATH, cache=True)
 def _forward_points(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
                     out, order, start, stop):
     """out's rows order[start:stop] (u in the lookup's spatial order: u[i] is point order[i];
@@ -234,7 +228,7 @@ def _products_of_the_others(g, samples, others, channels):
             r *= samples[k * channels + c]
 
 
-@numba.njit(fastmath=_EXACT, cache=True)
+@numba.njit(fastmath=EXACT_FASTMATH, cache=True)
 def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
                        grad_out, grad_samples, grad_u, start, stop):
     """dL/ds_k (into `grad_samples`) and dL/du per scale (grad_u (S, points, 4)) of the points
@@ -276,7 +270,7 @@ def _point_grads(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, 
                            (j + 1) * n // chunks)
 
 
-@numba.njit(fastmath=_EXACT, cache=True)
+@numba.njit(fastmath=EXACT_FASTMATH, cache=True)
 def _scale_grads(u, tables, offsets, heights, widths, axis_a, axis_b, s, channels, grad_out,
                  grad_u, grad_tables):
     """Every point's dL/du share and the six planes' gradients of scale s in one pass (u and
@@ -315,7 +309,7 @@ def _grads_by_scale(u, tables, offsets, heights, widths, axis_a, axis_b, n_scale
                      grad_u_scales[s], grad_tables)
 
 
-@numba.njit(fastmath=_EXACT, cache=True)
+@numba.njit(fastmath=EXACT_FASTMATH, cache=True)
 def _scatter_plane(u, p, k, offsets, heights, widths, axis_a, axis_b, channels, grad_samples,
                    grad_tables):
     for n in range(u.shape[0]):

@@ -16,6 +16,14 @@ from numba.core import cgutils, types
 from numba.extending import intrinsic
 
 
+#: Fast-math flags that leave a kernel's rounding to its code: neither 'contract' nor 'reassoc'.
+#: With either, a kernel JIT-compiled in a process and the same kernel loaded from numba's cache
+#: rounded differently ('reassoc': the rasterizer's backward and the hex-plane lookup, measured
+#: 2026-12-03; 'contract': the forward kernel, 2026-11-25; docs/development.md). Kernels with
+#: these flags write their fused multiply-adds with `fma32` and their sums in a fixed order.
+EXACT_FASTMATH = {"nnan", "ninf", "nsz", "arcp", "afn"}
+
+
 @intrinsic
 def fma32(typingctx, a, b, c):
     """float32 a * b + c with a single rounding (vectorises to vfmadd)."""

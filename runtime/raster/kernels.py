@@ -36,7 +36,7 @@ import numba
 import numpy as np
 
 from .fastexp import fast_exp
-from .intrinsics import fma32, prefetch_row
+from .intrinsics import EXACT_FASTMATH, fma32, prefetch_row
 from .binning import P_B, P_CA, P_CB, P_CC, P_G, P_MX, P_MY, P_OP, P_R, P_ROW0, P_ROW1, P_Z
 from .projection import TILE
 
@@ -63,12 +63,6 @@ _PREFETCH_AHEAD = 2
 #: 24-frame video between a single-process render and a render by worker processes). Without
 #: it, every process computes bit-identical frames.
 _FORWARD_FASTMATH = {"nnan", "ninf", "nsz", "arcp", "afn", "reassoc"}
-#: Fast-math flags of the backward kernel: neither 'contract' nor 'reassoc'. With either, the
-#: backward JIT-compiled in a process and the same kernel loaded from numba's cache gave other
-#: last bits of the conic gradients (measured 2026-12-03: a run's first training after a clean
-#: install differed from every later one, and a run resumed with a warm cache from its
-#: uninterrupted twin); the multiply-adds are explicit (`fma32`), as in the forward kernel.
-_EXACT_FASTMATH = {"nnan", "ninf", "nsz", "arcp", "afn"}
 
 
 def interleaved_tiles(tiles_x: int, tiles_y: int, threads: int) -> np.ndarray:
@@ -191,7 +185,7 @@ def forward_kernel(tile_order, tile_offsets, gauss_ids, packed, width, height, b
                 out_stop[y, x] = np.int32(st[r, _STOP, j])
 
 
-@numba.njit(parallel=True, fastmath=_EXACT_FASTMATH, cache=True)
+@numba.njit(parallel=True, fastmath=EXACT_FASTMATH, cache=True)
 def backward_kernel(tile_order, tile_offsets, gauss_ids, packed, width, height, out_rgb,
                     out_final_t, out_stop, grad_rgb, grad_alpha, entry_grads):
     ntx = (width + TILE - 1) // TILE
