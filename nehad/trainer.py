@@ -160,11 +160,13 @@ class Trainer:
         views = self.views_at(step, phase)
         rng = np.random.default_rng([self.cfg.train.seed, step])
         picks = self._pick_views(phase, views, window, rng)
-        total, psnrs, renders = self._render_loss(phase, step, views, picks, rng)
+        total, psnrs, renders = self._render_loss(phase, step, views, picks, rng,
+                                                  self.logs_step(step))
         self._update(total, phase, window)
         did = self._change_model(phase, step, window, renders)
         record = {"step": step + 1, "stage": phase.stage, "loss": float(total.item()),
-                  "psnr": float(np.mean(psnrs)), "gaussians": len(self.model.gaussians),
+                  "psnr": float(np.mean(psnrs)) if psnrs else None,
+                  "gaussians": len(self.model.gaussians),
                   "sh_degree": self.active_sh_degree(step),
                   "window": [round(window.lo, 4), round(window.hi, 4)],
                   "resolution": list(renders[-1][0].rgb.shape[1::-1]),
@@ -187,8 +189,15 @@ class Trainer:
         pool = eligible_frames(views.times, window)
         return rng.choice(pool, size=batch, replace=batch > len(pool))
 
-    def _render_loss(self, phase: Phase, step: int, views: Views, picks, rng):
-        """(the step's loss, each view's PSNR against the evaluation background, and
+    def logs_step(self, step: int) -> bool:
+        """Whether step `step` (0-based) is one `train` writes to metrics.jsonl and the bar."""
+        done = step + 1
+        return done % self.cfg.train.log_interval == 0 or done == self.total_steps
+
+    def _render_loss(self, phase: Phase, step: int, views: Views, picks, rng,
+                     score: bool = True):
+        """(the step's loss, each view's PSNR against the evaluation background (with `score`;
+        else none: only logged steps show it, and it took 2% of a `nehad demo` step), and
         (render, camera) per view)."""
         cfg = self.cfg
         degree = self.active_sh_degree(step)
@@ -207,13 +216,13 @@ class Trainer:
             if phase.deforms:  # the priors on the motion (nehad.motion_priors)
                 prior = self.priors.loss(self.model, params[0], views.times[k], step, sampled)
                 total = total + prior / len(picks)
-            # logged against the evaluation background, whatever the step trained over
-            psnrs.append(psnr(recomposite(res.rgb.detach(), res.alpha.detach()[:, :, None],
-                                          background, self.background),
-                              recomposite(target, alpha, background, self.background)
-                              if alpha is not None and background != self.background
-                              else target))
             renders.append((res, cam))
+            if score:  # logged against the evaluation background, whatever the step trained over
+                psnrs.append(psnr(recomposite(res.rgb.detach(), res.alpha.detach()[:, :, None],
+                                              background, self.background),
+                                  recomposite(target, alpha, background, self.background)
+                                  if alpha is not None and background != self.background
+                                  else target))
         if phase.deforms:
             total = total + self.model.field.regularization_loss()
         if not torch.isfinite(total):
@@ -282,7 +291,7 @@ class Trainer:
             record = self.train_step(self.step)
             self.step += 1
             bar.update(1)
-            if self.step % cfg.train.log_interval == 0 or self.step == self.total_steps:
+            if self.logs_step(self.step - 1):
                 record["seconds"] = round(time.perf_counter() - start_time, 2)
                 append_metrics(self.run, record)
                 bar.set_postfix(stage=record["stage"], loss=f"{record['loss']:.4f}",

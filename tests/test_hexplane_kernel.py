@@ -98,6 +98,47 @@ def test_hexplane_dispatches_to_the_kernel_on_cpu_float32():
     assert (out - ref).abs().max() <= 1e-5
 
 
+@pytest.mark.parametrize("by_scale", [True, False])
+def test_no_time_gradient_leaves_the_other_gradients_bit_for_bit(by_scale, monkeypatch):
+    """`time_grad=False` (a time column nothing learns, as in training) skips dL/dt' alone:
+    dL/dx, y, z and the planes' gradients are the same bits as with it, dL/dt' is 0."""
+    from nehad.field import hexplane_kernel
+
+    monkeypatch.setattr(hexplane_kernel, "backward_by_scale", lambda n_scales: by_scale)
+    planes = [p.detach().float().contiguous(memory_format=torch.channels_last)
+              for scale in _planes().planes for p in scale]
+    u = torch.cat([_points().float(), torch.linspace(-0.9, 0.9, 300)[:, None]], 1)
+    weight = torch.randn(300, 16, generator=torch.Generator().manual_seed(8))
+    grads = []
+    for time_grad in (True, False):
+        leaves = [u.clone().requires_grad_(True)] + [p.clone().requires_grad_(True)
+                                                     for p in planes]
+        out = hexplane_lookup(leaves[0], leaves[1:], PLANE_AXES, time_grad=time_grad)
+        (out * weight).sum().backward()
+        grads.append([x.grad for x in leaves])
+    assert grads[0][0][:, 3].abs().max() > 0 and grads[1][0][:, 3].abs().max() == 0
+    assert torch.equal(grads[0][0][:, :3], grads[1][0][:, :3])
+    assert all(torch.equal(a, b) for a, b in zip(grads[0][1:], grads[1][1:]))
+
+
+def test_the_time_gradient_reaches_a_time_that_asks_for_it():
+    """HexPlane asks the kernel for dL/dt' when its time input requires a gradient: dL/dt
+    equals grid_sample's (float64 reference)."""
+    hp = _planes()
+    x = _points()
+    t = torch.full((len(x), 1), 0.35, dtype=torch.float64, requires_grad=True)
+    weight = torch.randn(len(x), 16, generator=torch.Generator().manual_seed(9),
+                         dtype=torch.float64)
+    (hp(x, t) * weight).sum().backward()
+    fast = hp.float()
+    fast.kernel = "numba"
+    t32 = t.detach().float().requires_grad_(True)
+    out = fast(x.float(), t32)
+    assert type(out.grad_fn).__name__.startswith("HexPlaneLookup")
+    (out * weight.float()).sum().backward()
+    assert (t32.grad.double() - t.grad).abs().max() <= 1e-5 * t.grad.abs().max()
+
+
 LAYOUTS = [torch.contiguous_format, torch.channels_last]
 
 

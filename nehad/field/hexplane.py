@@ -169,7 +169,8 @@ class HexPlane(nn.Module):
         if self._numba_ok() and x.device.type == "cpu" and x.dtype == torch.float32 and n > 0:
             from nehad.field.hexplane_kernel import hexplane_lookup
 
-            return hexplane_lookup(u, [p for scale in self.planes for p in scale], PLANE_AXES)
+            return hexplane_lookup(u, [p for scale in self.planes for p in scale], PLANE_AXES,
+                                   time_grad=t.requires_grad)
         b = self._num_batches(x)
         pad = (-n) % b if b > 1 else 0
         if pad:

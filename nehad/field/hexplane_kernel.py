@@ -19,7 +19,10 @@ Backward, with g = dL/df of one scale:
   points (`_point_grads`) and a pass with one plane per task adds it up (`_plane_grads`), so
   that no two tasks write the same memory either way;
 - dL/du along the plane's two axes: sum_c dL/ds_k,c times the sample's slope in that axis
-  (the difference of the neighbouring texels), times 0.5 (res - 1) for the [-1, 1] scaling.
+  (the difference of the neighbouring texels), times 0.5 (res - 1) for the [-1, 1] scaling;
+  along t only when the caller's time needs a gradient (`hexplane_lookup`'s `time_grad`: in
+  training it needs none, and the three space-time planes' sums along t were a quarter of
+  the slope sums, docs/performance.md).
 
 Points whose upstream gradient is zero (Gaussians no pixel of the view sees) are left out of
 the backward: they would add zeros to the planes' gradients and get a zero gradient themselves.
@@ -102,35 +105,34 @@ def _spread(grad_tables, base, dx, dy, fx, fy, gk, channels):
         g11[c] = fma32(w11, gk[c], g11[c])
 
 
-#: Lanes of the slope sums' partial sums (`_slope_sums`): a vector of float32s.
+#: Partial sums of a slope sum (`_slope_sum`): a vector of float32s.
 _LANES = 8
 
 
 @numba.njit(inline="always")
-def _slope_sums(gk, slope_a, slope_b, channels, terms):
-    """(sum_c gk_c slope_a_c, sum_c gk_c slope_b_c): dL/d pixel along the plane's two axes.
-    Channel c is added into lane c % 8 of `terms` (2 x 8 partial sums, an order fixed by the
-    code: one vector multiply-add per 8 channels) and the lanes are then summed pairwise;
-    channels past the last multiple of 8 are added one by one at the end."""
-    pa = terms[:_LANES]
-    pb = terms[_LANES:2 * _LANES]
-    for j in range(_LANES):
-        pa[j] = _ZERO
-        pb[j] = _ZERO
+def _slope_sum(gk, slope, channels):
+    """sum_c gk_c slope_c: dL/d pixel along one of a plane's axes. Channel c is added into
+    partial sum c % 8 (an order fixed by the code), the eight are then summed pairwise, and the
+    channels past the last multiple of 8 are added one by one at the end. The partial sums are
+    eight local variables: kept in registers, the slope sums took 90 ns a point's six planes
+    where the same sums through a scratch array took 120 (docs/performance.md)."""
+    p0 = p1 = p2 = p3 = p4 = p5 = p6 = p7 = _ZERO
     full = channels - channels % _LANES
     for c0 in range(0, full, _LANES):
-        va = gk[c0:c0 + _LANES]
-        sa = slope_a[c0:c0 + _LANES]
-        sb = slope_b[c0:c0 + _LANES]
-        for j in range(_LANES):
-            pa[j] = fma32(va[j], sa[j], pa[j])
-            pb[j] = fma32(va[j], sb[j], pb[j])
-    ax = ((pa[0] + pa[4]) + (pa[2] + pa[6])) + ((pa[1] + pa[5]) + (pa[3] + pa[7]))
-    ay = ((pb[0] + pb[4]) + (pb[2] + pb[6])) + ((pb[1] + pb[5]) + (pb[3] + pb[7]))
+        g = gk[c0:c0 + _LANES]
+        v = slope[c0:c0 + _LANES]
+        p0 = fma32(g[0], v[0], p0)
+        p1 = fma32(g[1], v[1], p1)
+        p2 = fma32(g[2], v[2], p2)
+        p3 = fma32(g[3], v[3], p3)
+        p4 = fma32(g[4], v[4], p4)
+        p5 = fma32(g[5], v[5], p5)
+        p6 = fma32(g[6], v[6], p6)
+        p7 = fma32(g[7], v[7], p7)
+    total = ((p0 + p4) + (p2 + p6)) + ((p1 + p5) + (p3 + p7))
     for c in range(full, channels):
-        ax = fma32(gk[c], slope_a[c], ax)
-        ay = fma32(gk[c], slope_b[c], ay)
-    return ax, ay
+        total = fma32(gk[c], slope[c], total)
+    return total
 
 
 @numba.njit(fastmath=EXACT_FASTMATH, cache=True)
@@ -230,7 +232,7 @@ def _products_of_the_others(g, samples, others, channels):
 
 @numba.njit(fastmath=EXACT_FASTMATH, cache=True)
 def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
-                       grad_out, grad_samples, grad_u, start, stop):
+                       wanted, grad_out, grad_samples, grad_u, start, stop):
     """dL/ds_k (into `grad_samples`) and dL/du per scale (grad_u (S, points, 4)) of the points
     start:stop, with u, grad_out and grad_u in the lookup's spatial order (read in the
     Gaussians' order, each point's upstream row was a cache miss the long loop body could not
@@ -243,7 +245,6 @@ def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_sc
     sy = np.empty(6 * channels, np.float32)
     others = np.empty(6 * channels, np.float32)  # prod_{j != k} s_j
     slopes = np.empty((6, 2), np.float32)
-    terms = np.empty(2 * _LANES, np.float32)  # the slope sums' lanes (`_slope_sums`)
     for n in range(start, stop):
         for s in range(n_scales):
             _taps_with_slopes(u, n, s, tables, offsets, heights, widths, axis_a, axis_b,
@@ -254,25 +255,29 @@ def _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_sc
                 o = k * channels
                 other = others[o:o + channels]
                 grad_samples[s * 6 + k, n] = other
-                ax, ay = _slope_sums(other, sx[o:o + channels], sy[o:o + channels], channels,
-                                    terms)
-                grad_u[s, n, axis_a[k]] = fma32(ax, slopes[k, 0], grad_u[s, n, axis_a[k]])
-                grad_u[s, n, axis_b[k]] = fma32(ay, slopes[k, 1], grad_u[s, n, axis_b[k]])
+                a = axis_a[k]
+                b = axis_b[k]
+                if wanted[a]:
+                    ax = _slope_sum(other, sx[o:o + channels], channels)
+                    grad_u[s, n, a] = fma32(ax, slopes[k, 0], grad_u[s, n, a])
+                if wanted[b]:
+                    ay = _slope_sum(other, sy[o:o + channels], channels)
+                    grad_u[s, n, b] = fma32(ay, slopes[k, 1], grad_u[s, n, b])
 
 
 @numba.njit(parallel=True, cache=True)
 def _point_grads(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
-                 grad_out, grad_samples, grad_u, chunks):
+                 wanted, grad_out, grad_samples, grad_u, chunks):
     n = u.shape[0]
     for j in numba.prange(chunks):
         _point_grads_range(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales,
-                           channels, grad_out, grad_samples, grad_u, j * n // chunks,
+                           channels, wanted, grad_out, grad_samples, grad_u, j * n // chunks,
                            (j + 1) * n // chunks)
 
 
 @numba.njit(fastmath=EXACT_FASTMATH, cache=True)
-def _scale_grads(u, tables, offsets, heights, widths, axis_a, axis_b, s, channels, grad_out,
-                 grad_u, grad_tables):
+def _scale_grads(u, tables, offsets, heights, widths, axis_a, axis_b, s, channels, wanted,
+                 grad_out, grad_u, grad_tables):
     """Every point's dL/du share and the six planes' gradients of scale s in one pass (u and
     grad_out in the lookup's spatial order): a point's dL/ds_k goes straight onto its cell's
     four corners, so it is never written out and read back (`_grads_by_scale`)."""
@@ -281,7 +286,6 @@ def _scale_grads(u, tables, offsets, heights, widths, axis_a, axis_b, s, channel
     sy = np.empty(6 * channels, np.float32)
     others = np.empty(6 * channels, np.float32)  # g prod_{j != k} s_j = dL/ds_k
     slopes = np.empty((6, 2), np.float32)
-    terms = np.empty(2 * _LANES, np.float32)  # the slope sums' lanes (`_slope_sums`)
     for n in range(u.shape[0]):
         _taps_with_slopes(u, n, s, tables, offsets, heights, widths, axis_a, axis_b, channels,
                           samples, sx, sy, slopes)
@@ -290,10 +294,14 @@ def _scale_grads(u, tables, offsets, heights, widths, axis_a, axis_b, s, channel
         for k in range(6):
             o = k * channels
             other = others[o:o + channels]
-            ax, ay = _slope_sums(other, sx[o:o + channels], sy[o:o + channels], channels,
-                                    terms)
-            grad_u[n, axis_a[k]] = fma32(ax, slopes[k, 0], grad_u[n, axis_a[k]])
-            grad_u[n, axis_b[k]] = fma32(ay, slopes[k, 1], grad_u[n, axis_b[k]])
+            a = axis_a[k]
+            b = axis_b[k]
+            if wanted[a]:
+                ax = _slope_sum(other, sx[o:o + channels], channels)
+                grad_u[n, a] = fma32(ax, slopes[k, 0], grad_u[n, a])
+            if wanted[b]:
+                ay = _slope_sum(other, sy[o:o + channels], channels)
+                grad_u[n, b] = fma32(ay, slopes[k, 1], grad_u[n, b])
             base, dx, dy, fx, fy, _, _ = _corners(u, n, s * 6 + k, k, offsets, heights, widths,
                                                   axis_a, axis_b, channels)
             _spread(grad_tables, base, dx, dy, fx, fy, other, channels)
@@ -301,12 +309,12 @@ def _scale_grads(u, tables, offsets, heights, widths, axis_a, axis_b, s, channel
 
 @numba.njit(parallel=True, cache=True)
 def _grads_by_scale(u, tables, offsets, heights, widths, axis_a, axis_b, n_scales, channels,
-                    grad_out, grad_u_scales, grad_tables):
+                    wanted, grad_out, grad_u_scales, grad_tables):
     """`_scale_grads` of each scale as one task: a scale's planes belong to it alone, so no two
     tasks write the same memory (dL/du per scale, summed by the caller)."""
     for s in numba.prange(n_scales):
-        _scale_grads(u, tables, offsets, heights, widths, axis_a, axis_b, s, channels, grad_out,
-                     grad_u_scales[s], grad_tables)
+        _scale_grads(u, tables, offsets, heights, widths, axis_a, axis_b, s, channels, wanted,
+                     grad_out, grad_u_scales[s], grad_tables)
 
 
 @numba.njit(fastmath=EXACT_FASTMATH, cache=True)
@@ -610,10 +618,12 @@ def _shared_table(planes, offsets):
 
 class HexPlaneLookup(torch.autograd.Function):
     """features (N, S C) = the product over planes of bilinear samples (module docstring), for
-    u (N, 4) = (x, y, z, t') and the S x 6 planes (1, C, H, W) in HexPlane's order."""
+    u (N, 4) = (x, y, z, t') and the S x 6 planes (1, C, H, W) in HexPlane's order. With
+    `time_grad` False, dL/du is not computed along t (returned 0 there: for a time column that
+    requires no gradient)."""
 
     @staticmethod
-    def forward(ctx, u, axes, *planes):
+    def forward(ctx, u, axes, time_grad, *planes):
         channels = planes[0].shape[1]
         n_scales = len(planes) // 6
         sizes = [p.numel() for p in planes]
@@ -643,6 +653,7 @@ class HexPlaneLookup(torch.autograd.Function):
         ctx.saved = (sorted_u, flat, offsets, heights, widths, axis_a, axis_b, n_scales,
                      channels, [tuple(p.shape) for p in planes], order,
                      [p.is_contiguous(memory_format=torch.channels_last) for p in planes])
+        ctx.time_grad = bool(time_grad)
         return torch.from_numpy(out)
 
     @staticmethod
@@ -663,16 +674,18 @@ class HexPlaneLookup(torch.autograd.Function):
         sorted_g = np.empty((m, g.shape[1]), np.float32)
         _take_rows(g, order, sorted_g)
         grad_tables = np.zeros_like(flat)
+        space = ctx.needs_input_grad[0]  # dL/du along x, y, z; along t only if asked
+        wanted = np.array([space, space, space, space and ctx.time_grad], np.bool_)
         # dL/du per scale, summed over the scales at the end: the same sums either way below
         by_scale = np.zeros((n_scales, m, 4), np.float32)
         if backward_by_scale(n_scales):
             _grads_by_scale(sorted_u, flat, offsets, heights, widths, axis_a, axis_b, n_scales,
-                            channels, sorted_g, by_scale, grad_tables)
+                            channels, wanted, sorted_g, by_scale, grad_tables)
         else:
             # plane-major, in the spatial order: each plane's scatter then reads it front to back
             grad_samples = np.empty((n_scales * 6, m, channels), np.float32)
             _point_grads(sorted_u, flat, offsets, heights, widths, axis_a, axis_b, n_scales,
-                         channels, sorted_g, grad_samples, by_scale, _chunks(m))
+                         channels, wanted, sorted_g, grad_samples, by_scale, _chunks(m))
             _plane_grads(sorted_u, offsets, heights, widths, axis_a, axis_b, channels,
                          grad_samples, grad_tables)
         sorted_grad_u = by_scale.sum(axis=0)
@@ -687,12 +700,13 @@ class HexPlaneLookup(torch.autograd.Function):
             out = np.empty(shape[1:], np.float32)
             _to_channel_first(table, out)
             plane_grads.append(torch.from_numpy(out).reshape(shape))
-        return (torch.from_numpy(grad_u), None, *plane_grads)
+        return (torch.from_numpy(grad_u) if space else None, None, None, *plane_grads)
 
 
-def hexplane_lookup(u: torch.Tensor, planes, axes) -> torch.Tensor:
-    """`HexPlaneLookup` of points u (N, 4) and the planes (flat list, scale-major)."""
-    return HexPlaneLookup.apply(u, tuple(axes), *planes)
+def hexplane_lookup(u: torch.Tensor, planes, axes, time_grad: bool = True) -> torch.Tensor:
+    """`HexPlaneLookup` of points u (N, 4) and the planes (flat list, scale-major); with
+    `time_grad` False no dL/du along t (the caller's time column needs none)."""
+    return HexPlaneLookup.apply(u, tuple(axes), time_grad, *planes)
 
 
 __all__ = ["HexPlaneLookup", "PlaneTV", "TimeRegularisers", "hexplane_lookup", "plane_tv",
