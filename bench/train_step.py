@@ -10,11 +10,12 @@ opacity 0.5, so every size and every version of the code draws the same picture)
 as medians over --repeats calls after a warm-up:
 
   step        Trainer.train_step of a fine step, everything included;
-  field       the deformation of the N Gaussians, forward and backward;
+  field       the deformation of the N Gaussians, forward and backward, the planes' gradients
+              added into their .grad as the step does (HexPlane.adding_gradients_in_place);
   render      projection + rasterization of the deformed Gaussians, forward and backward;
   loss        the photometric loss (L1 + D-SSIM) of an image, forward and backward, with the
               configured loss.kernel (numba unless --set loss.kernel=torch);
-  regularise  the hex-plane regularisers, forward and backward;
+  regularise  the hex-plane regularisers, forward and backward (their gradients too);
   adam        one optimizer step over every parameter.
 
 Below each size, step, field and loss as multiples of the render (issue 27 states its targets
@@ -30,6 +31,7 @@ older checkout (`git worktree add /tmp/old <commit>` and run it there with PYTHO
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import shutil
 import sys
@@ -117,8 +119,13 @@ def measure(tr, repeats: int) -> dict:
     cam, t, target = view.cameras[0], view.times[0], view.images[0]
     model = tr.model
 
+    # as the step runs them: the planes' gradients added into their .grad in place (HexPlane;
+    # an older checkout without it returns them to autograd)
+    in_place = getattr(model.field.hexplane, "adding_gradients_in_place", contextlib.nullcontext)
+
     def field():
-        params = model.gaussians_at(t, deform=True)
+        with in_place():
+            params = model.gaussians_at(t, deform=True)
         sum(p.sum() for p in params).backward()
 
     out["field"] = median_ms(field, repeats)
@@ -138,7 +145,13 @@ def measure(tr, repeats: int) -> dict:
     extra = () if kernel is None else (kernel,)
     out["loss"] = median_ms(lambda: photometric_loss(image, target, 0.2, *extra).backward(),
                             repeats)
-    out["regularise"] = median_ms(lambda: model.field.regularization_loss().backward(), repeats)
+
+    def regularise():
+        with in_place():
+            loss = model.field.regularization_loss()
+        loss.backward()
+
+    out["regularise"] = median_ms(regularise, repeats)
     opt = tr.optimizer
     for group in opt.param_groups:
         group["lr"] = 1e-12

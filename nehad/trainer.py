@@ -25,7 +25,7 @@ from nehad.curriculum import eligible_frames, resolution_factor
 from nehad.data.loader import load_dataset
 from nehad.densify import DensifyState, DensifyStrategy, ViewStats
 from nehad.field.deformation import DeformationField
-from nehad.losses import psnr, view_loss
+from nehad.losses import view_loss
 from nehad.lod import schedule_for
 from nehad.model import NeHaDModel, RunError, model_from_state
 from nehad.optim import make_optimizer, set_learning_rates
@@ -34,7 +34,8 @@ from nehad.initial import initial_gaussians, scene_bounds
 from nehad.motion_priors import MotionPriors
 from nehad.schedule import Phase, Schedule
 from nehad.splat.rasterize import render_torch
-from nehad.views import Views, downscale_views, recomposite, resolve_background, views_of
+from nehad.views import (Views, downscale_views, recomposite, resolve_background, shown_psnr,
+                         views_of)
 
 
 class Trainer:
@@ -58,14 +59,13 @@ class Trainer:
         self.scene = load_dataset(self.data_dir, splits=(cfg.data.train_split,),
                                   background=load_bg, downscale=cfg.data.downscale,
                                   frame_stride=cfg.data.frame_stride)
-        has_alpha = any(f.alpha is not None for f in self.scene.frames[cfg.data.train_split])
-        self.background = resolve_background(cfg.data.background, has_alpha)
+        self.background = resolve_background(cfg.data.background, any(
+            f.alpha is not None for f in self.scene.frames[cfg.data.train_split]))
         self.train_views = views_of(self.scene, cfg.data.train_split)
         self._scaled_views: dict = {}
         self.extent = float(self.scene.extent)
         self.aabb = scene_bounds(self.scene.initial_points)
-        self.total_steps = self.schedule.total_steps
-        self.step = 0
+        self.total_steps, self.step = self.schedule.total_steps, 0
         prepare_run_dir(self.run, cfg, resume)
         self._build(self._latest_checkpoint() if resume else None)
 
@@ -111,12 +111,10 @@ class Trainer:
                                      frame_stride=cfg.data.frame_stride), cfg.data.train_split)
 
     @property
-    def layer_sizes(self) -> list[int]:
-        """Gaussian counts of the finished streaming layers ([] without layers)."""
+    def layer_sizes(self) -> list[int]:  # of the finished streaming layers ([] without layers)
         return self.schedule.layer_sizes
 
-    def log_event(self, text: str) -> None:
-        """A line about the run's progress (shown with the progress bar)."""
+    def log_event(self, text: str) -> None:  # a line about the run's progress, with the bar
         if self.progress and self.log is not None:
             self.log(text)
 
@@ -160,14 +158,14 @@ class Trainer:
         views = self.views_at(step, phase)
         rng = np.random.default_rng([self.cfg.train.seed, step])
         picks = self._pick_views(phase, views, window, rng)
-        total, psnrs, renders = self._render_loss(phase, step, views, picks, rng,
-                                                  self.logs_step(step))
+        with self.model.field.hexplane.adding_gradients_in_place():
+            scored = self._render_loss(phase, step, views, picks, rng, self.logs_step(step))
+        total, psnrs, renders = scored
         self._update(total, phase, window)
         did = self._change_model(phase, step, window, renders)
         record = {"step": step + 1, "stage": phase.stage, "loss": float(total.item()),
-                  "psnr": float(np.mean(psnrs)) if psnrs else None,
-                  "gaussians": len(self.model.gaussians),
-                  "sh_degree": self.active_sh_degree(step),
+                  "psnr": float(np.mean(psnrs)) if psnrs else None,  # logged steps only
+                  "gaussians": len(self.model.gaussians), "sh_degree": self.active_sh_degree(step),
                   "window": [round(window.lo, 4), round(window.hi, 4)],
                   "resolution": list(renders[-1][0].rgb.shape[1::-1]),
                   **{k: v for k, v in did.items() if k != "gaussians"}}
@@ -191,13 +189,10 @@ class Trainer:
 
     def logs_step(self, step: int) -> bool:
         """Whether step `step` (0-based) is one `train` writes to metrics.jsonl and the bar."""
-        done = step + 1
-        return done % self.cfg.train.log_interval == 0 or done == self.total_steps
+        return (step + 1) % self.cfg.train.log_interval == 0 or step + 1 == self.total_steps
 
-    def _render_loss(self, phase: Phase, step: int, views: Views, picks, rng,
-                     score: bool = True):
-        """(the step's loss, each view's PSNR against the evaluation background (with `score`;
-        else none: only logged steps show it, and it took 2% of a `nehad demo` step), and
+    def _render_loss(self, phase: Phase, step: int, views: Views, picks, rng, score: bool):
+        """(the step's loss, each view's PSNR if `score` (a logged step; 2% of a demo step),
         (render, camera) per view)."""
         cfg = self.cfg
         degree = self.active_sh_degree(step)
@@ -218,11 +213,7 @@ class Trainer:
                 total = total + prior / len(picks)
             renders.append((res, cam))
             if score:  # logged against the evaluation background, whatever the step trained over
-                psnrs.append(psnr(recomposite(res.rgb.detach(), res.alpha.detach()[:, :, None],
-                                              background, self.background),
-                                  recomposite(target, alpha, background, self.background)
-                                  if alpha is not None and background != self.background
-                                  else target))
+                psnrs.append(shown_psnr(res, target, alpha, background, self.background))
         if phase.deforms:
             total = total + self.model.field.regularization_loss()
         if not torch.isfinite(total):

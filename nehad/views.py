@@ -52,6 +52,18 @@ def recomposite(image: torch.Tensor, alpha: torch.Tensor, old_bg, new_bg) -> tor
     return image + delta * (1.0 - alpha)
 
 
+def shown_psnr(res, target: torch.Tensor, alpha, background, shown) -> float:
+    """PSNR of a render `res` (rgb, alpha) made over `background` against its `target` (alpha:
+    the target's, or None) composited there, both seen over the background `shown` (a training
+    step's logged PSNR is against the evaluation background, whatever the step trained over)."""
+    from nehad.losses import psnr
+
+    if alpha is not None and background != shown:
+        target = recomposite(target, alpha, background, shown)
+    return psnr(recomposite(res.rgb.detach(), res.alpha.detach()[:, :, None], background, shown),
+                target)
+
+
 def resolve_background(configured, scene_has_alpha: bool) -> tuple[float, float, float]:
     """The colour a run renders over: data.background when set, else white for scenes with
     alpha (the D-NeRF convention) and black for the others."""

@@ -224,6 +224,33 @@ def test_plane_regularisers_equal_the_per_plane_passes_bit_for_bit():
     assert float(space.detach()) > 0 and float(time_.detach()) > 0 and float(l1.detach()) > 0
 
 
+def test_plane_regularisers_add_into_the_planes_grad_in_place():
+    """With `into_grad`, planes that hold a `.grad` get the regularisers' gradients added into
+    it (scaled in the same pass), as autograd's addition of the returned ones gives to float
+    rounding; a plane without one gets its gradient returned as before."""
+    from nehad.field.hexplane import PLANE_AXES, TIME_PLANES
+    from nehad.field.plane_regularisers import plane_regularisers
+
+    hp = _planes(seed=12).float()
+    planes = [p for scale in hp.planes for p in scale]
+    timed = [k in TIME_PLANES for _ in hp.planes for k in range(len(PLANE_AXES))]
+    before = [torch.randn(p.shape, generator=torch.Generator().manual_seed(20 + i))
+              for i, p in enumerate(planes)]
+    results = []
+    for into_grad in (False, True):
+        for i, (p, b) in enumerate(zip(planes, before)):
+            p.grad = None if i == 3 else b.clone()  # plane 3 without one
+        space, time_, l1 = plane_regularisers(planes, timed, into_grad=into_grad)
+        held = [p.grad for p in planes]
+        (0.3 * space + 0.7 * time_ + 1.9 * l1).backward()
+        if into_grad:  # in place: the same tensors
+            assert all(p.grad is h for i, (p, h) in enumerate(zip(planes, held)) if i != 3)
+        results.append([p.grad.clone() for p in planes])
+    for ref, mine, b in zip(*results, before):
+        assert (ref - b).abs().max() > 0
+        assert (mine - ref).abs().max() <= 1e-6 * ref.abs().max()
+
+
 def test_field_regularisers_match_the_torch_path():
     """DeformationField.regularization_terms: the same three values through the Numba kernels
     as through torch."""
@@ -321,3 +348,45 @@ def test_a_non_finite_coordinate_reads_inside_the_planes():
     assert torch.equal(out.detach(), hexplane_lookup(fixed, planes, PLANE_AXES).detach())
     keep = [i for i in range(20) if i not in (3, 5, 7)]
     assert torch.equal(out.detach()[keep], ref[keep])
+
+
+def test_gradients_added_in_place_equal_the_returned_ones():
+    """With `into_grad`, planes whose `.grad` are views of one flat array (as TrainingAdam
+    installs them), already holding a gradient, end with that gradient plus the lookup's, as
+    when the lookup returns its gradients for autograd to add; dL/du is the same bits; planes
+    with a `.grad` of their own get theirs returned and added by autograd."""
+    from nehad.field.hexplane_kernel import gradients_into
+    from nehad.optim import _views
+
+    hp = _planes(seed=7).float()
+    planes = [p.detach().contiguous(memory_format=torch.channels_last)
+              for scale in hp.planes for p in scale]
+    u = torch.cat([_points(seed=8).float(), torch.full((300, 1), -0.4)], 1)
+    weight = torch.randn(300, 16, generator=torch.Generator().manual_seed(10))
+    weight[::5] = 0.0
+    before = torch.randn(sum(p.numel() for p in planes),
+                         generator=torch.Generator().manual_seed(11))
+    results = []
+    for into_grad, flat in ((False, True), (True, True), (True, False)):
+        leaves = [p.clone().requires_grad_(True) for p in planes]
+        grad = before.clone()
+        if flat:  # one array in the planes' layout, as TrainingAdam.zero_grad makes it
+            for p, view in zip(leaves, _views(grad, leaves)):
+                p.grad = view
+        else:
+            for p, view in zip(leaves, _views(grad, leaves)):
+                p.grad = view.clone()
+        x = u.clone().requires_grad_(True)
+        out = hexplane_lookup(x, leaves, PLANE_AXES, time_grad=False, into_grad=into_grad)
+        offsets = torch.tensor([0] + [p.numel() for p in leaves]).cumsum(0).numpy()
+        assert (gradients_into(leaves, offsets) is not None) == flat
+        (out * weight).sum().backward()
+        results.append((x.grad, [p.grad.clone() for p in leaves]))
+    reference = results[0]
+    start = _views(before, planes)
+    assert reference[0].abs().max() > 0
+    assert all((r - s).abs().max() > 0 for r, s in zip(reference[1], start))  # it added some
+    for grad_x, grads in results[1:]:
+        assert torch.equal(grad_x, reference[0])
+        for mine, ref in zip(grads, reference[1]):
+            assert (mine - ref).abs().max() <= 1e-6 * ref.abs().max()

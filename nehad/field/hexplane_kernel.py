@@ -620,10 +620,13 @@ class HexPlaneLookup(torch.autograd.Function):
     """features (N, S C) = the product over planes of bilinear samples (module docstring), for
     u (N, 4) = (x, y, z, t') and the S x 6 planes (1, C, H, W) in HexPlane's order. With
     `time_grad` False, dL/du is not computed along t (returned 0 there: for a time column that
-    requires no gradient)."""
+    requires no gradient). With `into_grad`, the backward adds the planes' gradients straight
+    into their `.grad` when those are views of one flat array laid out as the planes' table
+    (as `nehad.optim.TrainingAdam.zero_grad` installs them) and returns none for them
+    (`gradients_into`); otherwise it returns them, as autograd expects."""
 
     @staticmethod
-    def forward(ctx, u, axes, time_grad, *planes):
+    def forward(ctx, u, axes, time_grad, into_grad, *planes):
         channels = planes[0].shape[1]
         n_scales = len(planes) // 6
         sizes = [p.numel() for p in planes]
@@ -654,6 +657,7 @@ class HexPlaneLookup(torch.autograd.Function):
                      channels, [tuple(p.shape) for p in planes], order,
                      [p.is_contiguous(memory_format=torch.channels_last) for p in planes])
         ctx.time_grad = bool(time_grad)
+        ctx.planes = planes if into_grad else None  # their `.grad` is read at the backward
         return torch.from_numpy(out)
 
     @staticmethod
@@ -673,7 +677,8 @@ class HexPlaneLookup(torch.autograd.Function):
         m = len(order)
         sorted_g = np.empty((m, g.shape[1]), np.float32)
         _take_rows(g, order, sorted_g)
-        grad_tables = np.zeros_like(flat)
+        sink = None if ctx.planes is None else gradients_into(ctx.planes, offsets)
+        grad_tables = np.zeros_like(flat) if sink is None else sink
         space = ctx.needs_input_grad[0]  # dL/du along x, y, z; along t only if asked
         wanted = np.array([space, space, space, space and ctx.time_grad], np.bool_)
         # dL/du per scale, summed over the scales at the end: the same sums either way below
@@ -691,6 +696,10 @@ class HexPlaneLookup(torch.autograd.Function):
         sorted_grad_u = by_scale.sum(axis=0)
         grad_u = np.zeros((n, 4), np.float32)
         _put_rows(sorted_grad_u, order, grad_u)
+        if sink is not None:  # added into the planes' .grad: tell autograd they changed
+            torch.autograd.graph.increment_version(ctx.planes[0].grad)
+            return (torch.from_numpy(grad_u) if space else None, None, None, None,
+                    *[None] * len(shapes))
         plane_grads = []
         for p, (shape, last) in enumerate(zip(shapes, channel_last)):
             table = grad_tables[offsets[p]:offsets[p + 1]]
@@ -700,13 +709,26 @@ class HexPlaneLookup(torch.autograd.Function):
             out = np.empty(shape[1:], np.float32)
             _to_channel_first(table, out)
             plane_grads.append(torch.from_numpy(out).reshape(shape))
-        return (torch.from_numpy(grad_u) if space else None, None, None, *plane_grads)
+        return (torch.from_numpy(grad_u) if space else None, None, None, None, *plane_grads)
 
 
-def hexplane_lookup(u: torch.Tensor, planes, axes, time_grad: bool = True) -> torch.Tensor:
+def gradients_into(planes, offsets):
+    """The flat float32 array the planes' `.grad` are channel-last views of, one after the
+    other at `offsets` (the layout of the lookup's table), or None (a plane without `.grad`,
+    gradients of their own): where the lookup's backward may add its gradients in place."""
+    grads = [p.grad for p in planes]
+    if any(g is None for g in grads):
+        return None
+    return _shared_table(grads, offsets)
+
+
+def hexplane_lookup(u: torch.Tensor, planes, axes, time_grad: bool = True,
+                    into_grad: bool = False) -> torch.Tensor:
     """`HexPlaneLookup` of points u (N, 4) and the planes (flat list, scale-major); with
-    `time_grad` False no dL/du along t (the caller's time column needs none)."""
-    return HexPlaneLookup.apply(u, tuple(axes), time_grad, *planes)
+    `time_grad` False no dL/du along t (the caller's time column needs none); with `into_grad`
+    the planes' gradients go straight into their `.grad` where it is one flat array (for a
+    `.backward()` only: a `torch.autograd.grad` would find them there, not in its result)."""
+    return HexPlaneLookup.apply(u, tuple(axes), time_grad, into_grad, *planes)
 
 
 __all__ = ["HexPlaneLookup", "PlaneTV", "TimeRegularisers", "hexplane_lookup", "plane_tv",
