@@ -16,6 +16,8 @@ subtracts.
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
 
 
@@ -23,11 +25,28 @@ def _quat_conj(q: torch.Tensor) -> torch.Tensor:
     return q * torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
 
 
+@contextlib.contextmanager
+def _parameters_fixed(field):
+    """The field's parameters (a module's; a plain function has none) need no gradient inside:
+    its backward passes then compute the gradient by their inputs alone (the hex-plane lookup
+    no plane gradient, the fused decoder no weight gradient; the same input gradient, bit for
+    bit)."""
+    params = field.parameters() if isinstance(field, torch.nn.Module) else ()
+    held = [p for p in params if p.requires_grad]
+    for p in held:
+        p.requires_grad_(False)
+    try:
+        yield
+    finally:
+        for p in held:
+            p.requires_grad_(True)
+
+
 def _newton(field, mu, ls, q, t_eq, want_mu, reach: torch.Tensor, steps: int):
     """Damped Newton steps on field(mu, t_eq) = want_mu (each step at most `reach` long)."""
     for _ in range(steps):
         x = mu.detach().clone().requires_grad_(True)
-        with torch.enable_grad():
+        with torch.enable_grad(), _parameters_fixed(field):
             got = field(x, ls, q, t_eq, x.detach(), t_eq).means
             jac = torch.stack([torch.autograd.grad(got[:, i].sum(), x, retain_graph=i < 2)[0]
                                for i in range(3)], 1)

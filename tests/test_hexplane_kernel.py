@@ -390,3 +390,20 @@ def test_gradients_added_in_place_equal_the_returned_ones():
         assert torch.equal(grad_x, reference[0])
         for mine, ref in zip(grads, reference[1]):
             assert (mine - ref).abs().max() <= 1e-6 * ref.abs().max()
+
+
+def test_points_gradient_alone_when_no_plane_needs_one():
+    """Planes that need no gradient (fixed, as for the carried objects' Jacobian by the means):
+    dL/du is the same bits as with the planes' gradients computed too."""
+    planes = [p.detach().float().contiguous(memory_format=torch.channels_last)
+              for scale in _planes(seed=13).planes for p in scale]
+    u = torch.cat([_points(seed=14).float(), torch.full((300, 1), 0.6)], 1)
+    weight = torch.randn(300, 16, generator=torch.Generator().manual_seed(15))
+    grads = []
+    for planes_grad in (True, False):
+        x = u.clone().requires_grad_(True)
+        leaves = [p.clone().requires_grad_(planes_grad) for p in planes]
+        (hexplane_lookup(x, leaves, PLANE_AXES) * weight).sum().backward()
+        grads.append(x.grad)
+        assert all((p.grad is None) != planes_grad for p in leaves)
+    assert grads[0].abs().max() > 0 and torch.equal(grads[0], grads[1])

@@ -426,3 +426,38 @@ def test_decoder_fused_features_fuses_trunk_and_adapters(monkeypatch):
         assert b.abs().max() > 0 and _rel(a, b) < 1e-12
     assert grads[0][:5].abs().max() == 0 and grads[0][8].abs().max() == 0
     assert ref_dec.fused_features(f, trunk, adapters) is None  # closed form: not fused
+
+
+@pytest.mark.parametrize("depth", [1, 2])
+def test_input_gradient_alone_when_no_parameter_needs_one(depth, monkeypatch):
+    """The training path's fused decoder with every parameter fixed (requires_grad False, as
+    for the carried objects' Jacobian by the means, nehad.placement): dL/df is the same bits as
+    with the parameters' gradients computed too, and the parameters get none."""
+    from nehad.field.adapters import Adapters
+
+    torch.manual_seed(33)
+    trunk = torch.nn.Linear(6, 8)
+    adapters = Adapters(8)
+    with torch.no_grad():
+        for p in adapters.parameters():
+            p.normal_()
+    dec = HamiltonianDecoder(8, 5, depth, "softplus", grad_mode="fused", quadratic=True)
+    with torch.no_grad():
+        dec.quad1.normal_()
+        dec.quad2.normal_()
+    modules = (trunk, adapters, dec)
+    weights = torch.randn(12, 13)
+    weights[3] = 0.0
+    monkeypatch.setattr(hnn_blocks, "BLOCK_ROWS", 5)
+    grads = []
+    for fixed in (False, True):
+        for m in modules:
+            m.requires_grad_(not fixed)
+            m.zero_grad(set_to_none=True)
+        f = torch.randn(12, 6, generator=torch.Generator().manual_seed(34), requires_grad=True)
+        _, ad, force = dec.fused_features(f, trunk, adapters)
+        out = torch.cat([ad.dmu, ad.ds, ad.q, force], dim=1)
+        (out * weights).sum().backward()
+        grads.append(f.grad)
+        assert all((p.grad is None) == fixed for m in modules for p in m.parameters())
+    assert grads[0].abs().max() > 0 and torch.equal(grads[0], grads[1])

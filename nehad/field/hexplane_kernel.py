@@ -678,12 +678,14 @@ class HexPlaneLookup(torch.autograd.Function):
         sorted_g = np.empty((m, g.shape[1]), np.float32)
         _take_rows(g, order, sorted_g)
         sink = None if ctx.planes is None else gradients_into(ctx.planes, offsets)
-        grad_tables = np.zeros_like(flat) if sink is None else sink
+        planes_wanted = any(ctx.needs_input_grad[4:])  # none: a Jacobian by the points
+        grad_tables = (sink if sink is not None else np.zeros_like(flat) if planes_wanted
+                       else None)
         space = ctx.needs_input_grad[0]  # dL/du along x, y, z; along t only if asked
         wanted = np.array([space, space, space, space and ctx.time_grad], np.bool_)
         # dL/du per scale, summed over the scales at the end: the same sums either way below
         by_scale = np.zeros((n_scales, m, 4), np.float32)
-        if backward_by_scale(n_scales):
+        if planes_wanted and backward_by_scale(n_scales):
             _grads_by_scale(sorted_u, flat, offsets, heights, widths, axis_a, axis_b, n_scales,
                             channels, wanted, sorted_g, by_scale, grad_tables)
         else:
@@ -691,13 +693,15 @@ class HexPlaneLookup(torch.autograd.Function):
             grad_samples = np.empty((n_scales * 6, m, channels), np.float32)
             _point_grads(sorted_u, flat, offsets, heights, widths, axis_a, axis_b, n_scales,
                          channels, wanted, sorted_g, grad_samples, by_scale, _chunks(m))
-            _plane_grads(sorted_u, offsets, heights, widths, axis_a, axis_b, channels,
-                         grad_samples, grad_tables)
+            if planes_wanted:
+                _plane_grads(sorted_u, offsets, heights, widths, axis_a, axis_b, channels,
+                             grad_samples, grad_tables)
         sorted_grad_u = by_scale.sum(axis=0)
         grad_u = np.zeros((n, 4), np.float32)
         _put_rows(sorted_grad_u, order, grad_u)
-        if sink is not None:  # added into the planes' .grad: tell autograd they changed
-            torch.autograd.graph.increment_version(ctx.planes[0].grad)
+        if sink is not None or not planes_wanted:
+            if sink is not None:  # added into the planes' .grad: tell autograd they changed
+                torch.autograd.graph.increment_version(ctx.planes[0].grad)
             return (torch.from_numpy(grad_u) if space else None, None, None, None,
                     *[None] * len(shapes))
         plane_grads = []

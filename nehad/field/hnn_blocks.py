@@ -127,33 +127,39 @@ def _backward_block(nets: _Nets, saved: _Saved, grads, grad_h: torch.Tensor, d_w
                     d_delta: Optional[torch.Tensor] = None) -> None:
     """For one block of rows: grad_h (b, W) = dL/dh of the block, and the block's share of the
     parameters' gradients added to d_weights (W_k's, (2, H, in)), d_biases (L, 2, H) and
-    d_w_out (2, H); grads (2, b, W) = (dL/dg1, dL/dg2) of the block. Or, given `d_delta` =
-    dL/ddelta_1 (2, b, H) instead of grads (`_Composed`, where g is not formed), from there on:
-    d_weights[0] then gets only the first layer's input side, dz^T h."""
+    d_w_out (2, H) (d_weights None: no parameter gradients); grads (2, b, W) = (dL/dg1,
+    dL/dg2) of the block. Or, given `d_delta` = dL/ddelta_1 (2, b, H) instead of grads
+    (`_Composed`, where g is not formed), from there on: d_weights[0] then gets only the first
+    layer's input side, dz^T h."""
     acts, derivs, curvs, us, deltas, _ = saved
     h, depth = acts[0], nets.depth
     b, hidden = h.shape[0], nets.weights[0].shape[1]
     chunks = _chunks(b)
     parts = np.empty((chunks, 2, hidden), dtype=nets.w_out.dtype)
+    weights = d_weights is not None
     if d_delta is None:
         d_delta = torch.bmm(grads, nets.weights[0].transpose(1, 2))
-        d_weights[0].baddbmm_(deltas[0].transpose(1, 2), grads)
+        if weights:
+            d_weights[0].baddbmm_(deltas[0].transpose(1, 2), grads)
     partial = [None] * depth  # P_k
     for k in range(depth - 1):
         du, p = torch.empty_like(d_delta), torch.empty_like(d_delta)
         _delta_backward(_np(d_delta), _np(derivs[k]), _np(us[k]), _np(curvs[k]), _np(du),
                         _np(p), chunks)
         partial[k] = p
-        d_weights[k + 1].baddbmm_(deltas[k + 1].transpose(1, 2), du)
+        if weights:
+            d_weights[k + 1].baddbmm_(deltas[k + 1].transpose(1, 2), du)
         d_delta = _per_net(du, nets.weights[k + 1].transpose(1, 2))
     dz = torch.empty_like(d_delta)
     dw_parts = np.empty_like(parts)
     _last_backward(_np(d_delta), _np(derivs[-1]), _np(curvs[-1]), nets.w_out, _np(dz),
                    dw_parts, parts, chunks)
-    d_w_out += dw_parts.sum(axis=0)
+    if weights:
+        d_w_out += dw_parts.sum(axis=0)
     for k in range(depth - 1, -1, -1):
-        d_biases[k] += parts.sum(axis=0)
-        d_weights[k].baddbmm_(dz.transpose(1, 2), _layer_input(acts, k))
+        if weights:
+            d_biases[k] += parts.sum(axis=0)
+            d_weights[k].baddbmm_(dz.transpose(1, 2), _layer_input(acts, k))
         if k == 0:
             break
         da = _per_net(dz, nets.weights[k])

@@ -133,8 +133,10 @@ class FusedInputGradients(torch.autograd.Function):
         ctx.saved_tensors  # raises if x or a parameter was modified in place since the forward
         nets, saved, field, quads, head, xd, tail, g_all, composed = ctx.kept
         n, width, dtype = xd.shape[0], nets.weights[0].shape[2], xd.dtype
-        if composed is not None:
-            return _composed_backward(composed, saved, xd, upstream, quads is not None)
+        if composed is not None:  # dL/dx alone where no parameter needs a gradient
+            wanted = ctx.needs_input_grad[7:]
+            return _composed_backward(composed, saved, xd, upstream, quads is not None,
+                                      None if any(wanted) else len(wanted))
         if tail is not None:  # the adapters' and the force's upstream gradients (None: zero)
             g_out, g_force = [None if u is None else u.contiguous() for u in upstream]
             sums = tail.zero_sums()

@@ -220,11 +220,12 @@ class _Composed(NamedTuple):
                 torch.zeros_like(self.const)]
 
     def backward_block(self, saved: _Saved, grad: torch.Tensor, grad_f: torch.Tensor,
-                       sums: list) -> None:
+                       sums) -> None:
         """grad_f (b, F) = dL/df of a block (0 on its rows without a gradient) from grad (b, J)
-        = dL/d[out | force] (contiguous), and the block's share of the sums (`zero_sums`)."""
+        = dL/d[out | force] (contiguous), and the block's share of the sums (`zero_sums`; None:
+        no parameter gradients wanted, dL/df alone)."""
         f = saved.acts[0]
-        d_weights, d_biases, d_w_out, d_q, d_kw, d_const = sums
+        d_weights, d_biases, d_w_out, d_q, d_kw, d_const = sums or [None] * 6
         rows = _rows_with_gradient(grad[None])
         if rows is not None:
             if len(rows) == 0:
@@ -236,13 +237,16 @@ class _Composed(NamedTuple):
         m = grad.shape[0]
         both = grad.expand(2, m, grad.shape[1])
         d_delta = torch.bmm(both, self.q.transpose(1, 2))
-        d_q.baddbmm_(saved.deltas[0].transpose(1, 2), both)
+        if sums is not None:
+            d_q.baddbmm_(saved.deltas[0].transpose(1, 2), both)
         out = grad_f if rows is None else torch.empty((m, grad_f.shape[1]), dtype=grad_f.dtype)
         _backward_block(self.nets, saved, None, out, d_weights, d_biases, d_w_out, d_delta)
         if self.kw is not None:
             out.addmm_(grad, self.kw.T)
-            d_kw.addmm_(f.T, grad)
-        d_const += grad.sum(dim=0)
+            if sums is not None:
+                d_kw.addmm_(f.T, grad)
+        if sums is not None:
+            d_const += grad.sum(dim=0)
         if rows is not None:
             _place(grad_f, rows, out)
 
@@ -271,17 +275,21 @@ class _Composed(NamedTuple):
 
 
 def _composed_backward(composed: _Composed, saved: list, xd: torch.Tensor, upstream,
-                       quadratic: bool) -> tuple:
-    """`FusedInputGradients.backward` of the training path (`_Composed`)."""
+                       quadratic: bool, n_params=None) -> tuple:
+    """`FusedInputGradients.backward` of the training path (`_Composed`); given `n_params`,
+    dL/dx alone (none of the parameters needs a gradient: a Jacobian by the input), with None
+    for each of the n_params parameters."""
     tail, n, dtype = composed.tail, xd.shape[0], xd.dtype
     grad = torch.zeros((n, tail.n_out + 3), dtype=dtype)
     for part, u in ((grad[:, :tail.n_out], upstream[0]), (grad[:, tail.n_out:], upstream[1])):
         if u is not None:
             part.copy_(u)
     grad_x = torch.empty(xd.shape, dtype=dtype)
-    sums = composed.zero_sums()
+    sums = composed.zero_sums() if n_params is None else None
     for (lo, hi), block in zip(_blocks(n), saved):
         composed.backward_block(block, grad[lo:hi], grad_x[lo:hi], sums)
+    if sums is None:
+        return (grad_x, None, None, None, None, None, None, *[None] * n_params)
     d_weights, d_biases, d_w_out, d_head, tail_sums = composed.parameter_grads(sums)
     net_grads = []
     for i in range(2):
