@@ -28,9 +28,8 @@ def _quat_conj(q: torch.Tensor) -> torch.Tensor:
 @contextlib.contextmanager
 def _parameters_fixed(field):
     """The field's parameters (a module's; a plain function has none) need no gradient inside:
-    its backward passes then compute the gradient by their inputs alone (the hex-plane lookup
-    no plane gradient, the fused decoder no weight gradient; the same input gradient, bit for
-    bit)."""
+    the fused decoder's backward then computes the gradient by its input alone, no weight
+    gradient (the same input gradient, bit for bit)."""
     params = field.parameters() if isinstance(field, torch.nn.Module) else ()
     held = [p for p in params if p.requires_grad]
     for p in held:

@@ -679,13 +679,14 @@ class HexPlaneLookup(torch.autograd.Function):
         _take_rows(g, order, sorted_g)
         sink = None if ctx.planes is None else gradients_into(ctx.planes, offsets)
         planes_wanted = any(ctx.needs_input_grad[4:])  # none: a Jacobian by the points
-        grad_tables = (sink if sink is not None else np.zeros_like(flat) if planes_wanted
-                       else None)
+        grad_tables = sink if sink is not None else np.zeros_like(flat)
         space = ctx.needs_input_grad[0]  # dL/du along x, y, z; along t only if asked
         wanted = np.array([space, space, space, space and ctx.time_grad], np.bool_)
         # dL/du per scale, summed over the scales at the end: the same sums either way below
         by_scale = np.zeros((n_scales, m, 4), np.float32)
-        if planes_wanted and backward_by_scale(n_scales):
+        # per scale, the planes' gradients are made whether wanted or not: the pass over the
+        # points alone (`_point_grads`) is another kernel to compile, 8 s on a first run
+        if backward_by_scale(n_scales):
             _grads_by_scale(sorted_u, flat, offsets, heights, widths, axis_a, axis_b, n_scales,
                             channels, wanted, sorted_g, by_scale, grad_tables)
         else:
