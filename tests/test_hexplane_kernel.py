@@ -407,3 +407,35 @@ def test_points_gradient_alone_when_no_plane_needs_one():
         grads.append(x.grad)
         assert all((p.grad is None) != planes_grad for p in leaves)
     assert grads[0].abs().max() > 0 and torch.equal(grads[0], grads[1])
+
+
+def test_fixed_planes_keep_their_grad_under_into_grad():
+    """Planes that need no gradient hold on to the `.grad` they have, under `into_grad`: the
+    lookup's backward (every plane fixed, a Jacobian by the points) and the regularisers'
+    (every other plane fixed) add nothing into it; the others' `.grad` still changes."""
+    from nehad.field.hexplane import TIME_PLANES
+    from nehad.field.plane_regularisers import plane_regularisers
+    from nehad.optim import _views
+
+    planes = [p.detach().float().contiguous(memory_format=torch.channels_last)
+              for scale in _planes(seed=16).planes for p in scale]
+    before = torch.randn(sum(p.numel() for p in planes),
+                         generator=torch.Generator().manual_seed(17))
+
+    def install():  # one flat array, as TrainingAdam.zero_grad installs it
+        for p, view in zip(planes, _views(before.clone(), planes)):
+            p.grad = view
+        return [p.grad.clone() for p in planes]
+
+    held = install()
+    x = torch.cat([_points(seed=18).float(), torch.full((300, 1), 0.1)], 1).requires_grad_(True)
+    hexplane_lookup(x, planes, PLANE_AXES, time_grad=False, into_grad=True).sum().backward()
+    assert x.grad.abs().max() > 0
+    assert all(torch.equal(p.grad, h) for p, h in zip(planes, held))
+    held = install()
+    for k, p in enumerate(planes):
+        p.requires_grad_(k % 2 == 0)
+    timed = [k in TIME_PLANES for _ in range(2) for k in range(len(PLANE_AXES))]
+    sum(plane_regularisers(planes, timed, into_grad=True)).backward()
+    for k, (p, h) in enumerate(zip(planes, held)):
+        assert torch.equal(p.grad, h) != (k % 2 == 0), k

@@ -677,8 +677,9 @@ class HexPlaneLookup(torch.autograd.Function):
         m = len(order)
         sorted_g = np.empty((m, g.shape[1]), np.float32)
         _take_rows(g, order, sorted_g)
-        sink = None if ctx.planes is None else gradients_into(ctx.planes, offsets)
         planes_wanted = any(ctx.needs_input_grad[4:])  # none: a Jacobian by the points
+        sink = (gradients_into(ctx.planes, offsets) if ctx.planes is not None and planes_wanted
+                else None)
         grad_tables = sink if sink is not None else np.zeros_like(flat)
         space = ctx.needs_input_grad[0]  # dL/du along x, y, z; along t only if asked
         wanted = np.array([space, space, space, space and ctx.time_grad], np.bool_)

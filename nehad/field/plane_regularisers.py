@@ -55,8 +55,8 @@ class PlaneRegularisers(torch.autograd.Function):
         views, ctx.views = ctx.views, None  # the forward's own arrays, scaled in place
         held = ctx.planes or [None] * len(views)
         out = []
-        for (first, l1), plane in zip(views, held):
-            grad = None if plane is None else plane.grad
+        for (first, l1), plane, wanted in zip(views, held, ctx.needs_input_grad[2:]):
+            grad = None if plane is None or not wanted else plane.grad
             if grad is not None:  # added into the plane's .grad, scaled on the way
                 grad.add_(first, alpha=float(grad_tv if l1 is None else grad_second))
                 if l1 is not None:
