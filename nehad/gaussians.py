@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from torch import nn
 
+import nehad.vector_math  # noqa: F401  (MKL set up serially before any parallel call)
 from nehad.neighbours import nearest_neighbours
 from nehad.runtime.gaussians import SH_C0, GaussianCloud
 
